@@ -1,0 +1,28 @@
+# The two commands of the README: `make run` (set up, then the main job) and `make test`.
+SHELL := /bin/bash
+VENV ?= .venv
+RUN_DIR ?= runs/default
+PYTEST_ARGS ?=
+
+.PHONY: setup run test lint bench clean
+
+setup:
+	@bash scripts/setup.sh
+
+run: setup
+	$(VENV)/bin/idr-eval run conf/default.yaml --out $(RUN_DIR)
+
+test: setup
+	$(VENV)/bin/ruff check pipeline workers tests benchmarks
+	$(VENV)/bin/ruff format --check pipeline workers tests benchmarks
+	$(VENV)/bin/python -m pytest $(PYTEST_ARGS)
+
+lint: setup
+	$(VENV)/bin/ruff check --fix pipeline workers tests benchmarks
+	$(VENV)/bin/ruff format pipeline workers tests benchmarks
+
+bench: setup
+	$(VENV)/bin/python benchmarks/bench_idr_passes.py
+
+clean:
+	rm -rf runs .pytest_cache

@@ -1,0 +1,182 @@
+"""From the episodes table to the numbers a paper reports, with honest uncertainty.
+
+- success per task, per suite and overall, with Wilson 95% intervals (scipy);
+- for chain tasks (subtasks_total > 1): the i/N completion rates and Avg Len (mean completed
+  subtasks, CALVIN-style), with a bootstrap interval;
+- completion time: simulated seconds to success over successful episodes, and wall seconds;
+- per cell, the paired difference against the baseline cell on identical keys
+  (task_id, episode_index): exact McNemar p-value (binomial test on discordant pairs) and a
+  bootstrap interval of the mean difference.
+
+Error rows are excluded from every rate and counted apart.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+from scipy.stats import binomtest
+
+Z95 = 0.95
+
+
+def wilson(successes: int, n: int, confidence: float = Z95) -> tuple[float, float]:
+    if n == 0:
+        return (float("nan"), float("nan"))
+    ci = binomtest(int(successes), int(n)).proportion_ci(
+        confidence_level=confidence, method="wilson"
+    )
+    return (float(ci.low), float(ci.high))
+
+
+def bootstrap_mean_ci(
+    values: np.ndarray, n_boot: int = 2000, confidence: float = Z95, seed: int = 0
+) -> tuple[float, float]:
+    values = np.asarray(values, dtype=float)
+    if values.size == 0:
+        return (float("nan"), float("nan"))
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, values.size, size=(n_boot, values.size))
+    means = values[idx].mean(axis=1)
+    lo, hi = np.quantile(means, [(1 - confidence) / 2, 1 - (1 - confidence) / 2])
+    return (float(lo), float(hi))
+
+
+def mcnemar_exact(b: int, c: int) -> float:
+    """Two-sided exact McNemar p-value from the discordant counts b (only A) and c (only B)."""
+    if b + c == 0:
+        return 1.0
+    return float(binomtest(int(b), int(b + c), 0.5).pvalue)
+
+
+def _frame(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
+    return episodes.to_pandas() if isinstance(episodes, pa.Table) else episodes.copy()
+
+
+def _rate_rows(df: pd.DataFrame, by: list[str]) -> pd.DataFrame:
+    ok = df[df["error"].isna()]
+    errs = df[df["error"].notna()].groupby(by).size().rename("errors")
+    g = ok.groupby(by)
+    out = pd.DataFrame({"n": g.size(), "successes": g["success"].sum().astype(int)})
+    out = out.join(errs, how="outer").fillna({"n": 0, "successes": 0, "errors": 0})
+    out[["n", "successes", "errors"]] = out[["n", "successes", "errors"]].astype(int)
+    out["success_rate"] = np.where(out["n"] > 0, out["successes"] / out["n"].clip(lower=1), np.nan)
+    cis = [wilson(s, n) for s, n in zip(out["successes"], out["n"], strict=True)]
+    out["ci_low"] = [c[0] for c in cis]
+    out["ci_high"] = [c[1] for c in cis]
+    return out.reset_index()
+
+
+def success_by_task(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
+    return _rate_rows(_frame(episodes), ["cell_id", "suite", "task_id"])
+
+
+def success_by_suite(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
+    return _rate_rows(_frame(episodes), ["cell_id", "suite"])
+
+
+def success_overall(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
+    return _rate_rows(_frame(episodes), ["cell_id"])
+
+
+def chain_metrics(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
+    """Per cell and chain task: i/N rates (share of chains with >= i subtasks) and Avg Len."""
+    df = _frame(episodes)
+    df = df[df["error"].isna() & (df["subtasks_total"].fillna(1) > 1)]
+    rows = []
+    for (cell, suite, task), g in df.groupby(["cell_id", "suite", "task_id"]):
+        total = int(g["subtasks_total"].max())
+        done = g["subtasks_done"].to_numpy(dtype=float)
+        lo, hi = bootstrap_mean_ci(done)
+        row = {
+            "cell_id": cell,
+            "suite": suite,
+            "task_id": task,
+            "n": len(g),
+            "subtasks_total": total,
+            "avg_len": float(done.mean()),
+            "avg_len_low": lo,
+            "avg_len_high": hi,
+        }
+        for i in range(1, total + 1):
+            row[f"rate_{i}of{total}"] = float((done >= i).mean())
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def completion_times(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
+    """Mean simulated seconds to success (successful episodes) and mean wall seconds (all)."""
+    df = _frame(episodes)
+    df = df[df["error"].isna()]
+    rows = []
+    for (cell, suite), g in df.groupby(["cell_id", "suite"]):
+        s = g[g["success"]]
+        rows.append(
+            {
+                "cell_id": cell,
+                "suite": suite,
+                "sim_seconds_to_success": float(s["sim_seconds"].mean())
+                if len(s)
+                else float("nan"),
+                "wall_seconds_mean": float(g["wall_seconds"].mean()),
+                "inference_ms_mean": float(g["inference_ms_mean"].mean()),
+            }
+        )
+    return pd.DataFrame(rows)
+
+
+@dataclass(frozen=True)
+class PairedDiff:
+    cell_id: str
+    n_pairs: int
+    diff: float  # success(cell) - success(baseline) on the shared keys
+    ci_low: float
+    ci_high: float
+    p_value: float
+    only_cell: int  # discordant: cell succeeded, baseline failed
+    only_baseline: int
+
+
+def paired_vs_baseline(
+    episodes: pa.Table | pd.DataFrame, baseline: str = "baseline", n_boot: int = 2000
+) -> list[PairedDiff]:
+    df = _frame(episodes)
+    df = df[df["error"].isna()]
+    if baseline not in set(df["cell_id"]):
+        return []
+    key = ["suite", "task_id", "episode_index"]
+    base = df[df["cell_id"] == baseline].set_index(key)["success"]
+    out = []
+    for cell, g in df[df["cell_id"] != baseline].groupby("cell_id"):
+        joined = g.set_index(key)["success"].to_frame("cell").join(base.rename("base"), how="inner")
+        d = joined["cell"].astype(int).to_numpy() - joined["base"].astype(int).to_numpy()
+        lo, hi = bootstrap_mean_ci(d, n_boot=n_boot)
+        b, c = int((d == 1).sum()), int((d == -1).sum())
+        out.append(
+            PairedDiff(
+                str(cell),
+                len(d),
+                float(d.mean()) if len(d) else float("nan"),
+                lo,
+                hi,
+                mcnemar_exact(b, c),
+                b,
+                c,
+            )
+        )
+    return out
+
+
+def diagnostics_by_cell(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
+    df = _frame(episodes)
+    df = df[df["error"].isna()]
+    cols = ["gate_rate", "e_img_mean", "e_prop_mean", "r_img_mean"]
+    return df.groupby("cell_id")[cols].mean().reset_index()
+
+
+def errors(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
+    df = _frame(episodes)
+    return df[df["error"].notna()][["cell_id", "task_id", "episode_index", "attempt", "error"]]

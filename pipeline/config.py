@@ -1,0 +1,212 @@
+"""Run configuration: typed, validated before any work starts, saved with every run.
+
+A config is YAML (see ``conf/``) validated by pydantic models that forbid unknown keys.
+Command-line overrides are dotted ``key=value`` pairs whose values are parsed as YAML
+(``executor.workers=4``, ``grid=[{mode: [baseline, E]}]``). Every validation error names
+the field and what is allowed, in one message (:class:`ConfigError`).
+"""
+
+from __future__ import annotations
+
+import difflib
+import hashlib
+import json
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from pipeline.grid import Cell, expand_grid
+from workers.idr import GUIDANCES, MODES
+from workers.interventions import SPACES, STRATEGIES
+
+
+class ConfigError(ValueError):
+    """A config or override is invalid; the message names the field and the fix."""
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class BackboneConfig(_Model):
+    kind: str = Field(description="backbone type, e.g. fake_marker, lerobot")
+    params: dict[str, Any] = Field(default_factory=dict, description="passed to the backbone")
+    replan_steps: int = Field(default=4, ge=1, description="actions executed per inference")
+    batched: bool | None = Field(default=None, description="one 3B forward (None: if it can)")
+
+
+class EnvConfig(_Model):
+    suite: str = Field(description="env suite, e.g. fake_marker, tabletop, libero_spatial")
+    tasks: list[str] | None = Field(default=None, description="task ids; None = all of the suite")
+    params: dict[str, Any] = Field(default_factory=dict)
+
+
+class InterventionSettings(_Model):
+    strategy: Literal["zero", "mean", "gaussian"] = "zero"
+    image_space: Literal["raw", "normalized"] = "raw"
+    state_space: Literal["raw", "normalized"] = "raw"
+    noise_scale: float = Field(default=0.5, ge=0)
+
+
+class ExecutorConfig(_Model):
+    kind: Literal["ray", "inline"] = "ray"
+    workers: int = Field(default=2, ge=1, description="actors (each holds a backbone and an env)")
+    cpus_per_worker: float = Field(default=1.0, gt=0)
+    gpus_per_worker: float = Field(default=0.0, ge=0)
+    address: str | None = Field(default=None, description="existing Ray cluster; None = local")
+    max_in_flight: int | None = Field(default=None, ge=1, description="None: 2 per worker")
+    max_attempts: int = Field(default=3, ge=1, description="tries per episode before giving up")
+    oversubscribe: bool = Field(
+        default=False, description="allow more local worker CPUs than this machine has"
+    )
+    flush_every: int = Field(default=8, ge=1, description="episodes per Parquet batch")
+
+
+class TrackingConfig(_Model):
+    enabled: bool = True
+    uri: str | None = Field(
+        default=None, description="MLflow URI; None = sqlite in the output root"
+    )
+    experiment: str = "idr-eval"
+
+
+class RunConfig(_Model):
+    name: str = "run"
+    backbone: BackboneConfig
+    env: EnvConfig
+    episodes_per_task: int = Field(default=1, ge=1)
+    seed: int = Field(default=0, ge=0)
+    idr: dict[str, Any] = Field(
+        default_factory=dict, description="IDR parameters shared by all cells (alpha, beta, ...)"
+    )
+    intervention: InterventionSettings = InterventionSettings()
+    grid: list[dict[str, Any]] = Field(
+        default_factory=lambda: [{"mode": ["baseline", "E"]}],
+        description="groups of parameter lists: zipped within a group, crossed across groups",
+    )
+    executor: ExecutorConfig = ExecutorConfig()
+    tracking: TrackingConfig = TrackingConfig()
+    output_root: str = "runs"
+
+    @field_validator("idr")
+    @classmethod
+    def _idr_keys(cls, v: dict[str, Any]) -> dict[str, Any]:
+        from pipeline.grid import CELL_KEYS
+
+        for key in v:
+            if key not in CELL_KEYS:
+                raise ValueError(f"unknown IDR parameter {key!r}; allowed: {sorted(CELL_KEYS)}")
+        return v
+
+    @model_validator(mode="after")
+    def _cells_valid(self) -> RunConfig:
+        self.cells()  # raises ValueError naming the bad grid entry
+        return self
+
+    def cells(self) -> list[Cell]:
+        return expand_grid(self.grid, base={**self.idr, **self.intervention.model_dump()})
+
+    def fingerprint(self) -> str:
+        """Hash of what determines results; a run dir may be resumed only with the same one."""
+        keep = self.model_dump(exclude={"executor", "tracking", "output_root", "name"})
+        return hashlib.sha256(json.dumps(keep, sort_keys=True, default=str).encode()).hexdigest()[
+            :16
+        ]
+
+
+ALLOWED_VALUES = {"mode": MODES, "guidance": GUIDANCES, "strategy": STRATEGIES, "space": SPACES}
+
+
+def _format_errors(err: ValidationError, source: str) -> str:
+    lines = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"]) or "<root>"
+        msg = e["msg"].removeprefix("Value error, ")
+        if e["type"] == "extra_forbidden":
+            parent = RunConfig
+            for part in e["loc"][:-1]:
+                field = parent.model_fields.get(str(part)) if isinstance(parent, type) else None
+                ann = getattr(field, "annotation", None)
+                parent = ann if isinstance(ann, type) and issubclass(ann, BaseModel) else None
+            known = list(parent.model_fields) if parent else []
+            close = difflib.get_close_matches(str(e["loc"][-1]), known, n=1)
+            hint = (
+                f"; did you mean {close[0]!r}?"
+                if close
+                else (f"; known keys: {known}" if known else "")
+            )
+            msg = f"unknown key{hint}"
+        elif e["type"] == "missing":
+            msg = "required field is missing"
+        elif "input" in e and e["type"] not in ("value_error",):
+            msg = f"{msg} (got {e['input']!r})"
+        lines.append(f"  {loc}: {msg}")
+    return f"invalid config {source}:\n" + "\n".join(lines)
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    if "=" not in text:
+        raise ConfigError(
+            f"override {text!r} must look like key.sub=value (e.g. executor.workers=4)"
+        )
+    key, raw = text.split("=", 1)
+    path = key.strip().split(".")
+    if not all(path):
+        raise ConfigError(f"override {text!r} has an empty key part")
+    try:
+        value = yaml.safe_load(raw)
+    except yaml.YAMLError as e:
+        raise ConfigError(f"override {text!r}: value is not valid YAML ({e.problem})") from None
+    return path, value
+
+
+def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
+    data = json.loads(json.dumps(data))  # deep copy of plain data
+    for text in overrides:
+        path, value = parse_override(text)
+        node = data
+        for part in path[:-1]:
+            child = node.get(part)
+            if child is None:
+                child = node[part] = {}
+            if not isinstance(child, dict):
+                raise ConfigError(f"override {text!r}: {part!r} is not a section")
+            node = child
+        node[path[-1]] = value
+    return data
+
+
+def load_config(path: str | Path, overrides: list[str] | None = None) -> RunConfig:
+    """Read a YAML config, apply dotted overrides, validate. Raises ConfigError."""
+    path = Path(path)
+    if not path.is_file():
+        presets = (
+            sorted(p.name for p in Path("conf").glob("*.yaml")) if Path("conf").is_dir() else []
+        )
+        close = difflib.get_close_matches(path.name, presets, n=1)
+        hint = (
+            f"; did you mean conf/{close[0]}?"
+            if close
+            else (f"; presets: {presets}" if presets else "")
+        )
+        raise ConfigError(f"config file {str(path)!r} not found{hint}")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise ConfigError(f"config {path} is not valid YAML: {e}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"config {path} must be a mapping of keys, got {type(data).__name__}")
+    return config_from_dict(apply_overrides(data, overrides or []), source=str(path))
+
+
+def config_from_dict(data: dict[str, Any], source: str = "<dict>") -> RunConfig:
+    try:
+        return RunConfig.model_validate(data)
+    except ValidationError as e:
+        raise ConfigError(_format_errors(e, source)) from None
+
+
+def dump_config(cfg: RunConfig) -> str:
+    return yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False)

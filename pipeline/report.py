@@ -1,0 +1,175 @@
+"""report.md from the Parquet files alone (``idr-eval report RUN_DIR`` rebuilds it)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pandas as pd
+
+from pipeline import aggregate as agg
+from pipeline.store import RunStore
+
+
+def _pct(x: float) -> str:
+    return "–" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{100 * x:.1f}"
+
+
+def _num(x: float, digits: int = 3) -> str:
+    return "–" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{digits}g}"
+
+
+def _md(headers: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
+    lines += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def main_table(episodes: pd.DataFrame) -> str:
+    """Rows = cells, columns = suites and Avg (success %, Wilson 95%), Δ vs baseline."""
+    suites = agg.success_by_suite(episodes)
+    overall = agg.success_overall(episodes).set_index("cell_id")
+    diffs = {d.cell_id: d for d in agg.paired_vs_baseline(episodes)}
+    suite_names = sorted(suites["suite"].unique())
+    headers = ["cell", *suite_names, "Avg", "Δ vs baseline (95% CI)", "p (McNemar)", "errors"]
+    rows = []
+    for cell in overall.index:
+        r = [cell]
+        for s in suite_names:
+            m = suites[(suites["cell_id"] == cell) & (suites["suite"] == s)]
+            r.append(_pct(m["success_rate"].iloc[0]) if len(m) else "–")
+        o = overall.loc[cell]
+        r.append(f"{_pct(o['success_rate'])} [{_pct(o['ci_low'])}, {_pct(o['ci_high'])}]")
+        d = diffs.get(cell)
+        r.append(
+            f"{100 * d.diff:+.1f} [{100 * d.ci_low:+.1f}, {100 * d.ci_high:+.1f}] (n={d.n_pairs})"
+            if d
+            else "–"
+        )
+        r.append(_num(d.p_value) if d else "–")
+        r.append(str(int(o["errors"])))
+        rows.append(r)
+    return _md(headers, rows)
+
+
+def build_report(run_dir: str | Path) -> str:
+    run_dir = Path(run_dir)
+    episodes = RunStore(run_dir).episodes().to_pandas()
+    parts = [f"# IDR evaluation report: `{run_dir.name}`", ""]
+    if episodes.empty:
+        return "\n".join([*parts, "No episodes stored yet."]) + "\n"
+    n_err = int(episodes["error"].notna().sum())
+    parts += [
+        f"{len(episodes)} episodes, {episodes['cell_id'].nunique()} cells, "
+        f"{episodes['task_id'].nunique()} tasks; {n_err} error rows (excluded from rates).",
+        "",
+        "## Success rate (%) by suite, with the paired difference against baseline",
+        "",
+        main_table(episodes),
+        "",
+        "## Success by task (%, Wilson 95% interval)",
+        "",
+    ]
+    t = agg.success_by_task(episodes)
+    parts.append(
+        _md(
+            ["cell", "suite", "task", "n", "success", "95% CI", "errors"],
+            [
+                [
+                    r.cell_id,
+                    r.suite,
+                    r.task_id,
+                    r.n,
+                    _pct(r.success_rate),
+                    f"[{_pct(r.ci_low)}, {_pct(r.ci_high)}]",
+                    r.errors,
+                ]
+                for r in t.itertuples()
+            ],
+        )
+    )
+    chains = agg.chain_metrics(episodes)
+    if not chains.empty:
+        total = int(chains["subtasks_total"].max())
+        parts += ["", "## Chains: i/N completion rates (%) and Avg Len (bootstrap 95%)", ""]
+        parts.append(
+            _md(
+                ["cell", "task", "n", *[f"{i}/{total}" for i in range(1, total + 1)], "Avg Len"],
+                [
+                    [
+                        r["cell_id"],
+                        r["task_id"],
+                        r["n"],
+                        *[
+                            _pct(r.get(f"rate_{i}of{total}", float("nan")))
+                            for i in range(1, total + 1)
+                        ],
+                        f"{r['avg_len']:.2f} [{r['avg_len_low']:.2f}, {r['avg_len_high']:.2f}]",
+                    ]
+                    for r in chains.to_dict("records")
+                ],
+            )
+        )
+    times = agg.completion_times(episodes)
+    parts += ["", "## Completion time", ""]
+    parts.append(
+        _md(
+            ["cell", "suite", "sim s to success", "wall s / episode", "inference ms"],
+            [
+                [
+                    r.cell_id,
+                    r.suite,
+                    _num(r.sim_seconds_to_success),
+                    _num(r.wall_seconds_mean),
+                    _num(r.inference_ms_mean),
+                ]
+                for r in times.itertuples()
+            ],
+        )
+    )
+    diag = agg.diagnostics_by_cell(episodes)
+    parts += ["", "## Diagnostics (means over episodes)", ""]
+    parts.append(
+        _md(
+            ["cell", "gate rate", "E_img", "E_prop", "R_img"],
+            [
+                [
+                    r.cell_id,
+                    _num(r.gate_rate),
+                    _num(r.e_img_mean),
+                    _num(r.e_prop_mean),
+                    _num(r.r_img_mean),
+                ]
+                for r in diag.itertuples()
+            ],
+        )
+    )
+    errs = agg.errors(episodes)
+    if not errs.empty:
+        parts += ["", "## Errors (not counted as failures)", ""]
+        parts.append(
+            _md(
+                ["cell", "task", "episode", "attempts", "error"],
+                [
+                    [
+                        r.cell_id,
+                        r.task_id,
+                        r.episode_index,
+                        r.attempt,
+                        str(r.error).splitlines()[0][:120],
+                    ]
+                    for r in errs.itertuples()
+                ],
+            )
+        )
+    return "\n".join(parts) + "\n"
+
+
+def write_report(run_dir: str | Path) -> Path:
+    run_dir = Path(run_dir)
+    text = build_report(run_dir)
+    path = run_dir / "report.md"
+    tmp = path.with_suffix(".md.tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+    return path

@@ -1,0 +1,153 @@
+"""One run, end to end: validate, plan the episodes, schedule, store, report (and track).
+
+Everything that can be checked is checked before any actor starts: the config, the suite and
+its task ids, the backbone kind, the executor's resources, and whether RUN_DIR belongs to
+this config (resume) or to another one (refused).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import subprocess
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+
+from pipeline.config import ConfigError, RunConfig, dump_config
+from pipeline.report import write_report
+from pipeline.scheduler import RunSummary, Scheduler, init_ray
+from pipeline.store import RunStore
+from workers.backbones.factory import check_backbone_kind
+from workers.envs.base import TaskSpec
+from workers.envs.factory import check_suite, suite_tasks
+from workers.episode import EpisodeSpec, WorkerSpec
+
+log = logging.getLogger("idr_eval.runner")
+RUN_META = "run.json"
+
+
+def code_version() -> str:
+    here = Path(__file__).resolve().parent.parent
+    try:
+        out = subprocess.run(
+            ["git", "-C", str(here), "describe", "--always", "--dirty", "--abbrev=12"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+            check=True,
+        )
+        return out.stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        from importlib.metadata import version
+
+        return f"idr-eval-{version('idr-eval')}"
+
+
+@dataclass
+class RunPlan:
+    cfg: RunConfig
+    run_dir: Path
+    run_id: str
+    tasks: list[TaskSpec]
+    specs: list[EpisodeSpec]
+    worker_spec: WorkerSpec
+
+
+def _select_tasks(cfg: RunConfig) -> list[TaskSpec]:
+    try:
+        check_suite(cfg.env.suite)
+        check_backbone_kind(cfg.backbone.kind)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    tasks = suite_tasks(cfg.env.suite, cfg.env.params)
+    if cfg.env.tasks is None:
+        return tasks
+    by_id = {t.task_id: t for t in tasks}
+    unknown = [t for t in cfg.env.tasks if t not in by_id]
+    if unknown:
+        raise ConfigError(
+            f"env.tasks: {unknown} not in suite {cfg.env.suite!r}; known: {sorted(by_id)}"
+        )
+    return [by_id[t] for t in cfg.env.tasks]
+
+
+def _check_executor(cfg: RunConfig) -> None:
+    ex = cfg.executor
+    if ex.kind == "ray" and ex.address is None and not ex.oversubscribe:
+        need = ex.workers * ex.cpus_per_worker
+        have = os.cpu_count() or 1
+        if need > have:
+            raise ConfigError(
+                f"executor.workers={ex.workers} x executor.cpus_per_worker={ex.cpus_per_worker} "
+                f"needs {need:g} CPUs but this machine has {have}; lower executor.workers or set "
+                "executor.oversubscribe=true"
+            )
+
+
+def _resume_or_claim(cfg: RunConfig, run_dir: Path) -> str:
+    """Return the run id; refuse a RUN_DIR that holds another config's results."""
+    meta_path = run_dir / RUN_META
+    fingerprint = cfg.fingerprint()
+    if meta_path.is_file():
+        meta = json.loads(meta_path.read_text())
+        if meta.get("fingerprint") != fingerprint:
+            raise ConfigError(
+                f"{run_dir} holds results of a different config (fingerprint {meta.get('fingerprint')} "
+                f"vs {fingerprint}); results of two configs are never mixed. Use a new --out, or "
+                f"delete {run_dir} to start fresh"
+            )
+        return str(meta["run_id"])
+    if run_dir.exists() and any(run_dir.iterdir()):
+        raise ConfigError(f"{run_dir} exists and is not an idr-eval run dir; choose an empty --out")
+    return uuid.uuid4().hex[:12]
+
+
+def plan_run(cfg: RunConfig, run_dir: str | Path) -> RunPlan:
+    run_dir = Path(run_dir)
+    tasks = _select_tasks(cfg)
+    _check_executor(cfg)
+    run_id = _resume_or_claim(cfg, run_dir)
+    meta = {"code_version": code_version()}
+    specs = [
+        EpisodeSpec(
+            run_id, cell.cell_id, cell.idr, cell.intervention, task.task_id, i, cfg.seed, 1, meta
+        )
+        for cell in cfg.cells()
+        for task in tasks
+        for i in range(cfg.episodes_per_task)
+    ]
+    worker_spec = WorkerSpec(
+        cfg.backbone.kind,
+        cfg.backbone.params,
+        cfg.env.suite,
+        cfg.env.params,
+        cfg.backbone.replan_steps,
+        cfg.backbone.batched,
+    )
+    return RunPlan(cfg, run_dir, run_id, tasks, specs, worker_spec)
+
+
+def _write_meta(plan: RunPlan) -> None:
+    plan.run_dir.mkdir(parents=True, exist_ok=True)
+    (plan.run_dir / "config.yaml").write_text(dump_config(plan.cfg))
+    meta = {"run_id": plan.run_id, "fingerprint": plan.cfg.fingerprint(), "name": plan.cfg.name}
+    tmp = plan.run_dir / f".{RUN_META}.tmp"
+    tmp.write_text(json.dumps(meta, indent=2))
+    tmp.replace(plan.run_dir / RUN_META)
+
+
+def execute(plan: RunPlan) -> RunSummary:
+    """Run the plan: schedule the episodes not yet stored, then write the report."""
+    _write_meta(plan)
+    cfg = plan.cfg
+    store = RunStore(plan.run_dir)
+    if cfg.executor.kind == "ray":
+        local_cpus = (
+            None if cfg.executor.address else cfg.executor.workers * cfg.executor.cpus_per_worker
+        )
+        init_ray(cfg.executor.address, local_cpus)
+    summary = Scheduler(plan.worker_spec, plan.specs, store, cfg.executor).run()
+    write_report(plan.run_dir)
+    return summary

@@ -1,0 +1,263 @@
+"""The scheduler: episode specs -> actors -> results -> store.
+
+Every cell sees the same tasks, episode indices, seeds and so init states, so comparisons
+between cells are paired. Executor ``ray`` starts N actors (local ``ray.init(num_cpus=...)``
+or an existing cluster by address) and dispatches with ``ray.wait`` under a cap on the work
+in flight; ``inline`` runs one worker in this process, without Ray, for debugging.
+
+Faults: a dead actor is replaced and its episodes re-queued; an exception inside an episode
+comes back as an error row and is retried; after ``max_attempts`` the last error row is
+stored (never counted as a task failure). Results are handed to the store as they finish, in
+small batches; a key already stored is dropped, so a call that Ray ran twice is stored once.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from pipeline.config import ExecutorConfig
+from pipeline.store import RunStore
+from workers.episode import EpisodeResult, EpisodeSpec, WorkerSpec
+
+log = logging.getLogger("idr_eval.scheduler")
+
+
+@dataclass
+class RunSummary:
+    total: int
+    skipped: int = 0  # already stored (resume)
+    stored: int = 0
+    successes: int = 0
+    errors: int = 0  # keys stored as error rows after max_attempts
+    retries: int = 0
+    actors_replaced: int = 0
+    duplicates_dropped: int = 0
+    wall_seconds: float = 0.0
+    workers: list[str] = field(default_factory=list)
+
+
+class _Progress:
+    """done/total, success so far, ETA: a live bar on a terminal, log lines otherwise."""
+
+    def __init__(self, total: int) -> None:
+        self.total, self.t0, self._last = total, time.monotonic(), 0.0
+        self._bar = None
+        if total and sys.stderr.isatty():
+            from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+            self._bar = Progress(
+                TextColumn("[bold]episodes"),
+                BarColumn(),
+                TextColumn("{task.completed}/{task.total}"),
+                TextColumn("{task.fields[info]}"),
+                TimeRemainingColumn(),
+            )
+            self._task = self._bar.add_task("run", total=total, info="")
+            self._bar.start()
+
+    def update(self, done: int, successes: int, errors: int) -> None:
+        info = f"success {successes}/{max(done - errors, 0)}  errors {errors}"
+        if self._bar is not None:
+            self._bar.update(self._task, completed=done, info=info)
+            return
+        now = time.monotonic()
+        if now - self._last >= 5.0 or done == self.total:
+            self._last = now
+            rate = done / max(now - self.t0, 1e-9)
+            eta = (self.total - done) / rate if rate > 0 else float("nan")
+            log.info("episodes %d/%d  %s  eta %.0fs", done, self.total, info, eta)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.stop()
+
+
+class Scheduler:
+    def __init__(
+        self,
+        worker_spec: WorkerSpec,
+        specs: list[EpisodeSpec],
+        store: RunStore,
+        executor: ExecutorConfig,
+        on_flush: Callable[[list[EpisodeResult]], None] | None = None,
+    ) -> None:
+        self.worker_spec = worker_spec
+        self.store = store
+        self.ex = executor
+        self.on_flush = on_flush
+        done = store.stored_keys()
+        self.pending = deque(s for s in specs if s.key not in done)
+        self.summary = RunSummary(total=len(specs), skipped=len(specs) - len(self.pending))
+        self._stored_keys = done
+        self._buffer: list[EpisodeResult] = []
+        self._progress: _Progress | None = None
+
+    # -- result handling (shared by both executors) --------------------------------------
+    def _accept(self, spec: EpisodeSpec, result: EpisodeResult) -> None:
+        if result.key in self._stored_keys or any(r.key == result.key for r in self._buffer):
+            self.summary.duplicates_dropped += 1
+            return
+        if result.is_error and spec.attempt < self.ex.max_attempts:
+            self.summary.retries += 1
+            log.warning(
+                "episode %s attempt %d failed, retrying: %s",
+                spec.key,
+                spec.attempt,
+                result.episode["error"].splitlines()[0],
+            )
+            self.pending.append(spec.retry())
+            return
+        self._buffer.append(result)
+        self.summary.errors += int(result.is_error)
+        self.summary.successes += int(bool(result.episode["success"]) and not result.is_error)
+        if len(self._buffer) >= self.ex.flush_every:
+            self.flush()
+
+    def _fail_without_result(self, spec: EpisodeSpec, reason: str) -> None:
+        """The actor died under this episode: retry, or store an error row at the last attempt."""
+        if spec.attempt < self.ex.max_attempts:
+            self.summary.retries += 1
+            self.pending.append(spec.retry())
+            return
+        row = {
+            "run_id": spec.run_id,
+            "cell_id": spec.cell_id,
+            "task_id": spec.task_id,
+            "episode_index": spec.episode_index,
+            "seed": spec.seed,
+            "mode": spec.idr.mode,
+            "guidance": spec.idr.guidance,
+            "strategy": spec.intervention.strategy,
+            "alpha": spec.idr.alpha,
+            "beta": spec.idr.beta,
+            "lam": spec.idr.lam,
+            "tau": spec.idr.tau,
+            "backbone": self.worker_spec.backbone_kind,
+            "suite": self.worker_spec.env_suite,
+            "success": False,
+            "attempt": spec.attempt,
+            "error": reason,
+            **spec.meta,
+        }
+        self._accept(spec, EpisodeResult(row, []))
+
+    def flush(self) -> None:
+        if not self._buffer:
+            return
+        batch, self._buffer = self._buffer, []
+        self.store.write(batch)
+        self._stored_keys.update(r.key for r in batch)
+        self.summary.stored += len(batch)
+        if self.on_flush is not None:
+            self.on_flush(batch)
+
+    def _tick(self) -> None:
+        if self._progress is not None:
+            s = self.summary
+            self._progress.update(s.skipped + s.stored + len(self._buffer), s.successes, s.errors)
+
+    # -- executors ------------------------------------------------------------------------------
+    def run(self) -> RunSummary:
+        t0 = time.monotonic()
+        self._progress = _Progress(self.summary.total)
+        try:
+            if self.pending:
+                self._run_inline() if self.ex.kind == "inline" else self._run_ray()
+        finally:
+            self.flush()
+            self._tick()
+            self._progress.close()
+            self.summary.wall_seconds = time.monotonic() - t0
+        return self.summary
+
+    def _run_inline(self) -> None:
+        from workers.actor import EpisodeWorker
+
+        worker = EpisodeWorker(self.worker_spec)
+        self.summary.workers = [worker.ping()]
+        try:
+            while self.pending:
+                spec = self.pending.popleft()
+                self._accept(spec, worker.run_episode(spec))
+                self._tick()
+        finally:
+            worker.close()
+
+    def _run_ray(self) -> None:
+        import ray
+        from ray.exceptions import GetTimeoutError, RayActorError, WorkerCrashedError
+
+        from workers.actor import remote_worker_class
+
+        cls = remote_worker_class(self.ex.cpus_per_worker, self.ex.gpus_per_worker)
+        actors: dict[int, Any] = {}
+        next_id = 0
+
+        def start() -> int:
+            nonlocal next_id
+            next_id += 1
+            actors[next_id] = cls.remote(self.worker_spec)
+            return next_id
+
+        for _ in range(min(self.ex.workers, len(self.pending))):
+            start()
+        try:
+            self.summary.workers = ray.get([a.ping.remote() for a in actors.values()], timeout=600)
+        except GetTimeoutError:
+            raise RuntimeError(
+                "actors did not start within 600 s: the cluster lacks the resources asked for "
+                f"({self.ex.cpus_per_worker} CPU, {self.ex.gpus_per_worker} GPU per worker)"
+            ) from None
+        per_actor = max(1, (self.ex.max_in_flight or 2 * len(actors)) // len(actors))
+        in_flight: dict[Any, tuple[int, EpisodeSpec]] = {}
+        load = dict.fromkeys(actors, 0)
+
+        while self.pending or in_flight:
+            for aid in sorted(load, key=load.get):
+                while self.pending and load[aid] < per_actor:
+                    spec = self.pending.popleft()
+                    in_flight[actors[aid].run_episode.remote(spec)] = (aid, spec)
+                    load[aid] += 1
+            ready, _ = ray.wait(list(in_flight), num_returns=1, timeout=1.0)
+            for ref in ready:
+                aid, spec = in_flight.pop(ref)
+                if aid in load:
+                    load[aid] -= 1
+                try:
+                    result = ray.get(ref)
+                except (RayActorError, WorkerCrashedError) as exc:
+                    reason = f"{type(exc).__name__}: actor died during the episode"
+                    log.warning("actor %d died under %s: replacing it", aid, spec.key)
+                    if aid in actors:
+                        ray.kill(actors.pop(aid), no_restart=True)
+                        load.pop(aid, None)
+                        load[start()] = 0
+                        self.summary.actors_replaced += 1
+                    self._fail_without_result(spec, reason)
+                    continue
+                self._accept(spec, result)
+            self._tick()
+        for a in actors.values():
+            ray.kill(a, no_restart=True)
+
+
+def init_ray(address: str | None, num_cpus: float | None, num_gpus: float | None = None) -> None:
+    """Connect to a cluster (``address``) or start a local one with ``num_cpus``."""
+    import ray
+
+    if ray.is_initialized():
+        return
+    env = {"RAY_DEDUP_LOGS": "1"}
+    for k, v in env.items():
+        os.environ.setdefault(k, v)
+    if address:
+        ray.init(address=address, log_to_driver=True)
+    else:
+        ray.init(num_cpus=num_cpus, num_gpus=num_gpus, include_dashboard=False, log_to_driver=True)

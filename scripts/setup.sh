@@ -1,0 +1,63 @@
+#!/usr/bin/env bash
+# One-command setup, shared by the README path, CI and the Docker images:
+# a .venv with Python 3.12 and the pinned dependencies (requirements.lock), the system
+# libraries headless MuJoCo rendering needs, and LIBERO's assets + config for offline use.
+# Idempotent: when nothing changed, a second run takes seconds.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+VENV=${IDR_VENV:-.venv}
+UV_VERSION=0.13.8
+STAMP="$VENV/.idr-setup-stamp"
+log() { printf '[setup] %s\n' "$*"; }
+die() { printf '[setup] error: %s\n' "$*" >&2; exit 1; }
+
+find_python() {
+    local c
+    for c in "${PYTHON:-}" python3.12 "${PYENV_ROOT:-$HOME/.pyenv}"/versions/3.12*/bin/python3.12 \
+        /usr/local/bin/python3.12 /usr/bin/python3.12; do
+        [ -n "$c" ] || continue
+        if "$c" -c 'import sys; assert sys.version_info[:2] == (3, 12)' >/dev/null 2>&1; then
+            command -v "$c" || echo "$c"
+            return 0
+        fi
+    done
+    return 1
+}
+
+# --- system libraries for headless rendering (OSMesa; EGL comes with GPU drivers) ---------
+have_lib() { ldconfig -p 2>/dev/null | grep -q "$1"; }
+if ! have_lib 'libOSMesa.so'; then
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+        log "installing libosmesa6 (headless OpenGL for MuJoCo without a GPU)"
+        apt-get update -qq >/dev/null
+        DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends libosmesa6 >/dev/null
+    else
+        die "libOSMesa is missing: install Debian/Ubuntu package libosmesa6 (sudo apt-get install libosmesa6)"
+    fi
+fi
+
+# --- the virtual environment ---------------------------------------------------------------
+want=$(cat requirements.lock pyproject.toml scripts/setup.sh | sha256sum | cut -d' ' -f1)
+if [ -x "$VENV/bin/python" ] && [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want" ]; then
+    log "$VENV is up to date"
+else
+    if [ ! -x "$VENV/bin/python" ]; then
+        py=$(find_python) || die "Python 3.12 not found (looked for python3.12 on PATH and in pyenv); install it or set PYTHON=/path/to/python3.12"
+        log "creating $VENV with $py"
+        "$py" -m venv "$VENV"
+    fi
+    "$VENV/bin/python" -c 'import sys; assert sys.version_info[:2] == (3, 12)' \
+        || die "$VENV is not Python 3.12: remove it and run again"
+    if ! "$VENV/bin/uv" --version 2>/dev/null | grep -q "$UV_VERSION"; then
+        "$VENV/bin/python" -m pip install -q "uv==$UV_VERSION"
+    fi
+    log "installing pinned dependencies (first time: several minutes, torch is large)"
+    "$VENV/bin/uv" pip install -q --python "$VENV/bin/python" -r requirements.lock
+    "$VENV/bin/uv" pip install -q --python "$VENV/bin/python" --no-deps -e .
+    echo "$want" > "$STAMP"
+fi
+
+# --- LIBERO offline: link packaged assets, write the config (never prompts) ----------------
+"$VENV/bin/python" -m workers.envs.libero_assets >/dev/null
+log "ready: $VENV (Python $("$VENV/bin/python" -c 'import platform; print(platform.python_version())'))"

@@ -1,0 +1,82 @@
+"""The env contract checker: the fakes pass it, broken envs fail it with the rule named."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from workers.envs.base import EnvContractError, check_env
+from workers.envs.fakes import FakeMarkerEnv
+
+
+def test_fake_marker_env_passes_contract() -> None:
+    env = FakeMarkerEnv()
+    for task in env.tasks():
+        check_env(env, task_id=task.task_id, run_to_horizon=True)
+
+
+class _SameInitEnv(FakeMarkerEnv):
+    def reset(self, task_id, episode_index, seed):
+        return super().reset(task_id, 0, seed)
+
+
+class _NondeterministicEnv(FakeMarkerEnv):
+    _rng = np.random.default_rng()
+
+    def step(self, action):
+        return super().step(action + self._rng.normal(scale=0.1, size=2))
+
+
+class _LaxShapeEnv(FakeMarkerEnv):
+    def step(self, action):
+        return super().step(np.asarray(action)[:2])
+
+
+class _FloatImageEnv(FakeMarkerEnv):
+    def _observe(self):
+        obs = super()._observe()
+        obs.images = {k: v.astype(np.float32) for k, v in obs.images.items()}
+        return obs
+
+
+class _NeverDoneEnv(FakeMarkerEnv):
+    @property
+    def done(self):
+        return False
+
+
+@pytest.mark.parametrize(
+    ("env_cls", "rule"),
+    [
+        (_SameInitEnv, "init states must vary"),
+        (_NondeterministicEnv, "stepping must be deterministic"),
+        (_LaxShapeEnv, "wrong action shape must raise ValueError"),
+        (_FloatImageEnv, "must be uint8"),
+        (_NeverDoneEnv, "done not set after max_steps"),
+    ],
+)
+def test_broken_envs_fail_with_the_rule_named(env_cls, rule) -> None:
+    with pytest.raises(EnvContractError, match=rule):
+        check_env(env_cls(), run_to_horizon=True)
+
+
+def test_image_carries_information_the_state_lacks() -> None:
+    """Blind policies fail: the target is in the image only, and varies per episode."""
+    env = FakeMarkerEnv()
+    states, images = [], []
+    for i in range(5):
+        obs = env.reset("reach", i, seed=0)
+        states.append(obs.state)
+        images.append(obs.images["agentview"][..., 0])
+    assert len({img.tobytes() for img in images}) == 5
+    assert all(s.shape == (2,) for s in states)
+
+
+def test_success_requires_reaching_the_marker() -> None:
+    env = FakeMarkerEnv()
+    env.reset("reach", 0, seed=0)
+    target, pos = env._targets[0], env._pos
+    while not env.done:
+        env.step(np.clip((target - env._pos) / 0.1, -1, 1))
+    assert env.success and env.subtasks_done == 1 and env.steps < env.task.max_steps
+    assert np.linalg.norm(pos - target) > 0.08

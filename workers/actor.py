@@ -1,0 +1,214 @@
+"""The episode worker: one backbone wrapped by IDR and one env, loaded once, many episodes.
+
+``EpisodeWorker`` is a plain class, testable without Ray; ``RayEpisodeWorker`` is the thin
+remote wrapper the scheduler starts (Ray is imported lazily). Switching the IDR cell between
+episodes does not reload the backbone. An exception inside an episode becomes an error row
+(``error`` set), never a task failure and never an exception that would kill the actor.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+import traceback
+import zlib
+from datetime import UTC, datetime
+from typing import Any
+
+import numpy as np
+
+from workers.episode import EpisodeResult, EpisodeSpec, WorkerSpec
+
+
+class NonFiniteActionError(RuntimeError):
+    """The backbone (or the refiner) produced NaN/inf; the step was not sent to the simulator."""
+
+
+def step_seed(seed: int, task_id: str, episode_index: int, inference_index: int) -> int:
+    """Per-inference seed shared by all cells (paired comparisons see the same noise)."""
+    ss = np.random.SeedSequence(
+        [seed, zlib.crc32(task_id.encode()), episode_index, inference_index]
+    )
+    return int(ss.generate_state(1)[0])
+
+
+def _now() -> str:
+    return datetime.now(UTC).isoformat(timespec="milliseconds")
+
+
+def _to_numpy(x: Any) -> np.ndarray:
+    if type(x).__module__.startswith("torch"):
+        return x.detach().float().cpu().numpy()
+    return np.asarray(x, dtype=np.float32)
+
+
+class EpisodeWorker:
+    """Holds a backbone + IDR wrapper and an env; runs one episode per call."""
+
+    def __init__(self, spec: WorkerSpec) -> None:
+        from workers.rendering import configure_rendering
+
+        self.spec = spec
+        self.render_backend = configure_rendering()
+        # Imported after the rendering backend is set: env modules may import MuJoCo.
+        from workers.backbones.factory import make_backbone
+        from workers.envs.factory import make_env
+        from workers.idr_policy import IDRPolicy
+
+        self.backbone = make_backbone(spec.backbone_kind, spec.backbone_params)
+        self.env = make_env(spec.env_suite, spec.env_params)
+        self.policy = IDRPolicy(self.backbone, batched=spec.batched)
+        self.tasks = {t.task_id: t for t in self.env.tasks()}
+        self.worker_id = f"{socket.gethostname()}:{os.getpid()}"
+
+    def ping(self) -> str:
+        return self.worker_id
+
+    def run_episode(self, spec: EpisodeSpec) -> EpisodeResult:
+        started, t0 = _now(), time.perf_counter()
+        row: dict[str, Any] = self._episode_row_head(spec)
+        try:
+            steps, outcome = self._rollout(spec)
+            row.update(outcome)
+            row["error"] = None
+        except Exception as exc:
+            steps = []
+            tb = traceback.format_exception(exc)
+            row["error"] = f"{type(exc).__name__}: {exc}\n{''.join(tb[-3:])}"[:4000]
+        row.update(started_at=started, finished_at=_now(), wall_seconds=time.perf_counter() - t0)
+        return EpisodeResult(row, steps)
+
+    def _episode_row_head(self, spec: EpisodeSpec) -> dict[str, Any]:
+        task = self.tasks.get(spec.task_id)
+        return {
+            "run_id": spec.run_id,
+            "cell_id": spec.cell_id,
+            "mode": spec.idr.mode,
+            "guidance": spec.idr.guidance,
+            "strategy": spec.intervention.strategy,
+            "alpha": spec.idr.alpha,
+            "beta": spec.idr.beta,
+            "lam": spec.idr.lam,
+            "tau": spec.idr.tau,
+            "backbone": self.spec.backbone_kind,
+            "suite": self.spec.env_suite,
+            "task_id": spec.task_id,
+            "task_name": task.name if task else None,
+            "instruction": None,
+            "episode_index": spec.episode_index,
+            "seed": spec.seed,
+            "init_state_id": None,
+            "success": False,
+            "steps": 0,
+            "success_step": None,
+            "max_steps": task.max_steps if task else None,
+            "subtasks_done": 0,
+            "subtasks_total": task.subtasks_total if task else None,
+            "sim_seconds": 0.0,
+            "inference_ms_mean": None,
+            "gate_rate": None,
+            "e_img_mean": None,
+            "e_prop_mean": None,
+            "r_img_mean": None,
+            "attempt": spec.attempt,
+            "worker": self.worker_id,
+            "render_backend": self.render_backend,
+            "crn": None,
+            **spec.meta,
+        }
+
+    def _rollout(self, spec: EpisodeSpec) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+        from workers.observation import to_policy_observation
+
+        env, policy = self.env, self.policy
+        if spec.task_id not in self.tasks:
+            raise ValueError(f"task_id={spec.task_id!r} not in suite {self.spec.env_suite!r}")
+        policy.set_config(spec.idr, spec.intervention)
+        policy.reset()
+        obs = env.reset(spec.task_id, spec.episode_index, spec.seed)
+        instruction = env.instruction
+        gripper_index = getattr(env, "gripper_index", None)
+        steps: list[dict[str, Any]] = []
+        success_step = None
+        k = 0
+        crn = None
+        while not env.done:
+            out = policy.infer(
+                to_policy_observation(obs, instruction),
+                step_seed(spec.seed, spec.task_id, spec.episode_index, k),
+            )
+            crn = out.crn
+            chunk = _to_numpy(out.action)[0]
+            base = _to_numpy(out.a_base)[0]
+            d = out.diag.to_numpy() if out.diag is not None else None
+            steps.append(
+                {
+                    "run_id": spec.run_id,
+                    "cell_id": spec.cell_id,
+                    "task_id": spec.task_id,
+                    "episode_index": spec.episode_index,
+                    "inference_index": k,
+                    "step": env.steps,
+                    "e_img": float(d["e_img"][0]) if d else None,
+                    "e_prop": float(d["e_prop"][0]) if d else None,
+                    "r_img": float(d["r_img"][0]) if d else None,
+                    "gate": float(d["gate"][0]) if d else None,
+                    "w_prop": float(d["w_prop"][0]) if d else None,
+                    "action_base": base[0].tolist(),
+                    "action_final": chunk[0].tolist(),
+                    "gripper": float(chunk[0][gripper_index])
+                    if gripper_index is not None
+                    else None,
+                    "inference_ms": out.inference_ms,
+                }
+            )
+            k += 1
+            for action in chunk[: self.spec.replan_steps]:
+                if not np.isfinite(action).all():
+                    raise NonFiniteActionError(
+                        f"non-finite action at step {env.steps}: {action.tolist()}; not sent to the env"
+                    )
+                obs = env.step(action)
+                if success_step is None and env.success:
+                    success_step = env.steps
+                if env.done:
+                    break
+        gates = [s["gate"] for s in steps if s["gate"] is not None]
+
+        def mean(key: str) -> float | None:
+            vals = [s[key] for s in steps if s[key] is not None]
+            return float(np.mean(vals)) if vals else None
+
+        outcome = {
+            "instruction": instruction,
+            "init_state_id": str(
+                getattr(env, "init_state_id", f"{spec.seed}/{spec.episode_index}")
+            ),
+            "success": bool(env.success),
+            "steps": env.steps,
+            "success_step": success_step,
+            "subtasks_done": env.subtasks_done,
+            "sim_seconds": env.steps / env.control_hz,
+            "inference_ms_mean": mean("inference_ms"),
+            # in diagnose mode: the rate of the gate the full method would have applied
+            "gate_rate": float(np.mean(gates)) if gates else None,
+            "e_img_mean": mean("e_img"),
+            "e_prop_mean": mean("e_prop"),
+            "r_img_mean": mean("r_img"),
+            "crn": crn,
+        }
+        return steps, outcome
+
+    def close(self) -> None:
+        """Idempotent."""
+        env, self.env = getattr(self, "env", None), None
+        if env is not None:
+            env.close()
+
+
+def remote_worker_class(num_cpus: float, num_gpus: float) -> Any:
+    """The Ray actor class wrapping EpisodeWorker (Ray imported here, lazily)."""
+    import ray
+
+    return ray.remote(num_cpus=num_cpus, num_gpus=num_gpus, max_restarts=0)(EpisodeWorker)

@@ -1,0 +1,108 @@
+"""What a backbone is to the pipeline: a frozen policy that predicts an action chunk.
+
+A backbone sees a batch of :class:`Observation` (images by camera name, state, instruction
+strings) and returns a chunk of actions of shape (B, chunk_len, action_dim). It may accept a
+noise tensor (flow-matching and diffusion heads) so that the IDR wrapper can give the
+factual and the two counterfactual passes the same noise (common random numbers).
+
+Observation convention (lerobot's): images are float32 (B, 3, H, W) in [0, 1], state is
+float32 (B, S), the instruction is a list of B strings. Arrays are torch tensors or numpy
+arrays; a backbone converts what it gets.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Protocol, runtime_checkable
+
+import numpy as np
+
+
+@dataclass
+class Observation:
+    """A batch of policy inputs."""
+
+    images: dict[str, Any]  # camera name -> (B, 3, H, W) float in [0, 1]
+    state: Any  # (B, S) float
+    instruction: list[str]  # B strings
+    # Rows on which the backbone itself must apply do(V) / do(S) (interventions in
+    # `normalized` space, after its normalizer). None: nothing to apply.
+    do_image: np.ndarray | None = None  # (B,) bool
+    do_state: np.ndarray | None = None  # (B,) bool
+    extras: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def batch_size(self) -> int:
+        return len(self.instruction)
+
+    def validate(self) -> None:
+        """Raise ValueError when the fields disagree about the batch size."""
+        b = self.batch_size
+        if b == 0:
+            raise ValueError("Observation.instruction is empty: a batch needs at least one row")
+        if self.state.shape[0] != b:
+            raise ValueError(f"Observation.state has batch {self.state.shape[0]}, instruction {b}")
+        for cam, img in self.images.items():
+            if img.ndim != 4 or img.shape[0] != b:
+                raise ValueError(
+                    f"Observation.images[{cam!r}] has shape {tuple(img.shape)}; expected (B={b}, C, H, W)"
+                )
+
+
+def concat_observations(parts: list[Observation]) -> Observation:
+    """Stack observations along the batch dim (torch or numpy, as given)."""
+    first = parts[0]
+
+    def cat(xs: list[Any]) -> Any:
+        if type(xs[0]).__module__.startswith("torch"):
+            import torch
+
+            return torch.cat(xs, dim=0)
+        return np.concatenate(xs, axis=0)
+
+    def flags(name: str) -> np.ndarray | None:
+        values = [getattr(p, name) for p in parts]
+        if all(v is None for v in values):
+            return None
+        return np.concatenate(
+            [
+                np.zeros(p.batch_size, bool) if v is None else v
+                for p, v in zip(parts, values, strict=True)
+            ]
+        )
+
+    return Observation(
+        images={cam: cat([p.images[cam] for p in parts]) for cam in first.images},
+        state=cat([p.state for p in parts]),
+        instruction=[s for p in parts for s in p.instruction],
+        do_image=flags("do_image"),
+        do_state=flags("do_state"),
+    )
+
+
+@runtime_checkable
+class Backbone(Protocol):
+    """The interface every backbone implements (lerobot adapter, tiny VLA, fakes)."""
+
+    name: str
+    chunk_len: int  # T of the predicted (B, T, D) chunk
+    action_dim: int  # D
+    # Where this backbone can apply interventions itself ("normalized"); raw-space ones are
+    # applied by the wrapper on the Observation for any backbone.
+    native_intervention_spaces: ClassVar[frozenset[str]]
+    can_batch: bool  # False: the wrapper runs the three passes as three calls
+
+    def reset(self) -> None:
+        """Forget any per-episode state (queues, observation history)."""
+
+    def make_noise(self, batch_size: int, seed: int) -> Any | None:
+        """Noise for one batch, reproducible from ``seed``; None for a deterministic head."""
+
+    def predict_chunk(
+        self, obs: Observation, noise: Any | None = None, intervention: Any | None = None
+    ) -> Any:
+        """Predict (B, chunk_len, action_dim) actions, as a float tensor or array.
+
+        ``intervention`` (an InterventionConfig) is passed when ``obs.do_image`` / ``obs.do_state``
+        mark rows on which the backbone applies do() in its normalized space.
+        """

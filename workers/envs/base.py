@@ -1,0 +1,195 @@
+"""What an environment is to the pipeline, and the contract checker every adapter must pass.
+
+An env holds one simulated scene at a time. ``reset(task_id, episode_index, seed)`` puts it in
+the task's deterministic initial state for that episode (so every IDR cell of a grid sees the
+same scenes), ``step(action)`` advances one control step. Status is read from properties:
+``success``, ``done``, ``subtasks_done`` (for chains, CALVIN-style), ``instruction``.
+
+Observations are what the env renders, before any policy convention: camera images as uint8
+(H, W, 3) arrays and the proprioceptive state as a float32 vector.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """One task of a suite."""
+
+    task_id: str  # stable id used in keys and file names
+    name: str  # human-readable name
+    max_steps: int  # control steps before the episode ends as a failure (protocol constant)
+    subtasks_total: int = 1  # > 1 for chains: episode stops at the first failed subtask
+
+
+@dataclass
+class EnvObservation:
+    images: dict[str, np.ndarray]  # camera name -> uint8 (H, W, 3)
+    state: np.ndarray  # float32 (S,)
+
+
+@runtime_checkable
+class Env(Protocol):
+    suite: str
+    control_hz: float  # control steps per simulated second
+    action_dim: int
+    state_dim: int
+    cameras: tuple[str, ...]
+
+    def tasks(self) -> list[TaskSpec]: ...
+
+    def reset(self, task_id: str, episode_index: int, seed: int) -> EnvObservation: ...
+
+    def step(self, action: np.ndarray) -> EnvObservation:
+        """Apply one (action_dim,) action; raise ValueError for a wrong shape, RuntimeError
+        after the episode is done."""
+
+    @property
+    def task(self) -> TaskSpec: ...
+
+    @property
+    def instruction(self) -> str: ...
+
+    @property
+    def success(self) -> bool: ...
+
+    @property
+    def done(self) -> bool: ...
+
+    @property
+    def subtasks_done(self) -> int: ...
+
+    @property
+    def steps(self) -> int: ...
+
+    def close(self) -> None: ...
+
+
+class EnvContractError(AssertionError):
+    """An env adapter breaks the contract; the message says which rule."""
+
+
+def _require(cond: bool, msg: str) -> None:
+    if not cond:
+        raise EnvContractError(msg)
+
+
+def _check_obs(env: Env, obs: EnvObservation, where: str) -> None:
+    _require(isinstance(obs, EnvObservation), f"{where}: must return an EnvObservation")
+    _require(bool(obs.images), f"{where}: observation has no camera images")
+    _require(
+        set(obs.images) == set(env.cameras),
+        f"{where}: cameras {sorted(obs.images)} differ from env.cameras {sorted(env.cameras)}",
+    )
+    for cam, img in obs.images.items():
+        _require(
+            isinstance(img, np.ndarray)
+            and img.dtype == np.uint8
+            and img.ndim == 3
+            and img.shape[2] == 3,
+            f"{where}: image {cam!r} must be uint8 (H, W, 3), got "
+            f"{getattr(img, 'dtype', type(img))} {getattr(img, 'shape', '')}",
+        )
+    s = obs.state
+    _require(
+        isinstance(s, np.ndarray) and s.ndim == 1 and s.shape[0] == env.state_dim,
+        f"{where}: state must be a ({env.state_dim},) array, got {getattr(s, 'shape', type(s))}",
+    )
+    _require(np.issubdtype(s.dtype, np.floating), f"{where}: state must be float, got {s.dtype}")
+    _require(bool(np.isfinite(s).all()), f"{where}: state has NaN or inf")
+
+
+def _same(a: EnvObservation, b: EnvObservation) -> bool:
+    return np.array_equal(a.state, b.state) and all(
+        np.array_equal(a.images[c], b.images[c]) for c in a.images
+    )
+
+
+def check_env(
+    env: Env,
+    *,
+    task_id: str | None = None,
+    seed: int = 0,
+    n_steps: int = 5,
+    run_to_horizon: bool = False,
+) -> None:
+    """Check that ``env`` honours the contract; raise EnvContractError naming the broken rule.
+
+    In the spirit of gymnasium's ``check_env``. ``run_to_horizon`` also steps until ``done`` to
+    check the max-steps rule (cheap for fakes, minutes for LIBERO).
+    """
+    _require(isinstance(env, Env), f"{type(env).__name__} does not implement the Env protocol")
+    _require(env.control_hz > 0, f"control_hz must be > 0, got {env.control_hz}")
+    _require(env.action_dim > 0 and env.state_dim > 0, "action_dim and state_dim must be > 0")
+    tasks = env.tasks()
+    _require(len(tasks) > 0, "tasks() is empty")
+    ids = [t.task_id for t in tasks]
+    _require(len(set(ids)) == len(ids), f"task ids are not unique: {ids}")
+    for t in tasks:
+        _require(t.max_steps > 0, f"task {t.task_id}: max_steps must be > 0")
+        _require(t.subtasks_total >= 1, f"task {t.task_id}: subtasks_total must be >= 1")
+    task_id = task_id or ids[0]
+
+    obs0 = env.reset(task_id, 0, seed)
+    _check_obs(env, obs0, "reset")
+    _require(env.task.task_id == task_id, "env.task does not match the task reset to")
+    _require(
+        isinstance(env.instruction, str) and env.instruction.strip() != "", "instruction is empty"
+    )
+    _require(env.steps == 0 and not env.done, "after reset: steps must be 0 and done False")
+    _require(not env.success and env.subtasks_done == 0, "after reset: no success, no subtask done")
+
+    again = env.reset(task_id, 0, seed)
+    _require(_same(obs0, again), "reset(task, episode 0, seed) twice gave different observations")
+    other = env.reset(task_id, 1, seed)
+    _require(
+        not _same(obs0, other), "episodes 0 and 1 start from the same state: init states must vary"
+    )
+
+    env.reset(task_id, 0, seed)
+    try:
+        env.step(np.zeros(env.action_dim + 1, dtype=np.float32))
+    except ValueError:
+        pass
+    else:
+        raise EnvContractError("step() with a wrong action shape must raise ValueError")
+
+    rng = np.random.default_rng(seed)
+    actions = rng.uniform(-1, 1, size=(n_steps, env.action_dim)).astype(np.float32)
+    trajectories = []
+    for _ in range(2):
+        env.reset(task_id, 0, seed)
+        traj = []
+        for i, a in enumerate(actions):
+            if env.done:
+                break
+            obs = env.step(a)
+            _check_obs(env, obs, f"step {i}")
+            _require(env.steps == i + 1, f"steps must count control steps: {env.steps} != {i + 1}")
+            total = env.task.subtasks_total
+            _require(0 <= env.subtasks_done <= total, f"subtasks_done out of [0, {total}]")
+            _require(isinstance(env.success, bool | np.bool_), "success must be a bool")
+            traj.append(obs.state.copy())
+        trajectories.append(traj)
+    _require(
+        all(np.array_equal(a, b) for a, b in zip(*trajectories, strict=True)),
+        "same init state and actions gave different trajectories: stepping must be deterministic",
+    )
+
+    if run_to_horizon:
+        env.reset(task_id, 0, seed)
+        limit = env.task.max_steps
+        while not env.done:
+            env.step(np.zeros(env.action_dim, dtype=np.float32))
+            _require(env.steps <= limit, f"done not set after max_steps={limit}")
+        try:
+            env.step(np.zeros(env.action_dim, dtype=np.float32))
+        except RuntimeError:
+            pass
+        else:
+            raise EnvContractError("step() after done must raise RuntimeError")

@@ -1,0 +1,137 @@
+"""Fake environments for unit tests and the smoke preset. Not simulators: named as fakes.
+
+``FakeMarkerEnv`` is a point agent on the plane [-1, 1]^2 that must reach a red marker whose
+position is shown *only in the image* (the state is the agent's own position), so a policy
+that ignores the image fails unless the marker happens to be near the centre. Task
+``reach_chain`` shows three markers one after another: a 3-subtask chain that stops at the
+first failure (when the step budget runs out), for Avg Len.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from workers.envs.base import EnvObservation, TaskSpec
+
+IMAGE_SIZE = 32
+STEP_SCALE = 0.1  # position change per unit action per step
+REACH_RADIUS = 0.08
+
+
+def plane_to_pixel(xy: np.ndarray, size: int = IMAGE_SIZE) -> tuple[int, int]:
+    """(x, y) in [-1, 1]^2 to (row, col); row 0 is y = +1."""
+    col = int(np.clip(np.round((xy[0] + 1) / 2 * (size - 1)), 0, size - 1))
+    row = int(np.clip(np.round((1 - xy[1]) / 2 * (size - 1)), 0, size - 1))
+    return row, col
+
+
+def pixel_to_plane(row: float, col: float, size: int = IMAGE_SIZE) -> tuple[float, float]:
+    return col / (size - 1) * 2 - 1, 1 - row / (size - 1) * 2
+
+
+class FakeMarkerEnv:
+    """Reach the red marker(s) seen in the image; deterministic init per (task, episode, seed)."""
+
+    suite = "fake_marker"
+    control_hz = 10.0
+    action_dim = 2
+    state_dim = 2
+    cameras = ("agentview",)
+
+    _TASKS = (
+        TaskSpec("reach", "reach the marker", max_steps=40, subtasks_total=1),
+        TaskSpec("reach_chain", "reach three markers in turn", max_steps=90, subtasks_total=3),
+    )
+    _INSTRUCTIONS: ClassVar[dict[str, str]] = {
+        "reach": "move to the red marker",
+        "reach_chain": "move to each red marker in turn",
+    }
+
+    def __init__(self, image_size: int = IMAGE_SIZE) -> None:
+        self.image_size = image_size
+        self._task: TaskSpec | None = None
+        self._pos = np.zeros(2)
+        self._targets: list[np.ndarray] = []
+        self._done_count = 0
+        self._steps = 0
+
+    @classmethod
+    def suite_tasks(cls, **_: object) -> list[TaskSpec]:
+        return list(cls._TASKS)
+
+    def tasks(self) -> list[TaskSpec]:
+        return list(self._TASKS)
+
+    def _spec(self, task_id: str) -> TaskSpec:
+        for t in self._TASKS:
+            if t.task_id == task_id:
+                return t
+        raise ValueError(
+            f"task_id={task_id!r} unknown; allowed: {[t.task_id for t in self._TASKS]}"
+        )
+
+    def reset(self, task_id: str, episode_index: int, seed: int) -> EnvObservation:
+        spec = self._spec(task_id)
+        task_index = self._TASKS.index(spec)
+        rng = np.random.default_rng([seed, episode_index, task_index])
+        self._task = spec
+        self._pos = rng.uniform(-0.9, 0.9, size=2)
+        self._targets = [rng.uniform(-0.9, 0.9, size=2) for _ in range(spec.subtasks_total)]
+        self._done_count = 0
+        self._steps = 0
+        return self._observe()
+
+    def _observe(self) -> EnvObservation:
+        img = np.zeros((self.image_size, self.image_size, 3), dtype=np.uint8)
+        if self._done_count < len(self._targets):
+            r, c = plane_to_pixel(self._targets[self._done_count], self.image_size)
+            img[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2, 0] = 255
+        r, c = plane_to_pixel(self._pos, self.image_size)
+        img[r, c, 1] = 255
+        return EnvObservation(images={"agentview": img}, state=self._pos.astype(np.float32))
+
+    def step(self, action: np.ndarray) -> EnvObservation:
+        action = np.asarray(action, dtype=np.float64)
+        if action.shape != (self.action_dim,):
+            raise ValueError(f"action must have shape ({self.action_dim},), got {action.shape}")
+        if self._task is None:
+            raise RuntimeError("step() before reset()")
+        if self.done:
+            raise RuntimeError("step() after the episode is done; call reset()")
+        self._pos = np.clip(self._pos + STEP_SCALE * np.clip(action, -1, 1), -1, 1)
+        self._steps += 1
+        target = self._targets[self._done_count]
+        if np.linalg.norm(self._pos - target) < REACH_RADIUS:
+            self._done_count += 1
+        return self._observe()
+
+    @property
+    def task(self) -> TaskSpec:
+        if self._task is None:
+            raise RuntimeError("no task: call reset() first")
+        return self._task
+
+    @property
+    def instruction(self) -> str:
+        return self._INSTRUCTIONS[self.task.task_id]
+
+    @property
+    def success(self) -> bool:
+        return self._task is not None and self._done_count == self._task.subtasks_total
+
+    @property
+    def done(self) -> bool:
+        return self.success or (self._task is not None and self._steps >= self._task.max_steps)
+
+    @property
+    def subtasks_done(self) -> int:
+        return self._done_count
+
+    @property
+    def steps(self) -> int:
+        return self._steps
+
+    def close(self) -> None:
+        self._task = None

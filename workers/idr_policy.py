@@ -1,0 +1,154 @@
+"""IDR around any backbone: infer (three passes), diagnose and refine, keeping the interface.
+
+The wrapper builds one batch of 3B observations (factual, do(V), do(S)) and calls the backbone
+once with the same noise for the three thirds (common random numbers), so that the action
+differences measure the modality's effect and not sampling noise. Backbones that cannot batch
+get three calls with the same noise instead (the sequential path); both give the same result.
+Mode ``baseline`` runs one factual pass and no counterfactuals at all.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from workers.backbones.base import Backbone, Observation, concat_observations
+from workers.idr import Diagnostics, IDRConfig, refine
+from workers.interventions import InterventionConfig, intervene
+
+
+@dataclass
+class IDRStep:
+    """What one inference produced: the chunk to execute and everything needed to analyse it."""
+
+    action: Any  # (B, T, D) refined chunk (a_base in baseline / diagnose modes)
+    a_base: Any
+    a_no_img: Any | None  # None in baseline mode
+    a_no_prop: Any | None
+    diag: Diagnostics | None  # None in baseline mode
+    inference_ms: float  # wall time of the backbone call(s) + refinement
+    batched: bool  # whether the three passes were one 3B forward
+    crn: bool  # whether the three passes shared one noise draw
+
+
+def _split3(x: Any, b: int) -> tuple[Any, Any, Any]:
+    return x[:b], x[b : 2 * b], x[2 * b :]
+
+
+def _repeat3(noise: Any) -> Any:
+    if type(noise).__module__.startswith("torch"):
+        import torch
+
+        return torch.cat([noise, noise, noise], dim=0)
+    return np.concatenate([noise, noise, noise], axis=0)
+
+
+class IDRPolicy:
+    """A backbone wrapped by the IDR refiner; ``infer`` returns an :class:`IDRStep`."""
+
+    def __init__(
+        self,
+        backbone: Backbone,
+        cfg: IDRConfig | None = None,
+        intervention: InterventionConfig | None = None,
+        batched: bool | None = None,
+    ) -> None:
+        self.backbone = backbone
+        self.cfg = cfg or IDRConfig()
+        self.intervention = intervention or InterventionConfig()
+        self._check_spaces(self.intervention)
+        can_batch = bool(getattr(backbone, "can_batch", False))
+        if batched and not can_batch:
+            raise ValueError(f"batched=True but backbone {backbone.name!r} cannot batch")
+        self.batched = can_batch if batched is None else batched
+
+    def _check_spaces(self, intervention: InterventionConfig) -> None:
+        native = getattr(self.backbone, "native_intervention_spaces", frozenset())
+        for field_name in ("image_space", "state_space"):
+            space = getattr(intervention, field_name)
+            if space != "raw" and space not in native:
+                raise ValueError(
+                    f"intervention.{field_name}={space!r} is not supported by backbone "
+                    f"{self.backbone.name!r} (it applies interventions in "
+                    f"{sorted(native) or 'no'} space itself); use 'raw'"
+                )
+
+    def set_config(self, cfg: IDRConfig, intervention: InterventionConfig | None = None) -> None:
+        """Switch the IDR cell without reloading the backbone."""
+        if intervention is not None:
+            self._check_spaces(intervention)
+            self.intervention = intervention
+        self.cfg = cfg
+
+    def reset(self) -> None:
+        self.backbone.reset()
+
+    # -- infer -------------------------------------------------------------------------
+    def counterfactuals(
+        self, obs: Observation, step_seed: int = 0
+    ) -> tuple[Observation, Observation]:
+        """The do(V) and do(S) versions of ``obs``: raw-space ones applied here, normalized-space
+        ones marked for the backbone."""
+        iv = self.intervention
+        b = obs.batch_size
+        flag = np.ones(b, dtype=bool)
+        kw = {"noise_scale": iv.noise_scale}
+        if iv.image_space == "raw":
+            images = {
+                cam: intervene(
+                    obs.images[cam], iv.strategy, seed=iv.seed + 7919 * step_seed + i, **kw
+                )
+                for i, cam in enumerate(sorted(obs.images))
+            }
+            no_img = Observation(images, obs.state, list(obs.instruction))
+        else:
+            no_img = Observation(dict(obs.images), obs.state, list(obs.instruction), do_image=flag)
+        if iv.state_space == "raw":
+            state = intervene(
+                obs.state, iv.strategy, seed=iv.seed + 7919 * step_seed + 104729, **kw
+            )
+            no_prop = Observation(dict(obs.images), state, list(obs.instruction))
+        else:
+            no_prop = Observation(dict(obs.images), obs.state, list(obs.instruction), do_state=flag)
+        return no_img, no_prop
+
+    def _call(self, obs: Observation, noise: Any | None) -> Any:
+        native = obs.do_image is not None or obs.do_state is not None
+        return self.backbone.predict_chunk(
+            obs, noise=noise, intervention=self.intervention if native else None
+        )
+
+    def infer(self, obs: Observation, step_seed: int = 0) -> IDRStep:
+        """One inference: the factual pass (+ the two counterfactual passes) and refinement.
+
+        ``step_seed`` makes the noise (and gaussian interventions) reproducible per step; the
+        three passes always share one noise draw.
+        """
+        obs.validate()
+        b = obs.batch_size
+        t0 = time.perf_counter()
+        noise = self.backbone.make_noise(b, step_seed)
+        if not self.cfg.needs_counterfactuals:
+            a_base = self._call(obs, noise)
+            ms = (time.perf_counter() - t0) * 1e3
+            return IDRStep(
+                a_base, a_base, None, None, None, ms, batched=False, crn=noise is not None
+            )
+
+        no_img, no_prop = self.counterfactuals(obs, step_seed)
+        if self.batched:
+            triple = concat_observations([obs, no_img, no_prop])
+            out = self._call(triple, None if noise is None else _repeat3(noise))
+            a_base, a_no_img, a_no_prop = _split3(out, b)
+        else:
+            a_base = self._call(obs, noise)
+            a_no_img = self._call(no_img, noise)
+            a_no_prop = self._call(no_prop, noise)
+        action, diag = refine(a_base, a_no_img, a_no_prop, self.cfg)
+        ms = (time.perf_counter() - t0) * 1e3
+        return IDRStep(
+            action, a_base, a_no_img, a_no_prop, diag, ms, self.batched, noise is not None
+        )
