@@ -87,6 +87,14 @@ def expand_grid(groups: list[dict[str, Any]], base: dict[str, Any] | None = None
     if unknown:
         raise ValueError(f"unknown IDR parameters {sorted(unknown)}; allowed: {sorted(CELL_KEYS)}")
     per_group = [_group_rows(i, g) for i, g in enumerate(groups)] or [[]]
+    first_seen: dict[str, int] = {}
+    for i, g in enumerate(groups):
+        for key in g:
+            if key in first_seen:
+                raise ValueError(
+                    f"grid: parameter {key!r} appears in groups {first_seen[key]} and {i}"
+                )
+            first_seen[key] = i
     cells: dict[str, Cell] = {}
     for combo in itertools.product(*per_group):
         varied = [kv for row in combo for kv in row]
@@ -104,6 +112,6 @@ def expand_grid(groups: list[dict[str, Any]], base: dict[str, Any] | None = None
         if cid in cells:
             if cid == "baseline":
                 continue
-            raise ValueError(f"grid gives two cells named {cid!r}: a parameter is listed twice")
+            raise ValueError(f"grid gives two cells named {cid!r}: a value is listed twice")
         cells[cid] = Cell(cid, idr, iv, tuple(varied))
     return list(cells.values())

@@ -33,7 +33,7 @@ def main_table(episodes: pd.DataFrame) -> str:
     suite_names = sorted(suites["suite"].unique())
     headers = ["cell", *suite_names, "Avg", "Δ vs baseline (95% CI)", "p (McNemar)", "errors"]
     rows = []
-    for cell in overall.index:
+    for cell in sorted(overall.index, key=lambda c: (c != "baseline", c)):
         r = [cell]
         for s in suite_names:
             m = suites[(suites["cell_id"] == cell) & (suites["suite"] == s)]

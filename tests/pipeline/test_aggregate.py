@@ -1,0 +1,117 @@
+"""Aggregates against small hand-computed tables."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipeline import aggregate as agg
+
+
+def _wilson_by_hand(k: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z / (1 + z * z / n) * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    return centre - half, centre + half
+
+
+@pytest.mark.parametrize(("k", "n"), [(0, 10), (3, 3), (7, 20), (50, 50)])
+def test_wilson_matches_formula(k, n) -> None:
+    assert agg.wilson(k, n) == pytest.approx(_wilson_by_hand(k, n), abs=1e-9)
+
+
+def test_mcnemar_exact_by_hand() -> None:
+    assert agg.mcnemar_exact(5, 0) == pytest.approx(2 * 0.5**5)  # 0.0625
+    assert agg.mcnemar_exact(3, 3) == pytest.approx(1.0)
+    # b=1, c=6: two-sided = 2 * P(X <= 1), X ~ Bin(7, .5) = 2 * 8/128
+    assert agg.mcnemar_exact(1, 6) == pytest.approx(16 / 128)
+    assert agg.mcnemar_exact(0, 0) == 1.0
+
+
+def _episodes() -> pd.DataFrame:
+    rows = []
+    # baseline: success on episodes 0,1 of task a; E: success on 0,1,2,3 of task a
+    for cell, wins in (("baseline", {0, 1}), ("E", {0, 1, 2, 3})):
+        for i in range(5):
+            rows.append(
+                {
+                    "cell_id": cell,
+                    "suite": "s",
+                    "task_id": "a",
+                    "episode_index": i,
+                    "success": i in wins,
+                    "error": None,
+                    "subtasks_total": 1,
+                    "subtasks_done": int(i in wins),
+                    "sim_seconds": 2.0 + i,
+                    "wall_seconds": 1.0,
+                    "inference_ms_mean": 3.0,
+                    "gate_rate": 0.5,
+                    "e_img_mean": 1.0,
+                    "e_prop_mean": 1.0,
+                    "r_img_mean": 0.5,
+                }
+            )
+    # a chain task: subtasks done 0, 2, 5 of 5; and one error row, excluded everywhere
+    for i, done in enumerate([0, 2, 5]):
+        rows.append(
+            {
+                "cell_id": "E",
+                "suite": "s",
+                "task_id": "chain",
+                "episode_index": i,
+                "success": done == 5,
+                "error": None,
+                "subtasks_total": 5,
+                "subtasks_done": done,
+                "sim_seconds": 9.0,
+                "wall_seconds": 1.0,
+                "inference_ms_mean": 3.0,
+                "gate_rate": 0.5,
+                "e_img_mean": 1.0,
+                "e_prop_mean": 1.0,
+                "r_img_mean": 0.5,
+            }
+        )
+    rows.append(
+        {**rows[-1], "episode_index": 3, "success": False, "error": "boom", "subtasks_done": 0}
+    )
+    return pd.DataFrame(rows)
+
+
+def test_success_tables_exclude_errors() -> None:
+    t = agg.success_by_task(_episodes()).set_index(["cell_id", "task_id"])
+    assert t.loc[("E", "a"), "success_rate"] == pytest.approx(4 / 5)
+    assert t.loc[("E", "chain"), ["n", "successes", "errors"]].tolist() == [3, 1, 1]
+    lo, hi = _wilson_by_hand(4, 5)
+    assert t.loc[("E", "a"), "ci_low"] == pytest.approx(lo) and t.loc[
+        ("E", "a"), "ci_high"
+    ] == pytest.approx(hi)
+    o = agg.success_overall(_episodes()).set_index("cell_id")
+    assert o.loc["E", "success_rate"] == pytest.approx(5 / 8) and o.loc["E", "errors"] == 1
+
+
+def test_chain_rates_and_avg_len() -> None:
+    c = agg.chain_metrics(_episodes()).iloc[0]
+    assert c["avg_len"] == pytest.approx(7 / 3)
+    assert [c[f"rate_{i}of5"] for i in range(1, 6)] == pytest.approx(
+        [2 / 3, 2 / 3, 1 / 3, 1 / 3, 1 / 3]
+    )
+    assert c["avg_len_low"] <= c["avg_len"] <= c["avg_len_high"]
+
+
+def test_paired_difference_on_shared_keys() -> None:
+    (d,) = agg.paired_vs_baseline(_episodes())
+    # shared keys: task a, episodes 0..4; E wins 2 more, baseline none more
+    assert (d.cell_id, d.n_pairs, d.only_cell, d.only_baseline) == ("E", 5, 2, 0)
+    assert d.diff == pytest.approx(0.4)
+    assert d.p_value == pytest.approx(0.5)  # 2 * 0.5**2
+    assert d.ci_low <= 0.4 <= d.ci_high
+
+
+def test_completion_time_over_successes_only() -> None:
+    t = agg.completion_times(_episodes()).set_index("cell_id")
+    assert t.loc["baseline", "sim_seconds_to_success"] == pytest.approx(np.mean([2.0, 3.0]))

@@ -1,0 +1,60 @@
+"""The real CLI in a subprocess: run, resume, report, and clear errors without tracebacks."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pyarrow.parquet as pq
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "pipeline.cli", *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+def test_run_resume_report(tmp_path) -> None:
+    out = tmp_path / "smoke"
+    r = _cli(
+        "run",
+        "conf/smoke.yaml",
+        "--out",
+        str(out),
+        "executor.kind=inline",
+        "tracking.enabled=false",
+    )
+    assert r.returncode == 0, r.stderr
+    assert "12 stored" in r.stdout
+    n_files = len(list(out.rglob("*.parquet")))
+    assert pq.ParquetDataset(out / "episodes").read().num_rows == 12
+    r = _cli(
+        "run",
+        "conf/smoke.yaml",
+        "--out",
+        str(out),
+        "executor.kind=inline",
+        "tracking.enabled=false",
+    )
+    assert r.returncode == 0 and "0 stored, 12 already stored" in r.stdout
+    assert len(list(out.rglob("*.parquet"))) == n_files
+    (out / "report.md").unlink()
+    r = _cli("report", str(out))
+    assert r.returncode == 0 and "| baseline |" in r.stdout and (out / "report.md").exists()
+
+
+def test_bad_input_is_one_clear_error(tmp_path) -> None:
+    r = _cli("run", "conf/smoke.yaml", "--out", str(tmp_path / "x"), "executor.wrokers=2")
+    assert r.returncode == 2
+    assert "executor.wrokers: unknown key; did you mean 'workers'?" in r.stderr
+    assert "Traceback" not in r.stderr
+    assert not (tmp_path / "x").exists()
+    r = _cli("run", "conf/nope.yaml")
+    assert r.returncode == 2 and "not found" in r.stderr and "Traceback" not in r.stderr

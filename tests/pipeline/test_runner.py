@@ -1,0 +1,96 @@
+"""Runs of the smoke preset on the fakes: inline and Ray agree; resume; refusals before work."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from pipeline.config import ConfigError, load_config
+from pipeline.runner import execute, plan_run
+from pipeline.store import RunStore
+
+CONF = Path(__file__).resolve().parents[2] / "conf"
+VOLATILE = ["wall_seconds", "inference_ms_mean", "worker", "started_at", "finished_at", "run_id"]
+
+
+def _episodes(run_dir: Path) -> pd.DataFrame:
+    df = RunStore(run_dir).episodes().to_pandas().drop(columns=VOLATILE)
+    return df.sort_values(["cell_id", "task_id", "episode_index"]).reset_index(drop=True)
+
+
+def _steps(run_dir: Path) -> pd.DataFrame:
+    df = RunStore(run_dir).steps().to_pandas().drop(columns=["inference_ms", "run_id"])
+    return df.sort_values(["cell_id", "task_id", "episode_index", "inference_index"]).reset_index(
+        drop=True
+    )
+
+
+@pytest.mark.slow
+def test_inline_and_ray_give_identical_tables(tmp_path, ray_local) -> None:
+    inline = load_config(CONF / "smoke.yaml", ["executor.kind=inline", "tracking.enabled=false"])
+    ray_cfg = load_config(CONF / "smoke.yaml", ["executor.kind=ray", "tracking.enabled=false"])
+    s1 = execute(plan_run(inline, tmp_path / "inline"))
+    s2 = execute(plan_run(ray_cfg, tmp_path / "ray"))
+    assert s1.stored == s2.stored == 12 and s1.errors == s2.errors == 0
+    a, b = _episodes(tmp_path / "inline"), _episodes(tmp_path / "ray")
+    pd.testing.assert_frame_equal(a, b)
+    pd.testing.assert_frame_equal(_steps(tmp_path / "inline"), _steps(tmp_path / "ray"))
+    assert len(s2.workers) == 2  # two actors ran
+    # paired design: every cell saw the same tasks, episode indices and init states
+    keys = a.groupby("cell_id")[["task_id", "episode_index", "init_state_id"]].apply(
+        lambda g: sorted(map(tuple, g.to_numpy()))
+    )
+    assert keys["baseline"] == keys["E"]
+    # the IDR cell ran the counterfactual passes; the baseline did not
+    assert a.loc[a.cell_id == "E", "e_img_mean"].notna().all()
+    assert a.loc[a.cell_id == "baseline", "e_img_mean"].isna().all()
+
+
+def test_resume_skips_stored_keys(tmp_path) -> None:
+    cfg = load_config(CONF / "smoke.yaml", ["executor.kind=inline", "tracking.enabled=false"])
+    first = execute(plan_run(cfg, tmp_path / "run"))
+    assert first.stored == 12
+    again = execute(plan_run(cfg, tmp_path / "run"))
+    assert again.skipped == 12 and again.stored == 0
+    assert len(RunStore(tmp_path / "run").episodes()) == 12
+    assert (tmp_path / "run" / "report.md").read_text().startswith("# IDR evaluation report")
+
+
+def test_run_dir_of_another_config_is_refused(tmp_path) -> None:
+    cfg = load_config(CONF / "smoke.yaml", ["executor.kind=inline", "episodes_per_task=1"])
+    execute(plan_run(cfg, tmp_path / "run"))
+    other = load_config(
+        CONF / "smoke.yaml", ["executor.kind=inline", "episodes_per_task=1", "seed=1"]
+    )
+    with pytest.raises(
+        ConfigError, match=r"holds results of a different config.*new --out, or delete"
+    ):
+        plan_run(other, tmp_path / "run")
+
+
+@pytest.mark.parametrize(
+    ("overrides", "pattern"),
+    [
+        (["env.tasks=[reach, fly]"], r"env.tasks: \['fly'\] not in suite 'fake_marker'"),
+        (
+            ["env.suite=fake_markr"],
+            r"env.suite='fake_markr' is unknown; did you mean 'fake_marker'",
+        ),
+        (["backbone.kind=fake"], r"backbone.kind='fake' is unknown"),
+        (["executor.workers=64"], r"needs 64 CPUs but this machine has \d+; .*oversubscribe=true"),
+    ],
+)
+def test_bad_input_refused_before_any_work(tmp_path, overrides, pattern) -> None:
+    cfg = load_config(CONF / "smoke.yaml", overrides)
+    with pytest.raises(ConfigError, match=pattern):
+        plan_run(cfg, tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+def test_non_run_dir_is_refused(tmp_path) -> None:
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "notes.txt").write_text("mine")
+    with pytest.raises(ConfigError, match="not an idr-eval run dir"):
+        plan_run(load_config(CONF / "smoke.yaml"), tmp_path / "run")

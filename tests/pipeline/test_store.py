@@ -1,0 +1,81 @@
+"""The Parquet store: fixed schemas, atomic batches, crash recovery, keys stored once."""
+
+from __future__ import annotations
+
+import pyarrow.parquet as pq
+import pytest
+
+from pipeline.store import EPISODE_SCHEMA, STEP_SCHEMA, RunStore
+from workers.episode import EpisodeResult
+
+
+def _result(
+    cell: str, task: str, i: int, n_steps: int = 2, error: str | None = None
+) -> EpisodeResult:
+    ep = {
+        "run_id": "r",
+        "cell_id": cell,
+        "task_id": task,
+        "episode_index": i,
+        "success": i % 2 == 0,
+        "steps": 10,
+        "error": error,
+        "suite": "s",
+    }
+    steps = [
+        {
+            "run_id": "r",
+            "cell_id": cell,
+            "task_id": task,
+            "episode_index": i,
+            "inference_index": k,
+            "step": 4 * k,
+            "e_img": 1.5,
+            "action_base": [0.1, 0.2],
+            "action_final": [0.1, 0.25],
+        }
+        for k in range(n_steps)
+    ]
+    return EpisodeResult(ep, steps)
+
+
+def test_roundtrip_with_fixed_schemas(tmp_path) -> None:
+    store = RunStore(tmp_path)
+    assert store.write([_result("E", "t", 0), _result("baseline", "t", 0, 3)]) == 2
+    eps, steps = store.episodes(), store.steps()
+    assert eps.schema == EPISODE_SCHEMA and steps.schema == STEP_SCHEMA
+    assert eps.num_rows == 2 and steps.num_rows == 5
+    assert store.stored_keys() == {("E", "t", 0), ("baseline", "t", 0)}
+    assert steps.column("action_final").to_pylist()[0] == pytest.approx([0.1, 0.25])
+    # partitioned by cell; every file is a complete Parquet file
+    files = sorted(p.relative_to(tmp_path).parts[:2] for p in tmp_path.rglob("*.parquet"))
+    assert ("episodes", "cell=E") in files and ("steps", "cell=baseline") in files
+    for f in tmp_path.rglob("*.parquet"):
+        pq.read_metadata(f)
+
+
+def test_unknown_column_is_refused(tmp_path) -> None:
+    r = _result("E", "t", 0)
+    r.episode["sucess"] = True
+    with pytest.raises(ValueError, match=r"not in the schema: \['sucess'\]"):
+        RunStore(tmp_path).write([r])
+    assert not list(tmp_path.rglob("*.parquet"))
+
+
+def test_recovery_removes_orphans_and_temp_files(tmp_path) -> None:
+    store = RunStore(tmp_path)
+    store.write([_result("E", "t", 0)])
+    # a crash between the steps rename and the episodes rename leaves an orphan steps batch
+    (orphan,) = (tmp_path / "steps").rglob("*.parquet")
+    orphan.rename(orphan.with_name("batch-000099-deadbeef.parquet"))
+    (tmp_path / "steps" / "cell=E" / "batch-000001-aaaa.parquet").write_bytes(
+        b""
+    )  # never renamed in
+    (tmp_path / "episodes" / "cell=E" / ".batch-000100-x.parquet.tmp").write_bytes(b"PAR1 half")
+    reopened = RunStore(tmp_path)
+    assert reopened.steps().num_rows == 0  # orphan steps removed: their episode was never stored
+    assert not list(tmp_path.rglob("*.tmp"))
+    assert reopened.stored_keys() == {("E", "t", 0)}
+    # the next batch number continues after the existing ones
+    reopened.write([_result("E", "t", 1)])
+    assert len(list((tmp_path / "episodes" / "cell=E").glob("batch-000002-*.parquet"))) == 1
