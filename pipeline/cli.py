@@ -43,6 +43,44 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_ui(args: argparse.Namespace) -> int:
+    """Start the MLflow UI for a run's store (bound to 127.0.0.1 unless --host says otherwise)."""
+    import json
+    import subprocess
+
+    from pipeline.tracking import TRACKING_FILE, default_uri
+
+    if args.run_dir:
+        state = Path(args.run_dir) / TRACKING_FILE
+        if not state.is_file():
+            raise ConfigError(
+                f"{args.run_dir} has no {TRACKING_FILE}: was it run with tracking.enabled=false?"
+            )
+        uri = json.loads(state.read_text())["uri"]
+    else:
+        uri = default_uri(Path("runs") / "_")
+    if not uri.startswith("sqlite:"):
+        print(
+            f"{uri} is a tracking server: open it in a browser (through an SSH tunnel if it is remote, "
+            f"e.g. ssh -L 5000:localhost:5000 HEAD_NODE) instead of starting a local UI."
+        )
+        return 0
+    cmd = [
+        sys.executable,
+        "-m",
+        "mlflow",
+        "ui",
+        "--backend-store-uri",
+        uri,
+        "--host",
+        args.host,
+        "--port",
+        str(args.port),
+    ]
+    print(f"MLflow UI for {uri} on http://{args.host}:{args.port} (Ctrl-C to stop)")
+    return subprocess.call(cmd)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="idr-eval", description=__doc__)
     p.add_argument("-v", "--verbose", action="store_true")
@@ -57,6 +95,13 @@ def build_parser() -> argparse.ArgumentParser:
     rep = sub.add_parser("report", help="rebuild RUN_DIR/report.md from the Parquet files")
     rep.add_argument("run_dir")
     rep.set_defaults(func=_cmd_report)
+    ui = sub.add_parser("ui", help="MLflow UI for a run dir's store (default: runs/mlflow.db)")
+    ui.add_argument("run_dir", nargs="?")
+    ui.add_argument(
+        "--host", default="127.0.0.1", help="bind address (default 127.0.0.1: local only)"
+    )
+    ui.add_argument("--port", type=int, default=5000)
+    ui.set_defaults(func=_cmd_ui)
     return p
 
 

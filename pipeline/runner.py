@@ -138,16 +138,63 @@ def _write_meta(plan: RunPlan) -> None:
     tmp.replace(plan.run_dir / RUN_META)
 
 
+def run_params(plan: RunPlan) -> dict[str, object]:
+    """What a run is, as flat MLflow params (the cell's own params are added per child)."""
+    cfg = plan.cfg
+    return {
+        "backbone": cfg.backbone.kind,
+        "backbone_params": json.dumps(cfg.backbone.params, sort_keys=True),
+        "replan_steps": cfg.backbone.replan_steps,
+        "suite": cfg.env.suite,
+        "env_params": json.dumps(cfg.env.params, sort_keys=True),
+        "tasks": ",".join(t.task_id for t in plan.tasks),
+        "max_steps": json.dumps({t.task_id: t.max_steps for t in plan.tasks}),
+        "episodes_per_task": cfg.episodes_per_task,
+        "seed": cfg.seed,
+        "executor": cfg.executor.kind,
+        "workers": cfg.executor.workers,
+        "fingerprint": cfg.fingerprint(),
+        "code_version": plan.specs[0].meta["code_version"] if plan.specs else code_version(),
+    }
+
+
 def execute(plan: RunPlan) -> RunSummary:
-    """Run the plan: schedule the episodes not yet stored, then write the report."""
+    """Run the plan: schedule the episodes not yet stored, write the report, track in MLflow."""
+    from pipeline.tracking import Tracker, resolve_uri
+
     _write_meta(plan)
     cfg = plan.cfg
     store = RunStore(plan.run_dir)
-    if cfg.executor.kind == "ray":
-        local_cpus = (
-            None if cfg.executor.address else cfg.executor.workers * cfg.executor.cpus_per_worker
+    tracker = None
+    if cfg.tracking.enabled:  # opened before any actor starts: a bad store is refused up front
+        uri = resolve_uri(cfg.tracking.uri, plan.run_dir)
+        try:
+            tracker = Tracker(uri, cfg.tracking.experiment, plan.run_dir)
+        except RuntimeError as e:
+            raise ConfigError(
+                f"tracking.uri: {e}; fix the URI or set tracking.enabled=false"
+            ) from None
+        run_name = f"{cfg.name}-{plan.run_id}"
+        tracker.start(
+            run_name=run_name, run_id=plan.run_id, params=run_params(plan), cells=cfg.cells()
         )
-        init_ray(cfg.executor.address, local_cpus)
-    summary = Scheduler(plan.worker_spec, plan.specs, store, cfg.executor).run()
-    write_report(plan.run_dir)
+    if cfg.executor.kind == "ray":
+        ex = cfg.executor
+        init_ray(ex.address, None if ex.address else ex.workers * ex.cpus_per_worker)
+    total = len(plan.specs)
+    on_flush = (lambda batch: tracker.progress(len(batch), total)) if tracker else None
+    status = "FAILED"
+    try:
+        summary = Scheduler(
+            plan.worker_spec, plan.specs, store, cfg.executor, on_flush=on_flush
+        ).run()
+        status = "FINISHED"
+    except KeyboardInterrupt:
+        status = "KILLED"
+        raise
+    finally:
+        report = write_report(plan.run_dir)
+        if tracker is not None:
+            episodes = store.episodes().to_pandas()
+            tracker.finish(episodes, [report, plan.run_dir / "config.yaml"], status)
     return summary

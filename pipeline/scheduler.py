@@ -98,6 +98,7 @@ class Scheduler:
         self._stored_keys = done
         self._buffer: list[EpisodeResult] = []
         self._progress: _Progress | None = None
+        self.actors: dict[int, Any] = {}
 
     # -- result handling (shared by both executors) --------------------------------------
     def _accept(self, spec: EpisodeSpec, result: EpisodeResult) -> None:
@@ -198,6 +199,7 @@ class Scheduler:
 
         cls = remote_worker_class(self.ex.cpus_per_worker, self.ex.gpus_per_worker)
         actors: dict[int, Any] = {}
+        self.actors = actors  # live view, for tests and diagnostics
         next_id = 0
 
         def start() -> int:

@@ -14,6 +14,7 @@ so the counterfactual deltas of IDR are known in closed form (with shared noise)
 
 from __future__ import annotations
 
+import time
 from typing import Any, ClassVar
 
 import numpy as np
@@ -54,6 +55,7 @@ class FakeMarkerBackbone:
         camera: str = "agentview",
         can_batch: bool = True,
         fresh_noise_seed: int = 1234,
+        delay_s: float = 0.0,
     ) -> None:
         self.name = "fake_marker"
         self.chunk_len = chunk_len
@@ -62,6 +64,7 @@ class FakeMarkerBackbone:
         self.noise_std = noise_std
         self.camera = camera
         self.can_batch = can_batch
+        self.delay_s = delay_s  # simulated inference time (tests of scheduling and faults)
         self.calls: list[int] = []  # batch size of every predict_chunk call, for tests
         # Used when the caller passes no noise: independent draws per call.
         self._fresh = torch.Generator().manual_seed(fresh_noise_seed)
@@ -81,6 +84,8 @@ class FakeMarkerBackbone:
         if intervention is not None:
             raise ValueError(f"{self.name} applies no interventions itself (raw space only)")
         self.calls.append(obs.batch_size)
+        if self.delay_s:
+            time.sleep(self.delay_s)
         images = _as_tensor(obs.images[self.camera]).float()
         state = _as_tensor(obs.state).float()
         m = marker_position(images)

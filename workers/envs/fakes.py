@@ -49,8 +49,23 @@ class FakeMarkerEnv:
         "reach_chain": "move to each red marker in turn",
     }
 
-    def __init__(self, image_size: int = IMAGE_SIZE) -> None:
+    def __init__(
+        self,
+        image_size: int = IMAGE_SIZE,
+        fail_once: tuple[int, ...] = (),
+        fail_always: tuple[int, ...] = (),
+        exit_on: tuple[int, ...] = (),
+    ) -> None:
+        """Fault injection for tests, by episode index: ``fail_once`` raises in the first reset
+        of that episode in this process, ``fail_always`` in every reset, ``exit_on`` kills the
+        process (like a segfaulting simulator)."""
         self.image_size = image_size
+        self.fail_once, self.fail_always, self.exit_on = (
+            set(fail_once),
+            set(fail_always),
+            set(exit_on),
+        )
+        self._failed: set[int] = set()
         self._task: TaskSpec | None = None
         self._pos = np.zeros(2)
         self._targets: list[np.ndarray] = []
@@ -74,6 +89,15 @@ class FakeMarkerEnv:
 
     def reset(self, task_id: str, episode_index: int, seed: int) -> EnvObservation:
         spec = self._spec(task_id)
+        if episode_index in self.exit_on:
+            import os
+
+            os._exit(17)
+        if episode_index in self.fail_always or (
+            episode_index in self.fail_once and episode_index not in self._failed
+        ):
+            self._failed.add(episode_index)
+            raise RuntimeError(f"injected failure in reset of episode {episode_index}")
         task_index = self._TASKS.index(spec)
         rng = np.random.default_rng([seed, episode_index, task_index])
         self._task = spec

@@ -1,0 +1,213 @@
+"""MLflow tracking: one parent run per experiment run, one child run per IDR cell.
+
+Only the driver talks to MLflow (SQLite locks under concurrent writers). By default the store
+is SQLite next to the run directory (``<RUN_DIR>/../mlflow.db``), so all runs under one output
+root share one store and can be compared side by side in the UI; ``tracking.uri`` selects any
+other store (a tracking server for a cluster). Run ids are kept in ``RUN_DIR/tracking.json`` so
+a resumed run logs into the same MLflow runs.
+
+Children carry the cell's parameters as params and as ``idr.*`` tags, so the UI's run
+comparison shows the cells side by side; metrics are logged when the run finishes (and a
+progress counter on the parent as batches land).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from pipeline import aggregate as agg
+
+log = logging.getLogger("idr_eval.tracking")
+TRACKING_FILE = "tracking.json"
+
+
+def default_uri(run_dir: Path) -> str:
+    return f"sqlite:///{(run_dir.resolve().parent / 'mlflow.db')}"
+
+
+def resolve_uri(uri: str | None, run_dir: Path) -> str:
+    return uri or default_uri(run_dir)
+
+
+def _finite(metrics: dict[str, float]) -> dict[str, float]:
+    return {k: float(v) for k, v in metrics.items() if v is not None and math.isfinite(float(v))}
+
+
+def _metric_key(*parts: str) -> str:
+    # MLflow keys allow alphanumerics, _ - . space / ; map anything else to _
+    return "/".join("".join(c if c.isalnum() or c in "_-. " else "_" for c in p) for p in parts)
+
+
+def probe(uri: str, timeout: float = 5.0) -> None:
+    """Fail within seconds when a tracking server does not answer (MLflow itself retries for minutes)."""
+    if not uri.startswith(("http://", "https://")):
+        return
+    import urllib.error
+    import urllib.request
+
+    try:
+        with urllib.request.urlopen(uri.rstrip("/") + "/health", timeout=timeout) as r:
+            r.read()
+    except (urllib.error.URLError, OSError) as e:
+        raise RuntimeError(
+            f"MLflow store {uri} is not usable: tracking server does not answer ({e})"
+        ) from None
+
+
+class Tracker:
+    """Parent + child MLflow runs of one RUN_DIR, created or resumed."""
+
+    def __init__(self, uri: str, experiment: str, run_dir: Path) -> None:
+        from mlflow import MlflowClient
+
+        probe(uri)
+        self.uri = uri
+        self.run_dir = run_dir
+        self.client = MlflowClient(tracking_uri=uri)
+        try:
+            exp = self.client.get_experiment_by_name(experiment)
+            self.experiment_id = (
+                exp.experiment_id
+                if exp
+                else self.client.create_experiment(
+                    experiment, artifact_location=self._artifact_location()
+                )
+            )
+        except Exception as e:  # noqa: BLE001 - any store failure: refuse before work starts
+            raise RuntimeError(
+                f"MLflow store {uri} is not usable: {type(e).__name__}: {e}"
+            ) from None
+        self.parent_id: str | None = None
+        self.children: dict[str, str] = {}
+        self._done = 0
+
+    def _artifact_location(self) -> str | None:
+        if self.uri.startswith("sqlite:///"):
+            return (Path(self.uri.removeprefix("sqlite:///")).parent / "mlartifacts").as_uri()
+        return None
+
+    def start(
+        self, *, run_name: str, run_id: str, params: dict[str, Any], cells: list[Any]
+    ) -> None:
+        path = self.run_dir / TRACKING_FILE
+        state = json.loads(path.read_text()) if path.is_file() else {}
+        if state.get("uri") == self.uri and state.get("parent"):
+            self.parent_id = state["parent"]
+            self.children = dict(state.get("children", {}))
+            self.client.update_run(self.parent_id, status="RUNNING")
+        else:
+            tags = {"idr.run_id": run_id, "idr.run_dir": str(self.run_dir.resolve())}
+            self.parent_id = self.client.create_run(
+                self.experiment_id, run_name=run_name, tags=tags
+            ).info.run_id
+            self._log_params(self.parent_id, params)
+        for cell in cells:
+            if cell.cell_id in self.children:
+                self.client.update_run(self.children[cell.cell_id], status="RUNNING")
+                continue
+            tags = {
+                "mlflow.parentRunId": self.parent_id,
+                "idr.run_id": run_id,
+                "idr.cell": cell.cell_id,
+                **{f"idr.{k}": str(v) for k, v in cell.params().items()},
+            }
+            child = self.client.create_run(
+                self.experiment_id, run_name=f"{run_name}/{cell.cell_id}", tags=tags
+            )
+            self.children[cell.cell_id] = child.info.run_id
+            self._log_params(
+                child.info.run_id, {**params, **{f"cell.{k}": v for k, v in cell.params().items()}}
+            )
+        tmp = path.with_name(f".{TRACKING_FILE}.tmp")
+        tmp.write_text(
+            json.dumps(
+                {"uri": self.uri, "parent": self.parent_id, "children": self.children}, indent=2
+            )
+        )
+        tmp.replace(path)
+
+    def _log_params(self, run_id: str, params: dict[str, Any]) -> None:
+        from mlflow.entities import Param
+
+        items = [Param(k, str(v)[:6000]) for k, v in params.items()]
+        for i in range(0, len(items), 100):
+            self.client.log_batch(run_id, params=items[i : i + 100])
+
+    def _log_metrics(self, run_id: str, metrics: dict[str, float], step: int = 0) -> None:
+        from mlflow.entities import Metric
+
+        now = int(time.time() * 1000)
+        items = [Metric(k, v, now, step) for k, v in _finite(metrics).items()]
+        for i in range(0, len(items), 500):
+            self.client.log_batch(run_id, metrics=items[i : i + 500])
+
+    def progress(self, n_new: int, total: int) -> None:
+        self._done += n_new
+        if self.parent_id:
+            self._log_metrics(self.parent_id, {"episodes_stored": self._done}, step=self._done)
+
+    def finish(
+        self, episodes: pd.DataFrame, artifacts: list[Path], status: str = "FINISHED"
+    ) -> None:
+        """Log the per-cell metrics and the artifacts, and end the runs with ``status``."""
+        if not episodes.empty:
+            for cell_id, metrics in cell_metrics(episodes).items():
+                if cell_id in self.children:
+                    self._log_metrics(self.children[cell_id], metrics)
+            overall = agg.success_overall(episodes)
+            self._log_metrics(
+                self.parent_id,
+                {_metric_key("success", r.cell_id): r.success_rate for r in overall.itertuples()},
+            )
+        for p in artifacts:
+            if p.exists():
+                self.client.log_artifact(self.parent_id, str(p))
+        for rid in self.children.values():
+            self.client.set_terminated(rid, status=status)
+        self.client.set_terminated(self.parent_id, status=status)
+
+
+def cell_metrics(episodes: pd.DataFrame) -> dict[str, dict[str, float]]:
+    """Per cell: success overall/suite/task, Avg Len, completion times, diagnostics, Δ vs baseline."""
+    out: dict[str, dict[str, float]] = {c: {} for c in episodes["cell_id"].unique()}
+    for r in agg.success_overall(episodes).itertuples():
+        out[r.cell_id].update(
+            success=r.success_rate,
+            success_ci_low=r.ci_low,
+            success_ci_high=r.ci_high,
+            episodes=r.n,
+            errors=r.errors,
+        )
+    for r in agg.success_by_suite(episodes).itertuples():
+        out[r.cell_id][_metric_key("success", r.suite)] = r.success_rate
+    for r in agg.success_by_task(episodes).itertuples():
+        out[r.cell_id][_metric_key("success", r.suite, r.task_id)] = r.success_rate
+    chains = agg.chain_metrics(episodes)
+    for r in chains.to_dict("records"):
+        out[r["cell_id"]][_metric_key("avg_len", r["task_id"])] = r["avg_len"]
+    if not chains.empty:
+        for cell, g in chains.groupby("cell_id"):
+            out[cell]["avg_len"] = float((g["avg_len"] * g["n"]).sum() / g["n"].sum())
+    for r in agg.completion_times(episodes).itertuples():
+        out[r.cell_id][_metric_key("sim_seconds_to_success", r.suite)] = r.sim_seconds_to_success
+        out[r.cell_id]["wall_seconds_per_episode"] = r.wall_seconds_mean
+        out[r.cell_id]["inference_ms"] = r.inference_ms_mean
+    for r in agg.diagnostics_by_cell(episodes).itertuples():
+        out[r.cell_id].update(
+            gate_rate=r.gate_rate, e_img=r.e_img_mean, e_prop=r.e_prop_mean, r_img=r.r_img_mean
+        )
+    for d in agg.paired_vs_baseline(episodes):
+        out[d.cell_id].update(
+            delta_vs_baseline=d.diff,
+            delta_ci_low=d.ci_low,
+            delta_ci_high=d.ci_high,
+            delta_p_value=d.p_value,
+        )
+    return out
