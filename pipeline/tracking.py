@@ -80,7 +80,7 @@ class Tracker:
                     experiment, artifact_location=self._artifact_location()
                 )
             )
-        except Exception as e:  # noqa: BLE001 - any store failure: refuse before work starts
+        except Exception as e:
             raise RuntimeError(
                 f"MLflow store {uri} is not usable: {type(e).__name__}: {e}"
             ) from None
