@@ -180,3 +180,34 @@ def diagnostics_by_cell(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
 def errors(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
     df = _frame(episodes)
     return df[df["error"].notna()][["cell_id", "task_id", "episode_index", "attempt", "error"]]
+
+
+def steps_summary(steps: pa.Table, bins: int = 10) -> tuple[pa.Table, pa.Table]:
+    """Per-inference diagnostics, aggregated with Arrow (fast on tens of millions of rows).
+
+    Returns (per cell: inferences, mean E_img / E_prop / R_img, gate rate) and
+    (per cell and normalized-progress bin: the same means), where progress is the inference's
+    control step over its episode's last inference step.
+    """
+    import pyarrow.compute as pc
+
+    means = [("e_img", "mean"), ("e_prop", "mean"), ("r_img", "mean"), ("gate", "mean")]
+    per_cell = steps.group_by("cell_id").aggregate([("step", "count"), *means])
+    per_cell = per_cell.rename_columns(
+        [
+            "cell_id"
+            if n == "cell_id"
+            else n.replace("_mean", "").replace("step_count", "inferences")
+            for n in per_cell.column_names
+        ]
+    )
+    key = ["cell_id", "task_id", "episode_index"]
+    last = steps.group_by(key).aggregate([("step", "max")])
+    joined = steps.select([*key, "step", "e_img", "e_prop", "r_img", "gate"]).join(last, key)
+    denom = pc.max_element_wise(joined["step_max"], 1)
+    progress = pc.divide(pc.cast(joined["step"], pa.float64()), pc.cast(denom, pa.float64()))
+    b = pc.min_element_wise(pc.cast(pc.floor(pc.multiply(progress, bins)), pa.int64()), bins - 1)
+    joined = joined.append_column("progress_bin", b)
+    per_bin = joined.group_by(["cell_id", "progress_bin"]).aggregate(means)
+    per_bin = per_bin.sort_by([("cell_id", "ascending"), ("progress_bin", "ascending")])
+    return per_cell, per_bin

@@ -56,7 +56,9 @@ class ExecutorConfig(_Model):
     cpus_per_worker: float = Field(default=1.0, gt=0)
     gpus_per_worker: float = Field(default=0.0, ge=0)
     address: str | None = Field(default=None, description="existing Ray cluster; None = local")
-    max_in_flight: int | None = Field(default=None, ge=1, description="None: 2 per worker")
+    max_in_flight: int | None = Field(
+        default=None, ge=1, description="episodes running at once; None: one per worker"
+    )
     max_attempts: int = Field(default=3, ge=1, description="tries per episode before giving up")
     oversubscribe: bool = Field(
         default=False, description="allow more local worker CPUs than this machine has"

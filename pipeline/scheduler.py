@@ -40,6 +40,7 @@ class RunSummary:
     actors_replaced: int = 0
     duplicates_dropped: int = 0
     wall_seconds: float = 0.0
+    startup_seconds: float = 0.0  # until the workers were ready (actors started, models loaded)
     workers: list[str] = field(default_factory=list)
 
 
@@ -181,8 +182,10 @@ class Scheduler:
     def _run_inline(self) -> None:
         from workers.actor import EpisodeWorker
 
+        t0 = time.monotonic()
         worker = EpisodeWorker(self.worker_spec)
         self.summary.workers = [worker.ping()]
+        self.summary.startup_seconds = time.monotonic() - t0
         try:
             while self.pending:
                 spec = self.pending.popleft()
@@ -208,6 +211,7 @@ class Scheduler:
             actors[next_id] = cls.remote(self.worker_spec)
             return next_id
 
+        t0 = time.monotonic()
         for _ in range(min(self.ex.workers, len(self.pending))):
             start()
         try:
@@ -217,13 +221,17 @@ class Scheduler:
                 "actors did not start within 600 s: the cluster lacks the resources asked for "
                 f"({self.ex.cpus_per_worker} CPU, {self.ex.gpus_per_worker} GPU per worker)"
             ) from None
-        per_actor = max(1, (self.ex.max_in_flight or 2 * len(actors)) // len(actors))
+        self.summary.startup_seconds = time.monotonic() - t0
+        # One episode per actor at a time: when an actor dies, the episode it was running is
+        # the only one charged an attempt (queued calls would die with it, innocent). Episodes
+        # last seconds and a call round trip ~1 ms, so queueing more would gain nothing.
+        cap = self.ex.max_in_flight or len(actors)
         in_flight: dict[Any, tuple[int, EpisodeSpec]] = {}
         load = dict.fromkeys(actors, 0)
 
         while self.pending or in_flight:
             for aid in sorted(load, key=load.get):
-                while self.pending and load[aid] < per_actor:
+                if self.pending and load[aid] == 0 and len(in_flight) < cap:
                     spec = self.pending.popleft()
                     in_flight[actors[aid].run_episode.remote(spec)] = (aid, spec)
                     load[aid] += 1

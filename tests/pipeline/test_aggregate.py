@@ -115,3 +115,33 @@ def test_paired_difference_on_shared_keys() -> None:
 def test_completion_time_over_successes_only() -> None:
     t = agg.completion_times(_episodes()).set_index("cell_id")
     assert t.loc["baseline", "sim_seconds_to_success"] == pytest.approx(np.mean([2.0, 3.0]))
+
+
+def test_steps_summary_by_hand() -> None:
+    import pyarrow as pa
+
+    steps = pa.table(
+        {
+            "cell_id": ["E", "E", "E", "E", "B"],
+            "task_id": ["t"] * 5,
+            "episode_index": [0, 0, 0, 1, 0],
+            "step": [0, 5, 10, 0, 0],
+            "e_img": [1.0, 2.0, 3.0, 4.0, 9.0],
+            "e_prop": [1.0] * 5,
+            "r_img": [0.1, 0.2, 0.3, 0.4, 0.9],
+            "gate": [1.0, 0.0, 0.0, 1.0, 0.0],
+        }
+    )
+    per_cell, per_bin = agg.steps_summary(steps, bins=2)
+    e = {
+        k: v[0]
+        for k, v in per_cell.filter(pa.compute.equal(per_cell["cell_id"], "E")).to_pydict().items()
+    }
+    assert (
+        e["inferences"] == 4
+        and e["e_img"] == pytest.approx(2.5)
+        and e["gate"] == pytest.approx(0.5)
+    )
+    rows = per_bin.filter(pa.compute.equal(per_bin["cell_id"], "E")).to_pylist()
+    # progress: ep0 steps 0, .5, 1 -> bins 0, 1, 1; ep1 step 0 of 0 -> bin 0
+    assert [(r["progress_bin"], r["e_img_mean"]) for r in rows] == [(0, 2.5), (1, 2.5)]

@@ -56,6 +56,7 @@ class FakeMarkerBackbone:
         can_batch: bool = True,
         fresh_noise_seed: int = 1234,
         delay_s: float = 0.0,
+        busy_s: float = 0.0,
     ) -> None:
         self.name = "fake_marker"
         self.chunk_len = chunk_len
@@ -64,7 +65,8 @@ class FakeMarkerBackbone:
         self.noise_std = noise_std
         self.camera = camera
         self.can_batch = can_batch
-        self.delay_s = delay_s  # simulated inference time (tests of scheduling and faults)
+        self.delay_s = delay_s  # simulated inference time, sleeping (tests of scheduling, faults)
+        self.busy_s = busy_s  # simulated inference time, burning CPU (throughput benchmarks)
         self.calls: list[int] = []  # batch size of every predict_chunk call, for tests
         # Used when the caller passes no noise: independent draws per call.
         self._fresh = torch.Generator().manual_seed(fresh_noise_seed)
@@ -86,6 +88,10 @@ class FakeMarkerBackbone:
         self.calls.append(obs.batch_size)
         if self.delay_s:
             time.sleep(self.delay_s)
+        if self.busy_s:
+            end = time.perf_counter() + self.busy_s
+            while time.perf_counter() < end:
+                pass
         images = _as_tensor(obs.images[self.camera]).float()
         state = _as_tensor(obs.state).float()
         m = marker_position(images)
