@@ -23,6 +23,7 @@ lint: setup
 
 bench: setup
 	$(VENV)/bin/python benchmarks/bench_idr_passes.py
+	$(VENV)/bin/python benchmarks/bench_engine.py
 
 clean:
 	rm -rf runs .pytest_cache
