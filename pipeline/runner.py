@@ -19,7 +19,7 @@ from pipeline.config import ConfigError, RunConfig, dump_config
 from pipeline.report import write_report
 from pipeline.scheduler import RunSummary, Scheduler, init_ray
 from pipeline.store import RunStore
-from workers.backbones.factory import check_backbone_kind
+from workers.backbones.factory import check_backbone
 from workers.envs.base import TaskSpec
 from workers.envs.factory import check_suite, suite_tasks
 from workers.episode import EpisodeSpec, WorkerSpec
@@ -57,8 +57,8 @@ class RunPlan:
 
 def _select_tasks(cfg: RunConfig) -> list[TaskSpec]:
     try:
-        check_suite(cfg.env.suite)
-        check_backbone_kind(cfg.backbone.kind)
+        check_suite(cfg.env.suite, cfg.env.params)
+        check_backbone(cfg.backbone.kind, cfg.backbone.params)
     except ValueError as e:
         raise ConfigError(str(e)) from None
     tasks = suite_tasks(cfg.env.suite, cfg.env.params)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import difflib
 import importlib
+import inspect
 from typing import Any
 
 from workers.backbones.base import Backbone
@@ -20,7 +21,31 @@ def check_backbone_kind(kind: str) -> None:
         raise ValueError(f"backbone.kind={kind!r} is unknown; {hint}")
 
 
-def make_backbone(kind: str, params: dict[str, Any]) -> Backbone:
+def _cls(kind: str) -> Any:
     check_backbone_kind(kind)
     module, cls = BACKBONES[kind].split(":")
-    return getattr(importlib.import_module(module), cls)(**params)
+    return getattr(importlib.import_module(module), cls)
+
+
+def check_backbone(kind: str, params: dict[str, Any]) -> None:
+    """Validate kind and params without loading any weights (runs before actors start).
+
+    Params must bind to the backbone's constructor; a backbone class may also define
+    ``check_params(params)`` for checks of its own (a checkpoint path that does not exist)."""
+    cls = _cls(kind)
+    check_params_bind(f"backbone.params (backbone {kind!r})", cls, params)
+    if hasattr(cls, "check_params"):
+        cls.check_params(params)
+
+
+def check_params_bind(where: str, cls: Any, params: dict[str, Any]) -> None:
+    sig = inspect.signature(cls)
+    try:
+        sig.bind(**params)
+    except TypeError as e:
+        accepted = [n for n in sig.parameters if n != "self"]
+        raise ValueError(f"{where}: {e}; accepted parameters: {accepted}") from None
+
+
+def make_backbone(kind: str, params: dict[str, Any]) -> Backbone:
+    return _cls(kind)(**params)

@@ -22,8 +22,12 @@ def _cls(suite: str) -> Any:
     return getattr(importlib.import_module(module), name)
 
 
-def check_suite(suite: str) -> None:
-    _cls(suite)
+def check_suite(suite: str, params: dict[str, Any] | None = None) -> None:
+    from workers.backbones.factory import check_params_bind
+
+    cls = _cls(suite)
+    if params is not None:
+        check_params_bind(f"env.params (suite {suite!r})", cls, params)
 
 
 def suite_tasks(suite: str, params: dict[str, Any]) -> list[TaskSpec]:
