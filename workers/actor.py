@@ -92,7 +92,7 @@ class EpisodeWorker:
             "lam": spec.idr.lam,
             "tau": spec.idr.tau,
             "backbone": self.spec.backbone_kind,
-            "suite": self.spec.env_suite,
+            "suite": (task.suite if task and task.suite else self.spec.env_suite),
             "task_id": spec.task_id,
             "task_name": task.name if task else None,
             "instruction": None,

@@ -11,6 +11,7 @@ from workers.backbones.base import Backbone
 
 BACKBONES: dict[str, str] = {
     "fake_marker": "workers.backbones.fakes:FakeMarkerBackbone",
+    "noop": "workers.backbones.noop:NoopBackbone",
 }
 
 

@@ -25,6 +25,8 @@ class TaskSpec:
     name: str  # human-readable name
     max_steps: int  # control steps before the episode ends as a failure (protocol constant)
     subtasks_total: int = 1  # > 1 for chains: episode stops at the first failed subtask
+    suite: str | None = None  # benchmark suite of this task when an env spans several (LIBERO)
+    instruction: str | None = None  # fixed instruction, when known without a simulator
 
 
 @dataclass
