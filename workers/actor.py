@@ -129,13 +129,14 @@ class EpisodeWorker:
         obs = env.reset(spec.task_id, spec.episode_index, spec.seed)
         instruction = env.instruction
         gripper_index = getattr(env, "gripper_index", None)
+        cameras = getattr(self.backbone, "cameras", None)  # None: every camera the env has
         steps: list[dict[str, Any]] = []
         success_step = None
         k = 0
         crn = None
         while not env.done:
             out = policy.infer(
-                to_policy_observation(obs, instruction),
+                to_policy_observation(obs, instruction, cameras),
                 step_seed(spec.seed, spec.task_id, spec.episode_index, k),
             )
             crn = out.crn

@@ -103,16 +103,20 @@ class IDRPolicy:
                 )
                 for i, cam in enumerate(sorted(obs.images))
             }
-            no_img = Observation(images, obs.state, list(obs.instruction))
+            no_img = Observation(images, obs.state, list(obs.instruction), extras=obs.extras)
         else:
-            no_img = Observation(dict(obs.images), obs.state, list(obs.instruction), do_image=flag)
+            no_img = Observation(
+                dict(obs.images), obs.state, list(obs.instruction), do_image=flag, extras=obs.extras
+            )
         if iv.state_space == "raw":
             state = intervene(
                 obs.state, iv.strategy, seed=iv.seed + 7919 * step_seed + 104729, **kw
             )
-            no_prop = Observation(dict(obs.images), state, list(obs.instruction))
+            no_prop = Observation(dict(obs.images), state, list(obs.instruction), extras=obs.extras)
         else:
-            no_prop = Observation(dict(obs.images), obs.state, list(obs.instruction), do_state=flag)
+            no_prop = Observation(
+                dict(obs.images), obs.state, list(obs.instruction), do_state=flag, extras=obs.extras
+            )
         return no_img, no_prop
 
     def _call(self, obs: Observation, noise: Any | None) -> Any:

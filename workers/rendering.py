@@ -40,4 +40,8 @@ def configure_rendering(preferred: str | None = None) -> str:
         )
     os.environ["MUJOCO_GL"] = backend
     os.environ["PYOPENGL_PLATFORM"] = backend
+    if backend == "osmesa":
+        # llvmpipe threads fight the simulator and the other actors for the same cores;
+        # one thread per actor measured fastest here (DESIGN.md)
+        os.environ.setdefault("LP_NUM_THREADS", "1")
     return backend

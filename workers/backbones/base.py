@@ -77,6 +77,11 @@ def concat_observations(parts: list[Observation]) -> Observation:
         instruction=[s for p in parts for s in p.instruction],
         do_image=flags("do_image"),
         do_state=flags("do_state"),
+        # per-row extras (lists) are concatenated; others are taken from the first part
+        extras={
+            k: [x for p in parts for x in p.extras.get(k, [])] if isinstance(v, list) else v
+            for k, v in first.extras.items()
+        },
     )
 
 

@@ -11,6 +11,7 @@ Observations are what the env renders, before any policy convention: camera imag
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
@@ -29,10 +30,40 @@ class TaskSpec:
     instruction: str | None = None  # fixed instruction, when known without a simulator
 
 
+class LazyImages(Mapping[str, np.ndarray]):
+    """Camera images rendered on first access, per camera, then cached.
+
+    An env returns these so that steps executed open-loop from an action chunk (nobody reads
+    the images) and cameras a backbone does not use cost no rendering."""
+
+    def __init__(self, cameras: tuple[str, ...], render_one: Callable[[str], np.ndarray]) -> None:
+        self._cameras = tuple(cameras)
+        self._render_one = render_one
+        self._images: dict[str, np.ndarray] = {}
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        if key not in self._cameras:
+            raise KeyError(key)
+        if key not in self._images:
+            self._images[key] = self._render_one(key)
+        return self._images[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._cameras)
+
+    def __len__(self) -> int:
+        return len(self._cameras)
+
+    @property
+    def rendered(self) -> tuple[str, ...]:
+        return tuple(self._images)
+
+
 @dataclass
 class EnvObservation:
-    images: dict[str, np.ndarray]  # camera name -> uint8 (H, W, 3)
+    images: Mapping[str, np.ndarray]  # camera name -> uint8 (H, W, 3), maybe LazyImages
     state: np.ndarray  # float32 (S,)
+    privileged: dict | None = None  # simulator state for scripted experts, never for policies
 
 
 @runtime_checkable

@@ -10,6 +10,8 @@ from workers.envs.base import Env, TaskSpec
 
 ENVS: dict[str, str] = {
     "fake_marker": "workers.envs.fakes:FakeMarkerEnv",
+    "tabletop": "workers.envs.tabletop:TabletopEnv",
+    "libero": "workers.envs.libero:LiberoEnv",
 }
 
 

@@ -1,0 +1,138 @@
+"""The tabletop suite on robosuite: contract, experts, chain accounting, blind policies fail."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytestmark = [pytest.mark.sim, pytest.mark.slow]
+
+
+@pytest.fixture(scope="module")
+def env():
+    from workers.rendering import configure_rendering
+
+    configure_rendering()
+    from workers.envs.tabletop import TabletopEnv
+
+    e = TabletopEnv(image_size=64, cameras=("agentview", "wrist"))
+    yield e
+    e.close()
+
+
+def _run(env, task, episode, policy, seed=0):
+    from workers.envs.tabletop_experts import expert_action  # noqa: F401
+
+    obs = env.reset(task, episode, seed)
+    while not env.done:
+        obs = env.step(policy(obs.privileged))
+    return env.success, env.subtasks_done, env.steps
+
+
+@pytest.mark.parametrize("task", ["pick_color", "stack_color", "organize"])
+def test_contract(env, task) -> None:
+    from workers.envs.base import check_env
+
+    check_env(env, task_id=task, n_steps=4)
+
+
+@pytest.mark.parametrize(
+    ("task", "episodes"), [("pick_color", 3), ("stack_color", 3), ("organize", 1)]
+)
+def test_expert_succeeds(env, task, episodes) -> None:
+    from workers.envs.tabletop_experts import expert_action
+
+    for i in range(episodes):
+        success, done, steps = _run(env, task, 100 + i, expert_action)
+        assert success, (
+            f"{task} episode {100 + i}: expert failed after {steps} steps ({env.failure_reason})"
+        )
+        assert done == env.task.subtasks_total and steps < env.task.max_steps
+
+
+def test_chain_stops_at_first_failure(env) -> None:
+    """An expert told a wrong order puts two cubes right, then a wrong one: chain ends at 2/5."""
+    from workers.envs.tabletop_experts import expert_action
+
+    def swapped(priv):
+        order = list(priv["targets"])
+        order[2], order[3] = order[3], order[2]
+        return expert_action({**priv, "targets": order})
+
+    success, done, _ = _run(env, "organize", 7, swapped)
+    assert not success and done == 2 and env.done
+    assert "put in the bin before" in env.failure_reason
+
+
+def test_wrong_actions_fail_and_episode_ends_at_max_steps(env) -> None:
+    success, done, steps = _run(
+        env, "pick_color", 0, lambda p: np.array([0, 0, 1.0, 0, 0, 0, -1.0])
+    )
+    assert not success and done == 0 and steps == env.task.max_steps
+    with pytest.raises(RuntimeError, match="after the episode is done"):
+        env.step(np.zeros(7))
+
+
+def test_blind_policy_fails_pick_color_most_of_the_time(env) -> None:
+    """A policy that ignores the image (so the cube positions) goes to the middle of the
+    placement area and tries to pick there: it should rarely succeed."""
+    from workers.envs.tabletop_experts import expert_action
+
+    def blind(priv):
+        fake = dict(priv)
+        pos = np.array(priv["cube_pos"], dtype=float)
+        pos[priv["targets"][0], :2] = [0.0, -0.065]  # where a blind policy would guess
+        fake["cube_pos"] = pos
+        fake["grasped"] = [False] * len(pos)
+        return expert_action(fake)
+
+    wins = sum(_run(env, "pick_color", 200 + i, blind)[0] for i in range(8))
+    assert wins <= 1
+
+
+def test_instructions_name_colors_and_vary(env) -> None:
+    texts = set()
+    for i in range(6):
+        env.reset("pick_color", i, 0)
+        texts.add(env.instruction)
+    assert (
+        all(t.startswith("pick up the ") and t.endswith(" cube") for t in texts) and len(texts) >= 2
+    )
+    env.reset("organize", 0, 0)
+    assert env.instruction.startswith("put the ") and env.instruction.count(",") >= 3
+
+
+def test_images_render_only_when_read(env) -> None:
+    obs = env.reset("pick_color", 0, 0)
+    for _ in range(3):
+        obs = env.step(np.zeros(7))
+    assert obs.images.rendered == ()
+    img = obs.images["wrist"]
+    assert img.shape == (64, 64, 3) and img.dtype == np.uint8 and obs.images.rendered == ("wrist",)
+    assert obs.state.shape == (8,)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "pattern"),
+    [
+        ({"image_size": 0}, r"env.params.image_size=0 must be > 0"),
+        (
+            {"cameras": ["top"]},
+            r"env.params.cameras=\['top'\]: choose one or more of \['agentview', 'wrist'\]",
+        ),
+        ({"max_steps": {"fly": 3}}, r"env.params.max_steps=\{'fly': 3\}"),
+    ],
+)
+def test_bad_params(kwargs, pattern) -> None:
+    from workers.envs.tabletop import TabletopEnv
+
+    with pytest.raises(ValueError, match=pattern):
+        TabletopEnv(**kwargs)
+
+
+def test_unknown_task_lists_valid_ones(env) -> None:
+    with pytest.raises(
+        ValueError,
+        match=r"'fly' is not a tabletop task; valid: \['pick_color', 'stack_color', 'organize'\]",
+    ):
+        env.reset("fly", 0, 0)
