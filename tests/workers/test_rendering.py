@@ -39,3 +39,36 @@ def test_choosing_after_mujoco_import_is_an_error() -> None:
     assert "refused: mujoco was imported before the rendering backend was chosen" in r.stdout, (
         r.stderr
     )
+
+
+def test_backend_choice_follows_the_gpu(monkeypatch) -> None:
+    """EGL where an NVIDIA device is visible, OSMesa otherwise; an explicit MUJOCO_GL wins."""
+    import workers.rendering as r
+
+    monkeypatch.delenv("MUJOCO_GL", raising=False)
+    monkeypatch.setattr(r, "_gpu_visible", lambda: True)
+    monkeypatch.setattr(r.sys, "modules", {k: v for k, v in sys.modules.items() if k != "mujoco"})
+    assert r.configure_rendering() == "egl" and os.environ["PYOPENGL_PLATFORM"] == "egl"
+    monkeypatch.delenv("MUJOCO_GL")
+    monkeypatch.setattr(r, "_gpu_visible", lambda: False)
+    assert r.configure_rendering() == "osmesa" and os.environ["LP_NUM_THREADS"]
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    assert r.configure_rendering() == "egl"
+
+
+def test_missing_osmesa_names_the_package(monkeypatch) -> None:
+    import workers.rendering as r
+
+    monkeypatch.delenv("MUJOCO_GL", raising=False)
+    monkeypatch.setattr(r, "_gpu_visible", lambda: False)
+    monkeypatch.setattr(r.ctypes.util, "find_library", lambda name: None)
+    monkeypatch.setattr(r.sys, "modules", {k: v for k, v in sys.modules.items() if k != "mujoco"})
+    with pytest.raises(r.RenderingError, match="libosmesa6"):
+        r.configure_rendering()
+
+
+def test_unknown_backend_is_refused(monkeypatch) -> None:
+    import workers.rendering as r
+
+    with pytest.raises(r.RenderingError, match="use 'egl'"):
+        r.configure_rendering("vulkan")

@@ -1,0 +1,243 @@
+"""LIBERO env: task tables without a simulator, the openpi / OFT protocol, the Env contract.
+
+Simulators are slow to build here (5-20 s each, ~0.1-0.3 s per rendered step on OSMesa), so one
+module-scoped env at 64 px serves every simulator test, and one more (``flip_images=False``)
+gives the raw pictures to compare with.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from workers.envs.base import check_env
+from workers.envs.libero import LiberoEnv, quat_to_axis_angle, state_vector
+from workers.envs.libero_assets import LiberoSetupError, ensure_config_env
+
+SIZE = 64
+# The openpi / OpenVLA-OFT protocol, written out here so a change of the defaults shows up.
+PROTOCOL_MAX_STEPS = {
+    "libero_spatial": 220,
+    "libero_object": 280,
+    "libero_goal": 300,
+    "libero_10": 520,
+}
+ONE_PER_SUITE = [f"{suite}/0" for suite in PROTOCOL_MAX_STEPS]
+
+
+def _benchmark_language(task_id: str) -> str:
+    ensure_config_env()  # importing libero without its config would prompt on stdin
+    from libero.libero import benchmark
+
+    suite, index = task_id.split("/")
+    return benchmark.get_benchmark(suite)().get_task(int(index)).language
+
+
+def _assert_obs_shapes(env: LiberoEnv, obs) -> None:
+    assert set(obs.images) == set(env.cameras) == {"agentview", "wrist"}
+    for img in obs.images.values():
+        assert img.shape == (SIZE, SIZE, 3) and img.dtype == np.uint8
+        assert img.std() > 0  # a rendered scene, not a blank buffer
+    assert obs.state.shape == (8,) and obs.state.dtype == np.float32
+    assert np.isfinite(obs.state).all()
+
+
+@pytest.fixture(scope="module")
+def env():
+    """One env for all simulator tests; counts the simulators it builds."""
+    e = LiberoEnv(image_size=SIZE)
+    built: list = []
+    make = e._make_sim
+
+    def counting_make_sim(*args, **kwargs):
+        built.append(make(*args, **kwargs))
+        return built[-1]
+
+    e._make_sim = counting_make_sim
+    e.built = built
+    yield e
+    e.close()
+
+
+# -- no simulator ------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_suite_tasks_lists_40_tasks_without_importing_mujoco() -> None:
+    code = (
+        "import json, sys; from workers.envs.libero import LiberoEnv;"
+        "ts = LiberoEnv.suite_tasks();"
+        "print(json.dumps({'tasks': [[t.task_id, t.suite, t.instruction, t.max_steps, t.name]"
+        " for t in ts], 'sim_imported': [m for m in ('mujoco', 'robosuite') if m in sys.modules]}))"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=os.environ
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out["sim_imported"] == []
+    tasks = out["tasks"]
+    assert len(tasks) == 40
+    assert [t[0] for t in tasks] == [f"{s}/{i}" for s in PROTOCOL_MAX_STEPS for i in range(10)]
+    for task_id, suite, instruction, max_steps, name in tasks:
+        assert task_id.startswith(f"{suite}/")
+        assert max_steps == PROTOCOL_MAX_STEPS[suite]
+        assert instruction == _benchmark_language(task_id)
+        assert name and instruction.strip()
+    assert tasks[0][2] == (
+        "pick up the black bowl between the plate and the ramekin and place it on the plate"
+    )
+
+
+@pytest.mark.slow
+def test_suite_tasks_params_select_suites_and_override_max_steps() -> None:
+    tasks = LiberoEnv.suite_tasks(suites=["libero_10"], max_steps={"libero_10": 600})
+    assert [t.task_id for t in tasks] == [f"libero_10/{i}" for i in range(10)]
+    assert {t.max_steps for t in tasks} == {600}
+    with pytest.raises(ValueError, match=r"max_steps\['libero_90'\] must be set"):
+        LiberoEnv.suite_tasks(suites=["libero_90"])
+    assert len(LiberoEnv.suite_tasks(suites=["libero_90"], max_steps={"libero_90": 400})) == 90
+
+
+@pytest.mark.parametrize(
+    ("params", "message"),
+    [
+        ({"image_size": 0}, "image_size must be > 0"),
+        ({"image_size": -8}, "image_size must be > 0"),
+        (
+            {"suites": ["libero_spatail"]},
+            r"suites: \['libero_spatail'\] unknown or repeated; valid: .*libero_spatial",
+        ),
+        (
+            {"cameras": ["agentview", "top"]},
+            r"cameras=.*use distinct names from \['agentview', 'wrist'\]",
+        ),
+        ({"num_noops": -1}, "num_noops must be >= 0"),
+        ({"max_steps": {"libero_goal": 0}}, r"max_steps\['libero_goal'\] must be an int > 0"),
+        ({"max_steps": {"libero_gaol": 300}}, r"max_steps: \['libero_gaol'\] unknown suites"),
+        ({"suites": ["libero_10", "libero_10"]}, "unknown or repeated"),
+    ],
+)
+def test_bad_params_are_named(params, message) -> None:
+    with pytest.raises(ValueError, match=message):
+        LiberoEnv(**params)
+
+
+@pytest.mark.slow
+def test_unknown_task_id_lists_valid_ones() -> None:
+    env = LiberoEnv(suites=["libero_goal"], image_size=SIZE)
+    with pytest.raises(
+        ValueError, match=r"task_id='libero_goal/10' unknown; valid: .*'libero_goal/9'"
+    ):
+        env.reset("libero_goal/10", 0, 0)
+    with pytest.raises(ValueError, match="unknown"):
+        env.reset("libero_spatial/0", 0, 0)  # a suite not chosen
+    assert env._sim is None  # refused before building a simulator
+    with pytest.raises(RuntimeError, match="before reset"):
+        env.step(np.zeros(7))
+
+
+def test_missing_config_names_the_fix(tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv("LIBERO_CONFIG_PATH", str(tmp_path))
+    with pytest.raises(LiberoSetupError, match=r"python -m workers.envs.libero_assets"):
+        LiberoEnv.suite_tasks()
+
+
+def test_axis_angle_follows_openpi_convention() -> None:
+    half = math.pi / 4
+    q = np.array([0.0, 0.0, math.sin(half), math.cos(half)])  # 90 deg about z, (x, y, z, w)
+    np.testing.assert_allclose(quat_to_axis_angle(q), [0, 0, math.pi / 2], atol=1e-12)
+    assert q[3] == math.cos(half)  # input untouched
+    np.testing.assert_allclose(quat_to_axis_angle(np.array([0.0, 0, 0, 1])), np.zeros(3))
+    # 270 deg about z stays 3pi/2 (no wrap to -pi/2): the numbers openpi's data holds
+    half = 3 * math.pi / 4
+    q = np.array([0.0, 0.0, math.sin(half), math.cos(half)])
+    np.testing.assert_allclose(quat_to_axis_angle(q), [0, 0, 3 * math.pi / 2], atol=1e-12)
+
+
+def test_state_vector_is_pos_axis_angle_gripper() -> None:
+    raw = {
+        "robot0_eef_pos": np.array([0.1, 0.2, 0.3]),
+        "robot0_eef_quat": np.array([1.0, 0.0, 0.0, 0.0]),  # 180 deg about x
+        "robot0_gripper_qpos": np.array([0.04, -0.04]),
+    }
+    s = state_vector(raw)
+    assert s.dtype == np.float32 and s.shape == (8,)
+    np.testing.assert_allclose(s, [0.1, 0.2, 0.3, math.pi, 0, 0, 0.04, -0.04], rtol=1e-6)
+
+
+# -- with a simulator ----------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+@pytest.mark.sim
+def test_check_env_passes_and_one_simulator_serves_all_episodes(env) -> None:
+    check_env(env, task_id="libero_spatial/0", n_steps=2)
+    assert len(env.built) == 1  # six resets of one task, one simulator
+
+
+@pytest.mark.slow
+@pytest.mark.sim
+def test_images_are_flipped_180_degrees(env) -> None:
+    raw_env = LiberoEnv(
+        suites=["libero_spatial"],
+        image_size=SIZE,
+        flip_images=False,
+        max_steps={"libero_spatial": 3},
+    )
+    try:
+        raw = raw_env.reset("libero_spatial/0", 0, 0)
+        flipped = env.reset("libero_spatial/0", 0, 0)
+        np.testing.assert_array_equal(flipped.state, raw.state)
+        for cam in ("agentview", "wrist"):
+            assert np.array_equal(flipped.images[cam], raw.images[cam][::-1, ::-1])
+            assert not np.array_equal(flipped.images[cam], raw.images[cam])
+            assert not np.array_equal(flipped.images[cam], raw.images[cam][::-1])  # both axes
+        # the same env shows max_steps is a param and ends the episode
+        assert raw_env.task.max_steps == 3
+        for _ in range(3):
+            raw_env.step(np.zeros(7))
+        assert raw_env.done and not raw_env.success and raw_env.steps == 3
+        with pytest.raises(RuntimeError, match="after the episode is done"):
+            raw_env.step(np.zeros(7))
+    finally:
+        raw_env.close()
+    assert raw_env._sim is None
+
+
+@pytest.mark.slow
+@pytest.mark.sim
+@pytest.mark.parametrize("task_id", ONE_PER_SUITE)
+def test_episode_follows_the_protocol(env, task_id) -> None:
+    suite = task_id.split("/")[0]
+    before = list(env.built)
+    obs = env.reset(task_id, 53, seed=7)  # 50 init states per task: wraps to init 3
+
+    assert env.task.task_id == task_id and env.task.suite == suite
+    assert env.task.max_steps == PROTOCOL_MAX_STEPS[suite]
+    assert env.instruction == _benchmark_language(task_id)
+    assert env.init_state_id == f"{task_id}/init3"
+    assert env.steps == 0 and not env.done and not env.success
+    assert env._sim.env.timestep == 10  # the ten no-ops ran in the simulator, uncounted
+    _assert_obs_shapes(env, obs)
+    raw = env._sim.env._get_observations()
+    np.testing.assert_allclose(obs.state[:3], raw["robot0_eef_pos"], rtol=1e-6)
+    np.testing.assert_allclose(obs.state[6:], raw["robot0_gripper_qpos"], rtol=1e-5, atol=1e-7)
+
+    start = obs.state.copy()
+    for i in range(3):
+        obs = env.step(np.array([0.5, 0, 0, 0, 0, 0, -1], dtype=np.float32))
+        assert env.steps == i + 1
+    _assert_obs_shapes(env, obs)
+    assert obs.state[0] > start[0] + 1e-3  # +x command moved the end effector along +x
+    assert not env.done
+
+    if suite != "libero_spatial":  # switching task closed the previous simulator
+        assert len(env.built) == len(before) + 1
+        assert not hasattr(before[-1], "env")  # LIBERO's close() drops its inner env

@@ -1,0 +1,375 @@
+"""LIBERO (hf-libero) as an Env: the four 10-task suites in one env, openpi / OpenVLA-OFT protocol.
+
+Task ids are ``"<suite>/<index>"`` (``libero_spatial/0`` .. ``libero_10/9``), the index being the
+position in the suite's default task order. The protocol, every constant a constructor param so
+a config can pin and log it:
+
+- ``reset(task_id, episode_index, seed)``: seed the env, reset it, set the suite's fixed init
+  state ``episode_index % n_init_states``, then run ``num_noops`` no-op actions
+  ``[0, 0, 0, 0, 0, 0, -1]`` so objects settle; the no-ops do not count as steps.
+- Episode ends at success (LIBERO's own goal check) or after ``max_steps`` control steps
+  (220 / 280 / 300 / 520 for spatial / object / goal / 10; lerobot uses 280 for spatial).
+- Images rendered at ``image_size`` px and flipped 180 degrees (both axes): robosuite renders
+  with OpenGL's bottom-up rows, and policies trained on openpi / OFT data see the flipped view.
+- State (8,): end-effector position (3), end-effector orientation as axis-angle (3),
+  gripper finger positions (2). Action (7,): OSC_POSE deltas (6) + gripper (-1 open, +1 close).
+
+One simulator (``OffScreenRenderEnv``, 5-20 s to build) is kept for the current task and reused
+across its episodes; switching task closes it and builds the next. ``suite_tasks`` lists tasks
+from LIBERO's benchmark tables without importing MuJoCo.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import io
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from workers.envs.base import EnvObservation, TaskSpec
+from workers.envs.libero_assets import LiberoSetupError, ensure_config_env
+
+SUITES: tuple[str, ...] = ("libero_spatial", "libero_object", "libero_goal", "libero_10")
+# libero_90 works too, with max_steps given for it: the protocol above has no figure for it.
+SUPPORTED_SUITES: tuple[str, ...] = (*SUITES, "libero_90")
+MAX_STEPS: Mapping[str, int] = {
+    "libero_spatial": 220,
+    "libero_object": 280,
+    "libero_goal": 300,
+    "libero_10": 520,
+}
+NOOP_ACTION: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0)
+# our camera name -> (robosuite camera, key of its image in the raw observation)
+CAMERAS: Mapping[str, tuple[str, str]] = {
+    "agentview": ("agentview", "agentview_image"),
+    "wrist": ("robot0_eye_in_hand", "robot0_eye_in_hand_image"),
+}
+SETUP_COMMAND = "python -m workers.envs.libero_assets"
+
+
+@dataclass(frozen=True)
+class LiberoProtocol:
+    """The validated constructor params; shared by ``LiberoEnv`` and ``suite_tasks``."""
+
+    suites: tuple[str, ...]
+    image_size: int
+    cameras: tuple[str, ...]
+    num_noops: int
+    max_steps: Mapping[str, int] = field(hash=False)
+    flip_images: bool
+    control_hz: float
+
+    def __post_init__(self) -> None:
+        if not self.suites:
+            raise ValueError(f"suites is empty; choose from {list(SUITES)}")
+        if isinstance(self.image_size, bool) or not isinstance(self.image_size, int):
+            raise ValueError(f"image_size must be an int, got {self.image_size!r}")
+        if self.image_size <= 0:
+            raise ValueError(f"image_size must be > 0, got {self.image_size}")
+        unknown = [c for c in self.cameras if c not in CAMERAS]
+        if unknown or len(set(self.cameras)) != len(self.cameras):
+            raise ValueError(
+                f"cameras={list(self.cameras)}: use distinct names from {list(CAMERAS)}"
+            )
+        if self.num_noops < 0:
+            raise ValueError(f"num_noops must be >= 0, got {self.num_noops}")
+        if self.control_hz <= 0:
+            raise ValueError(f"control_hz must be > 0, got {self.control_hz}")
+        for suite in self.suites:
+            steps = self.max_steps.get(suite)
+            if steps is None:
+                raise ValueError(f"max_steps[{suite!r}] must be set: the protocol has no default")
+            if not isinstance(steps, int) or isinstance(steps, bool) or steps <= 0:
+                raise ValueError(f"max_steps[{suite!r}] must be an int > 0, got {steps!r}")
+
+    @classmethod
+    def from_params(
+        cls,
+        suites: Sequence[str],
+        image_size: int,
+        cameras: Sequence[str],
+        num_noops: int,
+        max_steps: Mapping[str, int] | None,
+        flip_images: bool,
+        control_hz: float,
+    ) -> LiberoProtocol:
+        if isinstance(suites, str):  # a lone name from a YAML override
+            suites = (suites,)
+        if isinstance(cameras, str):
+            cameras = (cameras,)
+        unknown = [s for s in suites if s not in SUPPORTED_SUITES]
+        if unknown or len(set(suites)) != len(suites):
+            raise ValueError(
+                f"suites: {unknown or list(suites)} unknown or repeated; "
+                f"valid: {list(SUPPORTED_SUITES)}"
+            )
+        stray = [s for s in max_steps or {} if s not in SUPPORTED_SUITES]
+        if stray:
+            raise ValueError(f"max_steps: {stray} unknown suites; valid: {list(SUPPORTED_SUITES)}")
+        return cls(
+            suites=tuple(suites),
+            image_size=image_size,
+            cameras=tuple(cameras),
+            num_noops=num_noops,
+            max_steps={**MAX_STEPS, **(max_steps or {})},
+            flip_images=flip_images,
+            control_hz=float(control_hz),
+        )
+
+
+def _libero_benchmark_module() -> Any:
+    """``libero.libero.benchmark``, imported only after its config is in place (never prompts)."""
+    ensure_config_env()
+    from libero.libero import benchmark
+
+    return benchmark
+
+
+@functools.cache
+def _suite(name: str) -> Any:
+    """The suite's Benchmark object (task table; no simulator). Its constructor prints the task
+    order on every call: built once per process, quietly."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        return _libero_benchmark_module().get_benchmark(name)()
+
+
+def _list_tasks(protocol: LiberoProtocol) -> list[TaskSpec]:
+    ensure_config_env()  # every time: the suite tables below are cached per process
+    return [
+        TaskSpec(
+            task_id=f"{suite}/{i}",
+            name=task.name,
+            max_steps=protocol.max_steps[suite],
+            suite=suite,
+            instruction=task.language,
+        )
+        for suite in protocol.suites
+        for i, task in enumerate(_suite(suite).tasks)
+    ]
+
+
+def _check_assets() -> None:
+    """hf-libero downloads its assets when ``libero/libero/assets`` is absent: refuse instead."""
+    ensure_config_env()
+    import libero.libero
+
+    scenes = Path(libero.libero.__file__).parent / "assets" / "scenes"
+    if not scenes.is_dir():
+        raise LiberoSetupError(
+            f"LIBERO assets are missing ({scenes} not found) and nothing may download: "
+            f"run `{SETUP_COMMAND}` (part of `make setup`)"
+        )
+
+
+def quat_to_axis_angle(quat_xyzw: np.ndarray) -> np.ndarray:
+    """Axis-angle (3,) of a unit quaternion in robosuite's (x, y, z, w) order.
+
+    The angle is 2 acos(w) in [0, 2 pi] (no wrap to [-pi, pi]): openpi's LIBERO state uses this
+    convention, so a policy trained on its data sees the same numbers.
+    """
+    q = np.asarray(quat_xyzw, dtype=np.float64)
+    w = float(np.clip(q[3], -1.0, 1.0))
+    sin_half = np.sqrt(1.0 - w * w)
+    if np.isclose(sin_half, 0.0):
+        return np.zeros(3)
+    return q[:3] * (2.0 * np.arccos(w) / sin_half)
+
+
+def state_vector(raw_obs: Mapping[str, np.ndarray]) -> np.ndarray:
+    """(8,) float32: eef position, eef axis-angle, gripper finger positions."""
+    return np.concatenate(
+        [
+            raw_obs["robot0_eef_pos"],
+            quat_to_axis_angle(raw_obs["robot0_eef_quat"]),
+            raw_obs["robot0_gripper_qpos"],
+        ]
+    ).astype(np.float32)
+
+
+class LiberoEnv:
+    """The LIBERO suites behind the Env protocol (see the module docstring for the protocol)."""
+
+    suite = "libero"
+    action_dim = 7
+    state_dim = 8
+    gripper_index = 6  # -1 open, +1 close
+
+    def __init__(
+        self,
+        suites: Sequence[str] = SUITES,
+        image_size: int = 256,
+        cameras: Sequence[str] = ("agentview", "wrist"),
+        num_noops: int = 10,
+        max_steps: Mapping[str, int] | None = None,
+        flip_images: bool = True,
+        control_hz: float = 20.0,
+    ) -> None:
+        """``max_steps`` maps suite -> steps and overrides the protocol's (``MAX_STEPS``) per
+        suite. ``cameras=()`` renders nothing (state-only observations: for physics
+        benchmarks; ``check_env`` requires at least one camera). The env's random seed comes
+        from ``reset``'s ``seed``."""
+        self.protocol = LiberoProtocol.from_params(
+            suites, image_size, cameras, num_noops, max_steps, flip_images, control_hz
+        )
+        self.cameras = self.protocol.cameras
+        self.control_hz = self.protocol.control_hz
+        self._specs = {t.task_id: t for t in _list_tasks(self.protocol)}
+        self._sim: Any = None  # OffScreenRenderEnv of self._sim_task
+        self._sim_task: str | None = None
+        self._init_states: np.ndarray | None = None
+        self._task: TaskSpec | None = None
+        self._init_index = 0
+        self._steps = 0
+        self._success = False
+
+    @classmethod
+    def suite_tasks(
+        cls,
+        suites: Sequence[str] = SUITES,
+        image_size: int = 256,
+        cameras: Sequence[str] = ("agentview", "wrist"),
+        num_noops: int = 10,
+        max_steps: Mapping[str, int] | None = None,
+        flip_images: bool = True,
+        control_hz: float = 20.0,
+    ) -> list[TaskSpec]:
+        """The tasks these params give, from LIBERO's tables: no simulator, no MuJoCo import."""
+        protocol = LiberoProtocol.from_params(
+            suites, image_size, cameras, num_noops, max_steps, flip_images, control_hz
+        )
+        return _list_tasks(protocol)
+
+    def tasks(self) -> list[TaskSpec]:
+        return list(self._specs.values())
+
+    # -- simulator lifecycle -------------------------------------------------------------
+
+    def _spec(self, task_id: str) -> TaskSpec:
+        spec = self._specs.get(task_id)
+        if spec is None:
+            raise ValueError(f"task_id={task_id!r} unknown; valid: {list(self._specs)}")
+        return spec
+
+    def _open(self, spec: TaskSpec) -> None:
+        """Make the simulator of ``spec`` current, reusing it when it already is."""
+        if self._sim is not None and self._sim_task == spec.task_id:
+            return
+        self._close_sim()
+        suite, index = spec.suite, int(spec.task_id.rsplit("/", 1)[1])
+        bench = _suite(suite)
+        self._init_states = np.asarray(bench.get_task_init_states(index))
+        self._sim = self._make_sim(bench.get_task_bddl_file_path(index), spec.max_steps)
+        self._sim_task = spec.task_id
+
+    def _make_sim(self, bddl_file: str, max_steps: int) -> Any:
+        from workers.rendering import configure_rendering
+
+        configure_rendering()  # before robosuite/MuJoCo are imported (no-op if already chosen)
+        _check_assets()
+        from libero.libero.envs import OffScreenRenderEnv
+
+        p = self.protocol
+        if not os.path.isfile(bddl_file):
+            raise LiberoSetupError(f"{bddl_file} is missing: reinstall hf-libero")
+        return OffScreenRenderEnv(
+            bddl_file_name=bddl_file,
+            camera_names=[CAMERAS[c][0] for c in p.cameras],
+            camera_heights=p.image_size,
+            camera_widths=p.image_size,
+            use_camera_obs=bool(p.cameras),
+            control_freq=p.control_hz,
+            # robosuite refuses to step past its horizon (default 1000): make room for the
+            # longest episode this protocol allows.
+            horizon=max(1000, max_steps + p.num_noops),
+        )
+
+    def _close_sim(self) -> None:
+        sim, self._sim, self._sim_task = self._sim, None, None
+        if sim is not None:
+            sim.close()
+
+    def close(self) -> None:
+        """Idempotent."""
+        self._close_sim()
+        self._task = None
+
+    # -- episodes -------------------------------------------------------------------------
+
+    def reset(self, task_id: str, episode_index: int, seed: int) -> EnvObservation:
+        spec = self._spec(task_id)
+        if episode_index < 0:
+            raise ValueError(f"episode_index must be >= 0, got {episode_index}")
+        self._task = None  # an exception below leaves no half-reset episode behind
+        self._open(spec)
+        assert self._init_states is not None
+        self._init_index = episode_index % len(self._init_states)
+        self._sim.seed(seed)
+        self._sim.reset()
+        raw = self._sim.set_init_state(self._init_states[self._init_index])
+        for _ in range(self.protocol.num_noops):
+            raw, _, _, _ = self._sim.step(list(NOOP_ACTION))
+        self._task, self._steps, self._success = spec, 0, False
+        return self._observe(raw)
+
+    def step(self, action: np.ndarray) -> EnvObservation:
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != (self.action_dim,):
+            raise ValueError(f"action must have shape ({self.action_dim},), got {a.shape}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"action has NaN or inf: {a.tolist()}")
+        if self._task is None:
+            raise RuntimeError("step() before reset()")
+        if self.done:
+            raise RuntimeError("step() after the episode is done; call reset()")
+        raw, _, goal_reached, _ = self._sim.step(a)
+        self._steps += 1
+        self._success = bool(goal_reached)  # hf-libero's done is its goal check
+        return self._observe(raw)
+
+    def _observe(self, raw: Mapping[str, np.ndarray]) -> EnvObservation:
+        images = {}
+        for cam in self.cameras:
+            img = raw[CAMERAS[cam][1]]
+            images[cam] = np.ascontiguousarray(
+                img[::-1, ::-1] if self.protocol.flip_images else img
+            )
+        return EnvObservation(images=images, state=state_vector(raw))
+
+    # -- status ---------------------------------------------------------------------------
+
+    @property
+    def task(self) -> TaskSpec:
+        if self._task is None:
+            raise RuntimeError("no task: call reset() first")
+        return self._task
+
+    @property
+    def instruction(self) -> str:
+        return str(self.task.instruction)
+
+    @property
+    def init_state_id(self) -> str:
+        """Which fixed init state this episode started from, e.g. ``libero_spatial/0/init3``."""
+        return f"{self.task.task_id}/init{self._init_index}"
+
+    @property
+    def success(self) -> bool:
+        return self._success
+
+    @property
+    def done(self) -> bool:
+        return self._task is not None and (self._success or self._steps >= self._task.max_steps)
+
+    @property
+    def subtasks_done(self) -> int:
+        return int(self._success)
+
+    @property
+    def steps(self) -> int:
+        return self._steps
