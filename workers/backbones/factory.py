@@ -12,6 +12,7 @@ from workers.backbones.base import Backbone
 BACKBONES: dict[str, str] = {
     "fake_marker": "workers.backbones.fakes:FakeMarkerBackbone",
     "noop": "workers.backbones.noop:NoopBackbone",
+    "lerobot": "workers.backbones.lerobot.adapter:LerobotBackbone",
     # env-side: reads the tabletop env's privileged state
     "tabletop_expert": "workers.envs.tabletop_experts:TabletopExpertBackbone",
 }

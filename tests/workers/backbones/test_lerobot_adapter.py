@@ -1,0 +1,215 @@
+"""The lerobot adapter on real lerobot policies (ACT, Diffusion with DDIM) built offline."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+from lerobot_fixtures import build_act, build_diffusion
+
+from workers.backbones.base import Observation
+from workers.idr import IDRConfig
+from workers.idr_policy import IDRPolicy
+from workers.interventions import InterventionConfig
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def ckpts(tmp_path_factory):
+    root = tmp_path_factory.mktemp("ckpt")
+    return {"act": build_act(root / "act"), "diffusion": build_diffusion(root / "diffusion")}
+
+
+def _obs(b: int = 2, seed: int = 0) -> Observation:
+    g = torch.Generator().manual_seed(seed)
+    return Observation(
+        {"agentview": torch.rand(b, 3, 64, 64, generator=g)},
+        0.5 + torch.rand(b, 8, generator=g),
+        [f"task {i}" for i in range(b)],
+    )
+
+
+def _backbone(path):
+    from workers.backbones.lerobot import LerobotBackbone
+
+    return LerobotBackbone(str(path))
+
+
+def test_act_loads_with_processors_and_predicts_chunks(ckpts) -> None:
+    bb = _backbone(ckpts["act"])
+    assert bb.crn_mode == "deterministic" and bb.can_batch and bb.chunk_len == 10
+    assert bb.cameras == ("agentview",) and bb.state_dim == 8 and bb.action_dim == 7
+    out = bb.predict_chunk(_obs(3))
+    assert out.shape == (3, 10, 7) and torch.isfinite(out).all()
+    # the postprocessor unnormalized: a constant model output would be mean + std * x
+    assert out.dtype == torch.float32
+
+
+@pytest.mark.parametrize("name", ["act", "diffusion"])
+def test_batched_equals_sequential(ckpts, name) -> None:
+    bb = _backbone(ckpts[name])
+    cfg = IDRConfig(mode="E", tau=1e9)
+    a = IDRPolicy(bb, cfg, batched=True).infer(_obs(2), step_seed=3)
+    b = IDRPolicy(bb, cfg, batched=False).infer(_obs(2), step_seed=3)
+    for k in ("a_base", "a_no_img", "a_no_prop", "action"):
+        torch.testing.assert_close(getattr(a, k), getattr(b, k), rtol=1e-4, atol=1e-4)
+    assert a.diag.e_img.min() > 0 and a.diag.e_prop.min() > 0  # both modalities matter
+
+
+def test_crn_with_diffusion(ckpts) -> None:
+    bb = _backbone(ckpts["diffusion"])
+    assert bb.crn_mode == "shared_noise"
+    noise = bb.make_noise(2, seed=11)
+    assert noise.shape == (2, 8, 7)
+    obs = _obs(2)
+    same = [bb.predict_chunk(obs, noise) for _ in range(2)]
+    assert torch.equal(same[0], same[1])  # shared noise, identical inputs: delta exactly 0
+    independent = [bb.predict_chunk(obs) for _ in range(2)]
+    assert (independent[0] - independent[1]).abs().max() > 1e-3
+    # in the wrapper's batched 3B forward, the three thirds get the same noise rows
+    seen = []
+    orig = bb.policy.predict_action_chunk
+    bb.policy.predict_action_chunk = lambda batch, noise=None: (
+        seen.append(noise) or orig(batch, noise=noise)
+    )
+    IDRPolicy(bb, IDRConfig(), batched=True).infer(obs, step_seed=5)
+    (n,) = seen
+    assert torch.equal(n[:2], n[2:4]) and torch.equal(n[:2], n[4:])
+
+
+def _record_step(pipeline, index):
+    from lerobot.lerobot_types import TransitionKey
+
+    seen = []
+
+    def hook(i, transition):
+        if i == index:
+            obs = transition[TransitionKey.OBSERVATION]
+            seen.append({k: v.clone() for k, v in obs.items() if torch.is_tensor(v)})
+
+    pipeline.register_after_step_hook(hook)
+    return seen
+
+
+def test_state_zeroed_after_the_normalizer_by_default(ckpts) -> None:
+    bb = _backbone(ckpts["act"])
+    norm = bb._normalizer_index
+    seen = _record_step(bb.pre, norm)
+    pol = IDRPolicy(
+        bb, IDRConfig(mode="diagnose"), InterventionConfig(state_space="normalized"), batched=True
+    )
+    obs = _obs(2)
+    pol.infer(obs)
+    state = seen[-1]["observation.state"]  # after normalization, rows: factual, no-img, no-prop
+    assert state.shape == (6, 8)
+    assert torch.equal(
+        state[4:], torch.zeros(2, 8)
+    )  # do(S): zero in normalized space (= dataset mean)
+    assert (state[:4].abs() > 0).all()
+    torch.testing.assert_close(state[0:2], state[2:4])  # do(V) leaves the state alone
+    images = seen[-1]["observation.images.agentview"]
+    # do(V) zeroed the raw image: after MEAN_STD normalization black is (0 - 0.4) / 0.2
+    torch.testing.assert_close(images[2:4], torch.full_like(images[2:4], -2.0))
+
+
+def test_raw_state_space_zeroes_before_the_pipeline(ckpts) -> None:
+    bb = _backbone(ckpts["act"])
+    seen = _record_step(bb.pre, bb._normalizer_index)
+    pol = IDRPolicy(
+        bb, IDRConfig(mode="diagnose"), InterventionConfig(state_space="raw"), batched=True
+    )
+    pol.infer(_obs(2))
+    stats = json.loads((Path(ckpts["act"]) / "policy_preprocessor.json").read_text())
+    assert stats  # saved processors were loaded from the checkpoint
+    state = seen[-1]["observation.state"]
+    # raw zero -> (0 - mean) / std after normalization: not zero
+    assert (state[4:].abs() > 1e-3).any() and torch.allclose(state[4], state[5])
+
+
+def test_chunk_and_replan_bookkeeping(tmp_path) -> None:
+    """An episode on the fake env with a real ACT: inference every replan_steps control steps."""
+    ckpt = build_act(tmp_path / "act2", image=32, state=2, action=2, chunk=10)
+    from workers.actor import EpisodeWorker
+    from workers.episode import EpisodeSpec, WorkerSpec
+
+    w = EpisodeWorker(WorkerSpec("lerobot", {"path": str(ckpt)}, "fake_marker", {}, replan_steps=3))
+    res = w.run_episode(
+        EpisodeSpec("r", "E", IDRConfig(tau=1e9), InterventionConfig(), "reach", 0, 0)
+    )
+    assert res.episode["error"] is None
+    steps = [s["step"] for s in res.steps]
+    n = res.episode["steps"]
+    assert steps == list(range(0, n, 3)) and len(steps) == -(-n // 3)
+    assert all(len(s["action_final"]) == 2 for s in res.steps)
+    assert res.episode["crn"] is not None
+
+
+@pytest.mark.parametrize(
+    ("setup", "pattern"),
+    [
+        (lambda p: p / "missing", r"does not exist"),
+        (
+            lambda p: (p / "empty").mkdir() or p / "empty",
+            r"is not a lerobot policy: no config.json",
+        ),
+    ],
+)
+def test_bad_checkpoint_paths(tmp_path, setup, pattern) -> None:
+    from workers.backbones.lerobot import check_checkpoint
+
+    with pytest.raises(ValueError, match=pattern):
+        check_checkpoint(str(setup(tmp_path)))
+
+
+def test_pickled_weights_are_refused(ckpts, tmp_path) -> None:
+    import shutil
+
+    from workers.backbones.lerobot import check_checkpoint
+
+    bad = tmp_path / "pickled"
+    shutil.copytree(ckpts["act"], bad)
+    (bad / "model.safetensors").rename(bad / "pytorch_model.bin")
+    with pytest.raises(ValueError, match=r"pickled weights are refused"):
+        check_checkpoint(str(bad))
+
+
+def test_camera_and_shape_mismatch_name_both_sides(ckpts) -> None:
+    from workers.backbones.lerobot import LerobotBackbone
+
+    with pytest.raises(
+        ValueError,
+        match=r"camera_map=.*policy image keys \['observation.images.top'\].*expects \['observation.images.agentview'\]",
+    ):
+        LerobotBackbone(str(ckpts["act"]), camera_map={"agentview": "top"})
+    bb = _backbone(ckpts["act"])
+    obs = Observation({"agentview": torch.rand(1, 3, 32, 32)}, torch.rand(1, 8), ["x"])
+    with pytest.raises(
+        ValueError,
+        match=r"gives images \(3, 32, 32\).*expects \(3, 64, 64\): set env.params.image_size",
+    ):
+        bb.predict_chunk(obs)
+    obs = Observation({"agentview": torch.rand(1, 3, 64, 64)}, torch.rand(1, 5), ["x"])
+    with pytest.raises(
+        ValueError, match=r"env state has 5 dims, policy 'observation.state' expects 8"
+    ):
+        bb.predict_chunk(obs)
+
+
+def test_runner_refuses_a_missing_checkpoint_before_work(tmp_path) -> None:
+    from pipeline.config import ConfigError, load_config
+    from pipeline.runner import plan_run
+
+    conf = Path(__file__).resolve().parents[3] / "conf" / "smoke.yaml"
+    cfg = load_config(
+        conf, ["backbone.kind=lerobot", f"backbone.params={{path: {tmp_path / 'nope'}}}"]
+    )
+    with pytest.raises(ConfigError, match=r"backbone.params.path=.*does not exist"):
+        plan_run(cfg, tmp_path / "run")
+    assert np.True_

@@ -1,0 +1,270 @@
+"""Any lerobot ``PreTrainedPolicy`` checkpoint as a backbone, with its saved processors.
+
+Loading: ``config.json`` names the policy type; the policy class comes from lerobot's registry
+and its weights from ``model.safetensors`` (pickled weights are refused); the pre- and
+post-processor pipelines come from ``policy_preprocessor.json`` / ``policy_postprocessor.json``.
+A hub id works too where the machine reaches a hub or has it cached; here nothing downloads.
+
+Inference calls ``predict_action_chunk`` directly (``select_action`` keeps action queues and,
+for Diffusion, observation history, which three passes per step would corrupt).
+
+Where the interventions happen (lerobot's conventions, see shared/notes/lerobot.md):
+- do(V) on raw [0, 1] images before the preprocessor (the IDR wrapper does it): a black image
+  for every family;
+- do(S) by default after the normalizer (``state_space: normalized``: zero = the dataset mean),
+  through an after-step hook on the preprocessor's normalizer step, so it happens before any
+  later step (pi0.5's state tokenizer); ``raw`` zeroes the physical state before the pipeline.
+
+Common random numbers: policies whose ``predict_action_chunk`` takes ``noise`` (pi0, pi0.5,
+SmolVLA, Diffusion) get the same noise for the three thirds of one 3B forward; stochastic
+policies without it (X-VLA, GR00T) run the three passes sequentially, each under a forked RNG
+seeded identically; deterministic ones (ACT) need neither. ``crn_mode`` records which.
+"""
+
+from __future__ import annotations
+
+import inspect
+import json
+import os
+from pathlib import Path
+from typing import Any, ClassVar
+
+import torch
+
+from workers.backbones.base import Observation
+from workers.interventions import intervene
+
+STATE_KEY = "observation.state"
+IMAGE_PREFIX = "observation.images."
+PICKLE_WEIGHTS = ("pytorch_model.bin", "model.bin", "model.pt", "model.pth", "model.ckpt")
+DETERMINISTIC_TYPES = frozenset({"act", "vqbet", "tdmpc"})
+
+
+def _is_local(path: str) -> bool:
+    return path.startswith((".", "/", "~")) or os.path.exists(path) or path.count("/") != 1
+
+
+def check_checkpoint(path: str) -> Path | None:
+    """Refuse a checkpoint that does not exist, is not a lerobot policy, or holds pickles.
+
+    Returns the local directory, or None for a hub id (checked when loading)."""
+    if not _is_local(path):
+        return None
+    p = Path(path).expanduser()
+    if not p.is_dir():
+        raise ValueError(
+            f"backbone.params.path={path!r} does not exist (a checkpoint folder or a hub id)"
+        )
+    if not (p / "config.json").is_file():
+        raise ValueError(
+            f"backbone.params.path={path!r} is not a lerobot policy: no config.json in it"
+        )
+    try:
+        cfg = json.loads((p / "config.json").read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"backbone.params.path={path!r}: config.json is not JSON ({e})") from None
+    if "type" not in cfg:
+        raise ValueError(f"backbone.params.path={path!r}: config.json has no policy 'type'")
+    if not (p / "model.safetensors").is_file():
+        pickles = [f for f in PICKLE_WEIGHTS if (p / f).exists()]
+        hint = (
+            f" (found {pickles}: pickled weights are refused, convert them to safetensors)"
+            if pickles
+            else ""
+        )
+        raise ValueError(f"backbone.params.path={path!r} has no model.safetensors{hint}")
+    return p
+
+
+def register_project_policies() -> None:
+    """Make the project's own lerobot policy types (tiny_vla) known to lerobot's registry."""
+    import workers.backbones.tiny_vla.configuration_tiny_vla  # noqa: F401
+
+
+class LerobotBackbone:
+    """A lerobot policy checkpoint behind the Backbone protocol."""
+
+    native_intervention_spaces: ClassVar[frozenset[str]] = frozenset({"normalized"})
+
+    @classmethod
+    def check_params(cls, params: dict[str, Any]) -> None:
+        if "path" not in params:
+            raise ValueError(
+                "backbone.params.path is required: a lerobot checkpoint folder or hub id"
+            )
+        check_checkpoint(str(params["path"]))
+
+    def __init__(
+        self,
+        path: str,
+        device: str = "cpu",
+        camera_map: dict[str, str] | None = None,
+        chunk_len: int | None = None,
+    ) -> None:
+        """``camera_map``: env camera -> policy image key suffix (default: same names)."""
+        from lerobot.configs.policies import PreTrainedConfig
+        from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+        register_project_policies()
+        check_checkpoint(path)
+        self.path = path
+        self.device = torch.device(device)
+        cfg = PreTrainedConfig.from_pretrained(path)
+        cfg.device = str(self.device)
+        self.config = cfg
+        self.policy = (
+            get_policy_class(cfg.type).from_pretrained(path, config=cfg).to(self.device).eval()
+        )
+        overrides = (
+            {} if self.device.type == "cpu" else {"device_processor": {"device": str(self.device)}}
+        )
+        self.pre, self.post = make_pre_post_processors(
+            cfg, pretrained_path=path, preprocessor_overrides=overrides
+        )
+        self.name = f"lerobot:{cfg.type}"
+        image_keys = [k for k in cfg.input_features if k.startswith(IMAGE_PREFIX)]
+        mapping = camera_map or {
+            k.removeprefix(IMAGE_PREFIX): k.removeprefix(IMAGE_PREFIX) for k in image_keys
+        }
+        wanted = {IMAGE_PREFIX + v for v in mapping.values()}
+        if wanted != set(image_keys):
+            raise ValueError(
+                f"backbone.params.camera_map={mapping} gives policy image keys {sorted(wanted)}, "
+                f"but the policy expects {sorted(image_keys)}"
+            )
+        self.camera_map = mapping
+        self.cameras = tuple(mapping)  # env cameras to render
+        self.image_shapes = {k: tuple(cfg.input_features[k].shape) for k in image_keys}
+        state = cfg.input_features.get(STATE_KEY)
+        self.state_dim = int(state.shape[0]) if state is not None else 0
+        self.action_dim = int(cfg.output_features["action"].shape[0])
+        self.chunk_len = int(chunk_len or getattr(cfg, "n_action_steps", None) or cfg.chunk_size)
+        takes_noise = "noise" in inspect.signature(self.policy.predict_action_chunk).parameters
+        if cfg.type in DETERMINISTIC_TYPES:
+            self.crn_mode = "deterministic"
+        elif takes_noise:
+            self.crn_mode = "shared_noise"
+        else:
+            self.crn_mode = "seeded_rng"
+        self.can_batch = (
+            self.crn_mode != "seeded_rng"
+        )  # one seed cannot give three thirds equal noise
+        self._normalizer_index = self._find_normalizer()
+        self._pending_do: tuple[torch.Tensor, Any] | None = None
+        self.pre.register_after_step_hook(self._state_intervention_hook)
+
+    def _find_normalizer(self) -> int | None:
+        for i, step in enumerate(self.pre.steps):
+            if type(step).__name__ == "NormalizerProcessorStep":
+                return i
+        return None
+
+    def _state_intervention_hook(self, index: int, transition: Any) -> None:
+        """After the normalizer: do(S) on the flagged rows, in normalized space."""
+        if self._pending_do is None or index != self._normalizer_index:
+            return
+        from lerobot.lerobot_types import TransitionKey
+
+        rows, iv = self._pending_do
+        obs = transition[TransitionKey.OBSERVATION]
+        state = obs[STATE_KEY]
+        cf = intervene(state, iv.strategy, noise_scale=iv.noise_scale, seed=iv.seed)
+        obs[STATE_KEY] = torch.where(rows.to(state.device)[:, None], cf, state)
+
+    # -- protocol ---------------------------------------------------------------------------
+    def reset(self) -> None:
+        self.policy.reset()
+
+    def _noise_shape(self, batch_size: int) -> tuple[int, ...] | None:
+        cfg = self.config
+        if self.crn_mode != "shared_noise":
+            return None
+        if hasattr(cfg, "max_action_dim"):  # pi0, pi0.5, smolvla
+            return (batch_size, cfg.chunk_size, cfg.max_action_dim)
+        if cfg.type == "diffusion":
+            return (batch_size, cfg.horizon, self.action_dim)
+        return None
+
+    def make_noise(self, batch_size: int, seed: int) -> Any:
+        if self.crn_mode == "seeded_rng":
+            return torch.tensor([seed] * batch_size)  # the seed, repeated per row
+        shape = self._noise_shape(batch_size)
+        if shape is None:
+            return None
+        gen = torch.Generator().manual_seed(seed)
+        return torch.randn(shape, generator=gen).to(self.device)
+
+    def _batch(self, obs: Observation) -> dict[str, Any]:
+        batch: dict[str, Any] = {}
+        for env_cam, key in self.camera_map.items():
+            if env_cam not in obs.images:
+                raise ValueError(
+                    f"the policy needs camera {env_cam!r}; the observation has {list(obs.images)}"
+                )
+            img = torch.as_tensor(obs.images[env_cam]).float()
+            want = self.image_shapes[IMAGE_PREFIX + key]
+            if tuple(img.shape[1:]) != want:
+                raise ValueError(
+                    f"camera {env_cam!r} gives images {tuple(img.shape[1:])}, policy key "
+                    f"{IMAGE_PREFIX + key!r} expects {want}: set env.params.image_size to match"
+                )
+            batch[IMAGE_PREFIX + key] = img
+        if self.state_dim:
+            state = torch.as_tensor(obs.state).float()
+            if state.shape[1] != self.state_dim:
+                raise ValueError(
+                    f"env state has {state.shape[1]} dims, policy {STATE_KEY!r} expects {self.state_dim}"
+                )
+            batch[STATE_KEY] = state
+        batch["task"] = list(obs.instruction)
+        return batch
+
+    def _add_obs_history(self, batch: dict[str, Any]) -> dict[str, Any]:
+        """Diffusion reads (B, n_obs_steps, ...) observations. The history is the current frame
+        repeated (what select_action does at an episode's first step): three IDR passes per step
+        cannot share one queue of past observations."""
+        n = int(getattr(self.config, "n_obs_steps", 1))
+        if self.config.type != "diffusion":
+            return batch
+        out = dict(batch)
+        for key in [
+            k for k in out if k == STATE_KEY or k.startswith("observation.environment_state")
+        ]:
+            x = out[key]
+            if x.ndim == 2:
+                out[key] = x[:, None].expand(-1, n, -1)
+        for key in self.image_shapes:
+            x = out[key]
+            if x.ndim == 4:
+                out[key] = x[:, None].expand(-1, n, -1, -1, -1)
+        return out
+
+    @torch.inference_mode()
+    def predict_chunk(
+        self, obs: Observation, noise: Any = None, intervention: Any = None
+    ) -> torch.Tensor:
+        batch = self._batch(obs)
+        if obs.do_image is not None and obs.do_image.any():
+            raise ValueError(
+                "image interventions apply in raw space (before the preprocessor) for lerobot policies"
+            )
+        if obs.do_state is not None and obs.do_state.any():
+            if self._normalizer_index is None:
+                raise ValueError(
+                    f"{self.name}: no normalizer step in the preprocessor for state_space=normalized"
+                )
+            self._pending_do = (torch.as_tensor(obs.do_state), intervention)
+        try:
+            processed = self.pre(batch)
+        finally:
+            self._pending_do = None
+        processed = self._add_obs_history(processed)
+        if self.crn_mode == "shared_noise" and noise is not None:
+            actions = self.policy.predict_action_chunk(processed, noise=noise)
+        elif self.crn_mode == "seeded_rng" and noise is not None:
+            with torch.random.fork_rng(devices=[self.device] if self.device.type == "cuda" else []):
+                torch.manual_seed(int(noise[0]))
+                actions = self.policy.predict_action_chunk(processed)
+        else:
+            actions = self.policy.predict_action_chunk(processed)
+        return self.post(actions)[:, : self.chunk_len]

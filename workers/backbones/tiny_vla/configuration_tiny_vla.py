@@ -1,0 +1,67 @@
+"""Config of the tiny VLA, registered with lerobot as policy type ``tiny_vla``.
+
+lerobot finds a policy's model class by rewriting the config's module path
+``configuration_<type>`` to ``modeling_<type>``, hence the two module names.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from lerobot.configs import NormalizationMode, PreTrainedConfig
+from lerobot.configs.types import FeatureType
+from lerobot.optim import AdamWConfig
+
+
+@PreTrainedConfig.register_subclass("tiny_vla")
+@dataclass
+class TinyVLAConfig(PreTrainedConfig):
+    """A CNN per camera (FiLM-conditioned on the instruction, spatial-softmax keypoints), a GRU
+    over instruction tokens, the state, and an MLP head predicting a chunk of actions."""
+
+    n_obs_steps: int = 1
+    chunk_size: int = 8  # actions predicted per inference
+    n_action_steps: int = 8  # actions executed from a chunk by select_action
+    normalization_mapping: dict[str, NormalizationMode] = field(
+        default_factory=lambda: {
+            "VISUAL": NormalizationMode.IDENTITY,
+            "STATE": NormalizationMode.MEAN_STD,
+            "ACTION": NormalizationMode.MEAN_STD,
+        }
+    )
+    vocab: list[str] = field(default_factory=list)  # instruction words; 0 = pad, 1 = unknown
+    max_tokens: int = 24
+    cnn_channels: tuple[int, ...] = (16, 32, 64)
+    text_dim: int = 64
+    hidden_dim: int = 256
+    dropout: float = 0.1
+    optimizer_lr: float = 1e-3
+    optimizer_weight_decay: float = 1e-4
+
+    @property
+    def observation_delta_indices(self) -> None:
+        return None
+
+    @property
+    def action_delta_indices(self) -> list[int]:
+        return list(range(self.chunk_size))
+
+    @property
+    def reward_delta_indices(self) -> None:
+        return None
+
+    def get_optimizer_preset(self) -> AdamWConfig:
+        return AdamWConfig(lr=self.optimizer_lr, weight_decay=self.optimizer_weight_decay)
+
+    def get_scheduler_preset(self) -> None:
+        return None
+
+    def validate_features(self) -> None:
+        if not self.image_features:
+            raise ValueError("tiny_vla needs at least one image feature (observation.images.*)")
+        if self.robot_state_feature is None:
+            raise ValueError("tiny_vla needs observation.state")
+        if self.action_feature is None or self.action_feature.type is not FeatureType.ACTION:
+            raise ValueError("tiny_vla needs an action output feature")
+        if self.n_action_steps > self.chunk_size:
+            raise ValueError(f"n_action_steps={self.n_action_steps} > chunk_size={self.chunk_size}")
