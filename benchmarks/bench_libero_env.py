@@ -1,9 +1,19 @@
 """LIBERO env speed: control steps per second for one task, rendering off vs on, 1 vs 2 cameras,
-several image sizes (the render size; 256 px is the openpi / OFT protocol's).
+several image sizes (the render size; 256 px is the openpi / OFT protocol's), and eager vs lazy
+rendering under the pipeline's read patterns.
 
-Each configuration builds its own ``LiberoEnv`` (the render size is fixed when the simulator is
-built), resets it once (a hard reset plus the 10 protocol no-ops) and times ``--steps`` control
-steps of a small back-and-forth end-effector motion. Setup and reset times are recorded too.
+``results`` (the sweep): each configuration builds its own ``LiberoEnv`` with eager rendering
+(robosuite renders every camera on every step: the cost of rendering itself; the render size is
+fixed when the simulator is built), resets it once (a hard reset plus the 10 protocol no-ops) and
+times ``--steps`` control steps of a small back-and-forth end-effector motion. Setup and reset
+times are recorded too.
+
+``patterns``: at 256 px with both cameras, eager vs lazy rendering (``lazy_render``), with the
+images of every camera read every step (closed loop) or every 8th step (an open-loop chunk of
+8 actions, as the actor does: read, infer, execute the chunk). Each run resets (timed apart) and
+times ``--pattern-steps`` steps, reads included; runs alternate eager / lazy, ``--repeats``
+each. The images read are compared: lazy must give eager's pixels.
+
 The machine's load is recorded with the figures: on a shared CPU they are noisy.
 
 Writes ``benchmarks/results/libero_env.json``. Usage: ``python benchmarks/bench_libero_env.py``
@@ -15,6 +25,7 @@ import argparse
 import json
 import os
 import platform
+import statistics
 import time
 from pathlib import Path
 from typing import Any
@@ -25,6 +36,8 @@ from workers.rendering import configure_rendering
 
 RESULTS = Path(__file__).parent / "results" / "libero_env.json"
 TASK = "libero_spatial/0"
+PATTERN_SIZE = 256
+PATTERN_CAMERAS = ("agentview", "wrist")
 
 
 def _actions(n: int) -> np.ndarray:
@@ -40,7 +53,9 @@ def _actions(n: int) -> np.ndarray:
 def measure(cameras: tuple[str, ...], image_size: int, steps: int) -> dict[str, Any]:
     from workers.envs.libero import LiberoEnv
 
-    env = LiberoEnv(suites=["libero_spatial"], image_size=image_size, cameras=cameras)
+    env = LiberoEnv(
+        suites=["libero_spatial"], image_size=image_size, cameras=cameras, lazy_render=False
+    )
     try:
         t0 = time.perf_counter()
         env.reset(TASK, 0, 0)  # builds the simulator
@@ -54,6 +69,7 @@ def measure(cameras: tuple[str, ...], image_size: int, steps: int) -> dict[str, 
         env.close()
     return {
         "cameras": list(cameras),
+        "lazy_render": False,
         "image_size": image_size if cameras else None,
         "steps": steps,
         "steps_per_second": steps / (t3 - t2),
@@ -61,6 +77,75 @@ def measure(cameras: tuple[str, ...], image_size: int, steps: int) -> dict[str, 
         "build_and_first_reset_s": t1 - t0,
         "reset_s": t2 - t1,
     }
+
+
+def run_pattern(env: Any, read_every: int, steps: int) -> tuple[dict[str, float], list]:
+    """One episode: reset (timed apart), then ``steps`` steps, reading every camera's image of
+    the current observation before steps ``0, read_every, 2 * read_every, ...``."""
+    t0 = time.perf_counter()
+    obs = env.reset(TASK, 1, 0)
+    t1 = time.perf_counter()
+    read = []
+    for i, a in enumerate(_actions(steps)):
+        if i % read_every == 0:
+            read.append({cam: obs.images[cam] for cam in env.cameras})
+        obs = env.step(a)
+    t2 = time.perf_counter()
+    return {"reset_s": t1 - t0, "ms_per_step": (t2 - t1) / steps * 1e3}, read
+
+
+def measure_patterns(steps: int, repeats: int, read_every: list[int]) -> list[dict[str, Any]]:
+    from workers.envs.libero import LiberoEnv
+
+    envs = {
+        lazy: LiberoEnv(
+            suites=["libero_spatial"],
+            image_size=PATTERN_SIZE,
+            cameras=PATTERN_CAMERAS,
+            lazy_render=lazy,
+        )
+        for lazy in (False, True)
+    }
+    rows = []
+    try:
+        for env in envs.values():
+            env.reset(TASK, 0, 0)  # builds the simulator: not timed
+        for every in read_every:
+            runs: dict[bool, list[dict[str, float]]] = {False: [], True: []}
+            images: dict[bool, list] = {}
+            for _ in range(repeats):
+                for lazy, env in envs.items():  # alternate: load drifts hit both alike
+                    run, images[lazy] = run_pattern(env, every, steps)
+                    runs[lazy].append(run)
+            equal = all(
+                np.array_equal(e[cam], z[cam])
+                for e, z in zip(images[False], images[True], strict=True)
+                for cam in PATTERN_CAMERAS
+            )
+            for lazy in (False, True):
+                ms = [r["ms_per_step"] for r in runs[lazy]]
+                rows.append(
+                    {
+                        "lazy_render": lazy,
+                        "read_every": every,
+                        "cameras": list(PATTERN_CAMERAS),
+                        "image_size": PATTERN_SIZE,
+                        "steps": steps,
+                        "ms_per_step": statistics.median(ms),
+                        "ms_per_step_runs": ms,
+                        "reset_s": statistics.median(r["reset_s"] for r in runs[lazy]),
+                        "images_read": len(images[lazy]) * len(PATTERN_CAMERAS),
+                        "pixels_equal_eager": equal,
+                    }
+                )
+                print(
+                    f"{'lazy' if lazy else 'eager'} read every {every}: "
+                    f"{rows[-1]['ms_per_step']:.1f} ms/step {ms}, pixels equal: {equal}"
+                )
+    finally:
+        for env in envs.values():
+            env.close()
+    return rows
 
 
 def configurations(sizes: list[int]) -> list[tuple[tuple[str, ...], int]]:
@@ -81,11 +166,24 @@ def print_table(rows: list[dict[str, Any]]) -> None:
         )
 
 
+def print_patterns(rows: list[dict[str, Any]]) -> None:
+    print(f"\n{'render':<8}{'read every':>11}{'ms/step':>10}{'reset s':>9}{'= eager':>9}")
+    for r in rows:
+        print(
+            f"{'lazy' if r['lazy_render'] else 'eager':<8}{r['read_every']:>11}"
+            f"{r['ms_per_step']:>10.1f}{r['reset_s']:>9.1f}{r['pixels_equal_eager']!s:>9}"
+        )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--sizes", type=int, nargs="+", default=[64, 128, 224, 256])
+    ap.add_argument("--pattern-steps", type=int, default=48)
+    ap.add_argument("--read-every", type=int, nargs="+", default=[1, 8])
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--no-sweep", action="store_true", help="only the eager vs lazy patterns")
     args = ap.parse_args()
     backend = configure_rendering()
     res: dict[str, Any] = {
@@ -99,14 +197,16 @@ def main() -> None:
         },
         "results": [],
     }
-    for cams, size in configurations(args.sizes):
+    for cams, size in [] if args.no_sweep else configurations(args.sizes):
         row = measure(cams, size, args.steps)
         res["results"].append(row)
         print(
             f"{'+'.join(cams) or 'render off'} {size if cams else ''}: {row['ms_per_step']:.1f} ms/step"
         )
+    res["patterns"] = measure_patterns(args.pattern_steps, args.repeats, args.read_every)
     res["machine"]["load_average_at_end"] = os.getloadavg()
     print_table(res["results"])
+    print_patterns(res["patterns"])
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(res, indent=2) + "\n")
     print(f"written to {args.out}")

@@ -140,12 +140,22 @@ class PairedDiff:
     only_baseline: int
 
 
+def reference_cell(cells: set[str]) -> str | None:
+    """The cell others are compared with: ``baseline``, else ``diagnose`` (it executes the base
+    action, so with shared noise it is the baseline too)."""
+    for name in ("baseline", "diagnose"):
+        if name in cells:
+            return name
+    return None
+
+
 def paired_vs_baseline(
-    episodes: pa.Table | pd.DataFrame, baseline: str = "baseline", n_boot: int = 2000
+    episodes: pa.Table | pd.DataFrame, baseline: str | None = None, n_boot: int = 2000
 ) -> list[PairedDiff]:
     df = _frame(episodes)
     df = df[df["error"].isna()]
-    if baseline not in set(df["cell_id"]):
+    baseline = baseline or reference_cell(set(df["cell_id"]))
+    if baseline is None or baseline not in set(df["cell_id"]):
         return []
     key = ["suite", "task_id", "episode_index"]
     base = df[df["cell_id"] == baseline].set_index(key)["success"]

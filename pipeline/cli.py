@@ -17,9 +17,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, args.overrides)
     run_dir = Path(args.out) if args.out else Path(cfg.output_root) / cfg.name
     plan = plan_run(cfg, run_dir)
-    n_cells = len({s.cell_id for s in plan.specs})
+    n_cells = len({s.cell_id for s in plan.all_specs()})
     print(
-        f"run {plan.run_id}: {len(plan.specs)} episodes ({n_cells} cells x {len(plan.tasks)} tasks "
+        f"run {plan.run_id}: {len(plan.all_specs())} episodes ({n_cells} cells x {len(plan.tasks)} tasks "
         f"x {cfg.episodes_per_task}) -> {run_dir}"
     )
     summary = execute(plan)

@@ -104,7 +104,14 @@ class RunConfig(_Model):
 
     @model_validator(mode="after")
     def _cells_valid(self) -> RunConfig:
-        self.cells()  # raises ValueError naming the bad grid entry
+        cells = self.cells()  # raises ValueError naming the bad grid entry
+        if any(c.calibrated_tau for c in cells) and not any(
+            c.idr.mode == "diagnose" for c in cells
+        ):
+            raise ValueError(
+                "tau: calibrated needs a diagnose cell in the grid to measure E_img on "
+                "(add mode diagnose, e.g. grid=[{mode: [diagnose, E]}])"
+            )
         return self
 
     def cells(self) -> list[Cell]:

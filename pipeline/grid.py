@@ -10,7 +10,7 @@ cell named ``baseline``.
 from __future__ import annotations
 
 import itertools
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
 from workers.idr import IDRConfig
@@ -36,6 +36,9 @@ SHORT_NAMES = {
 }
 
 
+CALIBRATED = "calibrated"
+
+
 @dataclass(frozen=True)
 class Cell:
     """One IDR configuration of a grid."""
@@ -44,6 +47,12 @@ class Cell:
     idr: IDRConfig
     intervention: InterventionConfig
     varied: tuple[tuple[str, Any], ...]  # the grid parameters that made this cell, in order
+    # tau: calibrated -> tau is set, after the diagnose cell ran, to the mean E_img it measured
+    # (the paper's rule); idr.tau holds a placeholder until then
+    calibrated_tau: bool = False
+
+    def with_tau(self, tau: float) -> Cell:
+        return replace(self, idr=replace(self.idr, tau=tau))
 
     def params(self) -> dict[str, Any]:
         """Flat parameters, for tables and MLflow."""
@@ -99,6 +108,9 @@ def expand_grid(groups: list[dict[str, Any]], base: dict[str, Any] | None = None
     for combo in itertools.product(*per_group):
         varied = [kv for row in combo for kv in row]
         params = {**base, **dict(varied)}
+        calibrated = params.get("tau") == CALIBRATED
+        if calibrated:
+            params["tau"] = 0.0  # placeholder until calibration
         try:
             idr = IDRConfig(**{k: params[k] for k in IDR_KEYS if k in params})
             iv = InterventionConfig(**{k: params[k] for k in INTERVENTION_KEYS if k in params})
@@ -113,5 +125,5 @@ def expand_grid(groups: list[dict[str, Any]], base: dict[str, Any] | None = None
             if cid == "baseline":
                 continue
             raise ValueError(f"grid gives two cells named {cid!r}: a value is listed twice")
-        cells[cid] = Cell(cid, idr, iv, tuple(varied))
+        cells[cid] = Cell(cid, idr, iv, tuple(varied), calibrated_tau=calibrated and idr.refines)
     return list(cells.values())

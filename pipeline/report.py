@@ -31,9 +31,11 @@ def main_table(episodes: pd.DataFrame) -> str:
     overall = agg.success_overall(episodes).set_index("cell_id")
     diffs = {d.cell_id: d for d in agg.paired_vs_baseline(episodes)}
     suite_names = sorted(suites["suite"].unique())
-    headers = ["cell", *suite_names, "Avg", "Δ vs baseline (95% CI)", "p (McNemar)", "errors"]
+    ref = agg.reference_cell(set(overall.index)) or "baseline"
+    headers = ["cell", *suite_names, "Avg", f"Δ vs {ref} (95% CI)", "p (McNemar)", "errors"]
     rows = []
-    for cell in sorted(overall.index, key=lambda c: (c != "baseline", c)):
+    ref = agg.reference_cell(set(overall.index))
+    for cell in sorted(overall.index, key=lambda c: (c != ref, c)):
         r = [cell]
         for s in suite_names:
             m = suites[(suites["cell_id"] == cell) & (suites["suite"] == s)]

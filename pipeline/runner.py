@@ -12,9 +12,10 @@ import logging
 import os
 import subprocess
 import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
+from pipeline.calibration import calibrate
 from pipeline.config import ConfigError, RunConfig, dump_config
 from pipeline.report import write_report
 from pipeline.scheduler import RunSummary, Scheduler, init_ray
@@ -53,6 +54,10 @@ class RunPlan:
     tasks: list[TaskSpec]
     specs: list[EpisodeSpec]
     worker_spec: WorkerSpec
+    calibrated: list[EpisodeSpec]  # scheduled after tau calibration, with tau filled in
+
+    def all_specs(self) -> list[EpisodeSpec]:
+        return [*self.specs, *self.calibrated]
 
 
 def _select_tasks(cfg: RunConfig) -> list[TaskSpec]:
@@ -118,6 +123,10 @@ def plan_run(cfg: RunConfig, run_dir: str | Path) -> RunPlan:
         for task in tasks
         for i in range(cfg.episodes_per_task)
     ]
+    # cells with tau: calibrated run in a second stage, after the diagnose cell they calibrate on
+    later = {c.cell_id for c in cfg.cells() if c.calibrated_tau}
+    deferred = [s for s in specs if s.cell_id in later]
+    specs = [s for s in specs if s.cell_id not in later]
     worker_spec = WorkerSpec(
         cfg.backbone.kind,
         cfg.backbone.params,
@@ -126,7 +135,7 @@ def plan_run(cfg: RunConfig, run_dir: str | Path) -> RunPlan:
         cfg.backbone.replan_steps,
         cfg.backbone.batched,
     )
-    return RunPlan(cfg, run_dir, run_id, tasks, specs, worker_spec)
+    return RunPlan(cfg, run_dir, run_id, tasks, specs, worker_spec, deferred)
 
 
 def _write_meta(plan: RunPlan) -> None:
@@ -154,7 +163,9 @@ def run_params(plan: RunPlan) -> dict[str, object]:
         "executor": cfg.executor.kind,
         "workers": cfg.executor.workers,
         "fingerprint": cfg.fingerprint(),
-        "code_version": plan.specs[0].meta["code_version"] if plan.specs else code_version(),
+        "code_version": plan.all_specs()[0].meta["code_version"]
+        if plan.all_specs()
+        else code_version(),
     }
 
 
@@ -181,12 +192,33 @@ def execute(plan: RunPlan) -> RunSummary:
     if cfg.executor.kind == "ray":
         ex = cfg.executor
         init_ray(ex.address, None if ex.address else ex.workers * ex.cpus_per_worker)
-    total = len(plan.specs)
+    total = len(plan.all_specs())
     on_flush = (lambda batch: tracker.progress(len(batch), total)) if tracker else None
+
+    def calibrated_specs() -> list[EpisodeSpec]:
+        diagnose = next(c.cell_id for c in cfg.cells() if c.idr.mode == "diagnose")
+        result = calibrate(store, diagnose)
+        log.info(
+            "tau calibrated on %s: %.4g (mean E_img over %d inferences)",
+            diagnose,
+            result["tau"],
+            result["inferences"],
+        )
+        if tracker is not None:
+            tracker.log_calibration(result)
+        tau = float(result["tau"])
+        return [replace(s, idr=replace(s.idr, tau=tau)) for s in plan.calibrated]
+
     status = "FAILED"
     try:
         summary = Scheduler(
-            plan.worker_spec, plan.specs, store, cfg.executor, on_flush=on_flush
+            plan.worker_spec,
+            plan.specs,
+            store,
+            cfg.executor,
+            on_flush=on_flush,
+            deferred=calibrated_specs if plan.calibrated else None,
+            deferred_total=len(plan.calibrated),
         ).run()
         status = "FINISHED"
     except KeyboardInterrupt:

@@ -88,14 +88,21 @@ class Scheduler:
         store: RunStore,
         executor: ExecutorConfig,
         on_flush: Callable[[list[EpisodeResult]], None] | None = None,
+        deferred: Callable[[], list[EpisodeSpec]] | None = None,
+        deferred_total: int = 0,
     ) -> None:
+        """``deferred``: called once every spec so far is stored (e.g. after tau calibration)
+        for the episodes of a later stage; ``deferred_total`` is their count, for progress."""
         self.worker_spec = worker_spec
         self.store = store
         self.ex = executor
         self.on_flush = on_flush
         done = store.stored_keys()
         self.pending = deque(s for s in specs if s.key not in done)
-        self.summary = RunSummary(total=len(specs), skipped=len(specs) - len(self.pending))
+        self.summary = RunSummary(
+            total=len(specs) + deferred_total, skipped=len(specs) - len(self.pending)
+        )
+        self._deferred = deferred
         self._stored_keys = done
         self._buffer: list[EpisodeResult] = []
         self._progress: _Progress | None = None
@@ -160,6 +167,17 @@ class Scheduler:
         if self.on_flush is not None:
             self.on_flush(batch)
 
+    def _take_deferred(self) -> bool:
+        """Start the next stage once everything before it is stored; False when none is left."""
+        if self._deferred is None:
+            return False
+        self.flush()
+        later, self._deferred = self._deferred(), None
+        fresh = [s for s in later if s.key not in self._stored_keys]
+        self.summary.skipped += len(later) - len(fresh)
+        self.pending.extend(fresh)
+        return bool(fresh) or self._deferred is not None
+
     def _tick(self) -> None:
         if self._progress is not None:
             s = self.summary
@@ -170,6 +188,8 @@ class Scheduler:
         t0 = time.monotonic()
         self._progress = _Progress(self.summary.total)
         try:
+            if not self.pending:
+                self._take_deferred()
             if self.pending:
                 self._run_inline() if self.ex.kind == "inline" else self._run_ray()
         finally:
@@ -187,7 +207,7 @@ class Scheduler:
         self.summary.workers = [worker.ping()]
         self.summary.startup_seconds = time.monotonic() - t0
         try:
-            while self.pending:
+            while self.pending or self._take_deferred():
                 spec = self.pending.popleft()
                 self._accept(spec, worker.run_episode(spec))
                 self._tick()
@@ -229,7 +249,7 @@ class Scheduler:
         in_flight: dict[Any, tuple[int, EpisodeSpec]] = {}
         load = dict.fromkeys(actors, 0)
 
-        while self.pending or in_flight:
+        while self.pending or in_flight or (not in_flight and self._take_deferred()):
             for aid in sorted(load, key=load.get):
                 if self.pending and load[aid] == 0 and len(in_flight) < cap:
                     spec = self.pending.popleft()

@@ -148,6 +148,13 @@ class Tracker:
         for i in range(0, len(items), 500):
             self.client.log_batch(run_id, metrics=items[i : i + 500])
 
+    def log_calibration(self, result: dict[str, Any]) -> None:
+        """The calibrated tau on the parent and on every child that uses it."""
+        self._log_params(
+            self.parent_id, {"tau_calibrated": result["tau"], "tau_source": result["source_cell"]}
+        )
+        self._log_metrics(self.parent_id, {"tau_calibrated": float(result["tau"])})
+
     def progress(self, n_new: int, total: int) -> None:
         self._done += n_new
         if self.parent_id:

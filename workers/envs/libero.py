@@ -11,6 +11,9 @@ a config can pin and log it:
   (220 / 280 / 300 / 520 for spatial / object / goal / 10; lerobot uses 280 for spatial).
 - Images rendered at ``image_size`` px and flipped 180 degrees (both axes): robosuite renders
   with OpenGL's bottom-up rows, and policies trained on openpi / OFT data see the flipped view.
+  Rendered lazily by default (``lazy_render``): a camera costs ~110-170 ms per render on OSMesa
+  and open-loop chunk steps read no image, so a camera is rendered only when its image is read,
+  with the same pixels robosuite's camera observables give (see ``LiberoEnv.__init__``).
 - State (8,): end-effector position (3), end-effector orientation as axis-angle (3),
   gripper finger positions (2). Action (7,): OSC_POSE deltas (6) + gripper (-1 open, +1 close).
 
@@ -25,6 +28,7 @@ import contextlib
 import functools
 import io
 import os
+import types
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from workers.envs.base import EnvObservation, TaskSpec
+from workers.envs.base import EnvObservation, LazyImages, TaskSpec
 from workers.envs.libero_assets import LiberoSetupError, ensure_config_env
 
 SUITES: tuple[str, ...] = ("libero_spatial", "libero_object", "libero_goal", "libero_10")
@@ -51,6 +55,50 @@ CAMERAS: Mapping[str, tuple[str, str]] = {
     "wrist": ("robot0_eye_in_hand", "robot0_eye_in_hand_image"),
 }
 SETUP_COMMAND = "python -m workers.envs.libero_assets"
+# Lazy rendering snapshots the simulator when robosuite samples this observable. All observables
+# sample at control_hz in lockstep, once per control step, at a substep that is not always the
+# last (the 24th of 25 here, by the phase of their timers); the camera observables did the same.
+SNAPSHOT_OBSERVABLE = "robot0_eef_pos"
+
+
+class _Frame:
+    """The simulator as robosuite's observables sampled it: what a camera observable rendered.
+    Its ``MjData`` goes back to the pool when the last observation holding it is dropped."""
+
+    def __init__(self, pool: _Snapshots, sim: Any, data: Any) -> None:
+        self.pool, self.sim, self.data = pool, sim, data
+
+    def __del__(self) -> None:
+        self.pool.recycle(self.sim, self.data)
+
+
+class _Snapshots:
+    """``MjData`` copies of one simulator taken at robosuite's sampling moments; ``latest`` is
+    the last one. Copies go into recycled ``MjData``: each holds LIBERO's 1.3 GB (virtual)
+    arena, too much to allocate per step; the pool stays at 2-3 while observations are dropped
+    a step or two after they are made. No reference back to the env."""
+
+    def __init__(self) -> None:
+        self.latest: _Frame | None = None
+        self._sim: Any = None
+        self._free: list[Any] = []
+
+    def take(self, sim: Any) -> None:
+        import mujoco
+
+        if sim is not self._sim:  # a hard reset built a new simulator: start a new pool
+            self._sim, self._free = sim, []
+        model = sim.model._model
+        data = self._free.pop() if self._free else mujoco.MjData(model)
+        mujoco.mj_copyData(data, model, sim.data._data)
+        self.latest = _Frame(self, sim, data)
+
+    def recycle(self, sim: Any, data: Any) -> None:
+        if sim is self._sim and len(self._free) < 4:
+            self._free.append(data)
+
+    def clear(self) -> None:
+        self.latest, self._sim, self._free = None, None, []
 
 
 @dataclass(frozen=True)
@@ -209,14 +257,29 @@ class LiberoEnv:
         max_steps: Mapping[str, int] | None = None,
         flip_images: bool = True,
         control_hz: float = 20.0,
+        lazy_render: bool = True,
     ) -> None:
         """``max_steps`` maps suite -> steps and overrides the protocol's (``MAX_STEPS``) per
         suite. ``cameras=()`` renders nothing (state-only observations: for physics
         benchmarks; ``check_env`` requires at least one camera). The env's random seed comes
-        from ``reset``'s ``seed``."""
+        from ``reset``'s ``seed``.
+
+        ``lazy_render`` (default): observations carry ``LazyImages``; a camera is rendered when
+        its image is first read, so reset (its no-ops included) and steps whose images nobody
+        reads render nothing. The pixels equal the eager path's (tested with ``array_equal``):
+        robosuite samples its observables at a substep inside the control step, not after the
+        last one, so rendering the final state would show a different arm pose. Instead the
+        simulator is built without camera observables, ``MjData`` is copied (<1 ms) each time
+        robosuite samples ``SNAPSHOT_OBSERVABLE``, and a read renders that copy with the call
+        the camera sensor makes (``sim.render``, same context, MSAA, lights, size and
+        ``macros.IMAGE_CONVENTION``). Images must be read before the next ``reset`` or
+        ``close`` (RuntimeError after). ``lazy_render=False``: robosuite renders every camera
+        on every step and on reset (its camera observables), as before."""
         self.protocol = LiberoProtocol.from_params(
             suites, image_size, cameras, num_noops, max_steps, flip_images, control_hz
         )
+        self.lazy_render = bool(lazy_render)
+        self._snapshots = _Snapshots()
         self.cameras = self.protocol.cameras
         self.control_hz = self.protocol.control_hz
         self._specs = {t.task_id: t for t in _list_tasks(self.protocol)}
@@ -238,8 +301,11 @@ class LiberoEnv:
         max_steps: Mapping[str, int] | None = None,
         flip_images: bool = True,
         control_hz: float = 20.0,
+        lazy_render: bool = True,
     ) -> list[TaskSpec]:
-        """The tasks these params give, from LIBERO's tables: no simulator, no MuJoCo import."""
+        """The tasks these params give, from LIBERO's tables: no simulator, no MuJoCo import.
+        Takes the constructor's params (``lazy_render`` changes no task)."""
+        del lazy_render
         protocol = LiberoProtocol.from_params(
             suites, image_size, cameras, num_noops, max_steps, flip_images, control_hz
         )
@@ -277,19 +343,38 @@ class LiberoEnv:
         p = self.protocol
         if not os.path.isfile(bddl_file):
             raise LiberoSetupError(f"{bddl_file} is missing: reinstall hf-libero")
-        return OffScreenRenderEnv(
+        lazy = self.lazy_render and bool(p.cameras)
+        sim = OffScreenRenderEnv(
             bddl_file_name=bddl_file,
             camera_names=[CAMERAS[c][0] for c in p.cameras],
             camera_heights=p.image_size,
             camera_widths=p.image_size,
-            use_camera_obs=bool(p.cameras),
+            # lazy: no camera observables, so robosuite renders nothing by itself (not on
+            # build, reset, no-ops or steps); the offscreen context is made all the same
+            use_camera_obs=bool(p.cameras) and not lazy,
             control_freq=p.control_hz,
             # robosuite refuses to step past its horizon (default 1000): make room for the
             # longest episode this protocol allows.
             horizon=max(1000, max_steps + p.num_noops),
         )
+        if lazy:
+            self._install_snapshot(sim.env)
+        return sim
+
+    def _install_snapshot(self, inner: Any) -> None:
+        """Copy ``MjData`` whenever robosuite samples ``SNAPSHOT_OBSERVABLE``: the moments its
+        camera observables rendered at. A filter doubles as an observer (robosuite's own
+        words) and survives hard resets, which replace only sensors."""
+        snapshots = self._snapshots
+
+        def snapshot(value: Any) -> Any:
+            snapshots.take(inner.sim)
+            return value
+
+        inner.modify_observable(SNAPSHOT_OBSERVABLE, "filter", snapshot)
 
     def _close_sim(self) -> None:
+        self._snapshots.clear()
         sim, self._sim, self._sim_task = self._sim, None, None
         if sim is not None:
             sim.close()
@@ -333,13 +418,41 @@ class LiberoEnv:
         return self._observe(raw)
 
     def _observe(self, raw: Mapping[str, np.ndarray]) -> EnvObservation:
-        images = {}
-        for cam in self.cameras:
-            img = raw[CAMERAS[cam][1]]
-            images[cam] = np.ascontiguousarray(
-                img[::-1, ::-1] if self.protocol.flip_images else img
-            )
+        images: Mapping[str, np.ndarray]
+        if self.lazy_render and self.cameras:
+            frame = self._snapshots.latest
+            assert frame is not None, "robosuite sampled no observable"
+            images = LazyImages(self.cameras, functools.partial(self._render, frame))
+        else:
+            images = {cam: self._finish(raw[CAMERAS[cam][1]]) for cam in self.cameras}
         return EnvObservation(images=images, state=state_vector(raw))
+
+    def _finish(self, img: np.ndarray) -> np.ndarray:
+        """An image as robosuite's camera observable gives it -> as observations carry it."""
+        return np.ascontiguousarray(img[::-1, ::-1] if self.protocol.flip_images else img)
+
+    def _render(self, frame: _Frame, cam: str) -> np.ndarray:
+        """``cam`` of ``frame`` as robosuite's camera sensor (``robot_env._create_camera_sensors``)
+        renders it, then ``_finish``: the same ``sim.render`` call on the same context, with
+        ``MjData`` swapped for the frame's copy, the only thing the render reads from it."""
+        if self._sim is None or frame.sim is not self._sim.env.sim:
+            raise RuntimeError(
+                f"camera {cam!r}: this observation is from before the last reset() or close(), "
+                "and its images were not read in time: its simulator is gone"
+            )
+        from robosuite import macros
+        from robosuite.utils.mjcf_utils import IMAGE_CONVENTION_MAPPING
+
+        size = self.protocol.image_size
+        ctx = frame.sim._render_context_offscreen
+        ctx.gl_ctx.make_current()  # another env in this process may have made its own current
+        live = ctx.data
+        ctx.data = types.SimpleNamespace(_data=frame.data)
+        try:
+            img = frame.sim.render(camera_name=CAMERAS[cam][0], width=size, height=size)
+        finally:
+            ctx.data = live
+        return self._finish(img[:: IMAGE_CONVENTION_MAPPING[macros.IMAGE_CONVENTION]])
 
     # -- status ---------------------------------------------------------------------------
 

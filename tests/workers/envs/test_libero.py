@@ -1,8 +1,10 @@
-"""LIBERO env: task tables without a simulator, the openpi / OFT protocol, the Env contract.
+"""LIBERO env: task tables without a simulator, the openpi / OFT protocol, the Env contract,
+lazy rendering.
 
-Simulators are slow to build here (5-20 s each, ~0.1-0.3 s per rendered step on OSMesa), so one
-module-scoped env at 64 px serves every simulator test, and one more (``flip_images=False``)
-gives the raw pictures to compare with.
+Simulators are slow to build here (5-20 s each, ~0.1 s per camera render on OSMesa), so one
+module-scoped env at 64 px (lazy rendering, the default) serves every simulator test, and one
+more (``eager_env``: robosuite's camera observables, ``flip_images=False``) gives the reference
+pictures to compare with.
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ def _assert_obs_shapes(env: LiberoEnv, obs) -> None:
 def env():
     """One env for all simulator tests; counts the simulators it builds."""
     e = LiberoEnv(image_size=SIZE)
+    assert e.lazy_render  # the default
     built: list = []
     make = e._make_sim
 
@@ -63,6 +66,37 @@ def env():
     e.built = built
     yield e
     e.close()
+
+
+@pytest.fixture(scope="module")
+def eager_env():
+    """The reference: robosuite renders every camera on every step (the pre-lazy path), and the
+    pictures are left as robosuite gives them."""
+    e = LiberoEnv(
+        suites=["libero_spatial"],
+        image_size=SIZE,
+        flip_images=False,
+        max_steps={"libero_spatial": 3},
+        lazy_render=False,
+    )
+    yield e
+    e.close()
+
+
+@pytest.fixture
+def gl_renders(monkeypatch) -> list[int]:
+    """Counts MuJoCo renders (``mjr_render``, what every robosuite camera render calls)."""
+    import mujoco
+
+    calls: list[int] = []
+    real = mujoco.mjr_render
+
+    def counting(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(mujoco, "mjr_render", counting)
+    return calls
 
 
 # -- no simulator ------------------------------------------------------------------------------
@@ -184,31 +218,58 @@ def test_check_env_passes_and_one_simulator_serves_all_episodes(env) -> None:
 
 @pytest.mark.slow
 @pytest.mark.sim
-def test_images_are_flipped_180_degrees(env) -> None:
-    raw_env = LiberoEnv(
-        suites=["libero_spatial"],
-        image_size=SIZE,
-        flip_images=False,
-        max_steps={"libero_spatial": 3},
+def test_lazy_images_equal_the_eager_ones_flipped_180_degrees(env, eager_env) -> None:
+    """Same task, episode, seed and actions: the lazy env's images are robosuite's own camera
+    observations (pixel for pixel), flipped on both axes (the eager path with
+    ``flip_images=True`` applies the same ``[::-1, ::-1]``, ``LiberoEnv._finish``)."""
+    actions = np.array(
+        [[0.5, 0.3, 0, 0, 0, 0, -1], [0.2, -0.4, 0.3, 0, 0, 0.2, 1], [-0.3, 0, -0.2, 0, 0.1, 0, 1]],
+        dtype=np.float32,
     )
-    try:
-        raw = raw_env.reset("libero_spatial/0", 0, 0)
-        flipped = env.reset("libero_spatial/0", 0, 0)
-        np.testing.assert_array_equal(flipped.state, raw.state)
+    # the eager episode first, whole: robosuite renders inside its steps with the current GL
+    # context (its own since its reset); the lazy env makes its own current when it renders
+    raw = [eager_env.reset("libero_spatial/0", 2, seed=5)]
+    raw += [eager_env.step(a) for a in actions]
+    lazy = [env.reset("libero_spatial/0", 2, seed=5)]  # after six episodes of check_env
+    lazy += [env.step(a) for a in actions]
+    for i, (r, f) in enumerate(zip(raw, lazy, strict=True)):
+        np.testing.assert_array_equal(f.state, r.state)
         for cam in ("agentview", "wrist"):
-            assert np.array_equal(flipped.images[cam], raw.images[cam][::-1, ::-1])
-            assert not np.array_equal(flipped.images[cam], raw.images[cam])
-            assert not np.array_equal(flipped.images[cam], raw.images[cam][::-1])  # both axes
-        # the same env shows max_steps is a param and ends the episode
-        assert raw_env.task.max_steps == 3
-        for _ in range(3):
-            raw_env.step(np.zeros(7))
-        assert raw_env.done and not raw_env.success and raw_env.steps == 3
-        with pytest.raises(RuntimeError, match="after the episode is done"):
-            raw_env.step(np.zeros(7))
-    finally:
-        raw_env.close()
-    assert raw_env._sim is None
+            assert np.array_equal(f.images[cam], r.images[cam][::-1, ::-1]), (i, cam)
+            assert not np.array_equal(f.images[cam], r.images[cam])
+            assert not np.array_equal(f.images[cam], r.images[cam][::-1])  # both axes
+    assert not np.array_equal(lazy[0].images["wrist"], lazy[-1].images["wrist"])  # it moved
+    # the eager env shows max_steps is a param and ends the episode
+    assert eager_env.task.max_steps == 3
+    assert eager_env.done and not eager_env.success and eager_env.steps == 3
+    with pytest.raises(RuntimeError, match="after the episode is done"):
+        eager_env.step(np.zeros(7))
+
+
+@pytest.mark.slow
+@pytest.mark.sim
+def test_lazy_env_renders_only_the_images_read(env, gl_renders) -> None:
+    env.reset("libero_spatial/0", 4, seed=0)
+    first = env.step(np.array([0.5, 0, 0, 0, 0, 0, -1], dtype=np.float32))
+    assert env._sim.env.timestep == 11  # ten no-ops and one step ran...
+    assert gl_renders == []  # ...and hard reset, init state, no-ops and step rendered nothing
+    for _ in range(7):  # an open-loop chunk: nobody reads these images
+        obs = env.step(np.array([0, 0.5, 0, 0, 0, 0, -1], dtype=np.float32))
+    assert gl_renders == []
+    wrist = obs.images["wrist"]  # the inference step reads them
+    assert len(gl_renders) == 1 and obs.images.rendered == ("wrist",)
+    assert obs.images["wrist"] is wrist and len(gl_renders) == 1  # cached
+    agentview = obs.images["agentview"]
+    assert len(gl_renders) == 2
+    for img in (wrist, agentview):
+        assert img.shape == (SIZE, SIZE, 3) and img.dtype == np.uint8 and img.std() > 0
+    # an earlier observation of the episode still shows its own moment
+    assert not np.array_equal(first.images["wrist"], wrist)
+    assert len(gl_renders) == 3
+    env.reset("libero_spatial/0", 4, seed=0)  # a hard reset: a new simulator
+    with pytest.raises(RuntimeError, match="before the last reset"):
+        _ = first.images["agentview"]
+    assert len(gl_renders) == 3
 
 
 @pytest.mark.slow
