@@ -127,9 +127,13 @@ def plan_run(cfg: RunConfig, run_dir: str | Path) -> RunPlan:
     later = {c.cell_id for c in cfg.cells() if c.calibrated_tau}
     deferred = [s for s in specs if s.cell_id in later]
     specs = [s for s in specs if s.cell_id not in later]
+    backbone_params = dict(cfg.backbone.params)
+    if isinstance(backbone_params.get("path"), str) and Path(backbone_params["path"]).exists():
+        # actors may run in another working directory (or on another node with the same layout)
+        backbone_params["path"] = str(Path(backbone_params["path"]).resolve())
     worker_spec = WorkerSpec(
         cfg.backbone.kind,
-        cfg.backbone.params,
+        backbone_params,
         cfg.env.suite,
         cfg.env.params,
         cfg.backbone.replan_steps,

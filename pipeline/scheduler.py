@@ -234,13 +234,27 @@ class Scheduler:
         t0 = time.monotonic()
         for _ in range(min(self.ex.workers, len(self.pending))):
             start()
-        try:
-            self.summary.workers = ray.get([a.ping.remote() for a in actors.values()], timeout=600)
-        except GetTimeoutError:
-            raise RuntimeError(
-                "actors did not start within 600 s: the cluster lacks the resources asked for "
-                f"({self.ex.cpus_per_worker} CPU, {self.ex.gpus_per_worker} GPU per worker)"
-            ) from None
+        self.summary.workers = []
+        for aid in list(actors):
+            for attempt in range(1, self.ex.max_attempts + 1):
+                try:
+                    self.summary.workers.append(ray.get(actors[aid].ping.remote(), timeout=600))
+                    break
+                except GetTimeoutError:
+                    raise RuntimeError(
+                        "actors did not start within 600 s: the cluster lacks the resources asked "
+                        f"for ({self.ex.cpus_per_worker} CPU, {self.ex.gpus_per_worker} GPU per worker)"
+                    ) from None
+                except (RayActorError, WorkerCrashedError) as exc:
+                    # an actor that dies while loading (OOM, a crashing simulator) is replaced
+                    if attempt == self.ex.max_attempts:
+                        raise RuntimeError(f"actors keep dying while starting: {exc}") from None
+                    log.warning(
+                        "actor %d died while starting, replacing it: %s", aid, type(exc).__name__
+                    )
+                    actors.pop(aid)
+                    aid = start()
+                    self.summary.actors_replaced += 1
         self.summary.startup_seconds = time.monotonic() - t0
         # One episode per actor at a time: when an actor dies, the episode it was running is
         # the only one charged an attempt (queued calls would die with it, innocent). Episodes

@@ -64,9 +64,11 @@ def test_ray_kill_mid_run_loses_and_duplicates_nothing(tmp_path, ray_local) -> N
     killed: list[int] = []
 
     def killer() -> None:
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + 300
         while time.monotonic() < deadline and sched.summary.stored < 2:
             time.sleep(0.05)
+        if sched.summary.stored < 2:
+            return  # the run never got going: the assertion below says so
         aid, actor = next(iter(sched.actors.items()))
         ray_local.kill(actor, no_restart=True)
         killed.append(aid)

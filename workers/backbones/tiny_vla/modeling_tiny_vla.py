@@ -42,7 +42,7 @@ class CameraEncoder(nn.Module):
 
     def __init__(self, channels: tuple[int, ...], text_dim: int) -> None:
         super().__init__()
-        layers, c_in = [], 3
+        layers, c_in = [], 5  # RGB + two coordinate channels (CoordConv): positions are the task
         for i, c in enumerate(channels):
             layers.append(
                 nn.Conv2d(c_in, c, 5 if i == 0 else 3, stride=2, padding=2 if i == 0 else 1)
@@ -54,7 +54,18 @@ class CameraEncoder(nn.Module):
         self.out_dim = 2 * channels[-1]
 
     def forward(self, img: Tensor, text: Tensor) -> Tensor:
-        x = img * 2 - 1
+        b, _, h, w = img.shape
+        ys = (
+            torch.linspace(-1, 1, h, device=img.device, dtype=img.dtype)
+            .view(1, 1, h, 1)
+            .expand(b, 1, h, w)
+        )
+        xs = (
+            torch.linspace(-1, 1, w, device=img.device, dtype=img.dtype)
+            .view(1, 1, 1, w)
+            .expand(b, 1, h, w)
+        )
+        x = torch.cat([img * 2 - 1, xs, ys], dim=1)
         for conv in self.convs[:-1]:
             x = F.relu(conv(x))
         x = self.convs[-1](x)

@@ -61,16 +61,22 @@ def load_demos(roots: list[Path], chunk: int) -> DemoTensors:
     for root in roots:
         files = sorted((root / "data").glob("chunk-*/*.parquet"))
         if not files:
-            raise FileNotFoundError(f"{root} holds no LeRobotDataset data files (data/chunk-*/*.parquet)")
+            raise FileNotFoundError(
+                f"{root} holds no LeRobotDataset data files (data/chunk-*/*.parquet)"
+            )
         table = pq.read_table(files)
         task_names = pd.read_parquet(root / "meta" / "tasks.parquet")
         by_index = {int(i): str(name) for name, i in task_names["task_index"].items()}
         for k in [c for c in table.column_names if c.startswith(IMAGE_PREFIX)]:
-            images.setdefault(k, []).extend(_decode(v["bytes"]) for v in table.column(k).to_pylist())
+            images.setdefault(k, []).extend(
+                _decode(v["bytes"]) for v in table.column(k).to_pylist()
+            )
         state.append(np.asarray(table.column("observation.state").to_pylist(), dtype=np.float32))
         action.append(np.asarray(table.column("action").to_pylist(), dtype=np.float32))
         tasks.extend(by_index[int(t)] for t in table.column("task_index").to_pylist())
-        episode.append(np.asarray(table.column("episode_index").to_pylist(), dtype=np.int64) + offset)
+        episode.append(
+            np.asarray(table.column("episode_index").to_pylist(), dtype=np.int64) + offset
+        )
         offset = int(episode[-1].max()) + 1
     ep = np.concatenate(episode)
     n = len(ep)
@@ -118,7 +124,7 @@ def train(
     chunk: int = 8,
     seed: int = 0,
     lr: float = 1e-3,
-    shift: int = 4,
+    shift: int = 0,
     log_every: int = 100,
 ) -> dict:
     from lerobot.configs.types import FeatureType, PolicyFeature
@@ -171,10 +177,17 @@ def train(
     state_n = (demos.state - s_mean) / s_std
     action_n = (demos.action - a_mean) / a_std
     tasks = np.array(demos.tasks, dtype=object)
+    # balance task families (the organize chain has ~5x the frames of a pick): each family gets
+    # an equal share of every batch
+    family = np.array([t.split(" ")[0] for t in demos.tasks])
+    weights = np.zeros(n)
+    for f in np.unique(family):
+        weights[family == f] = 1.0 / (family == f).sum()
+    weights = torch.from_numpy(weights / weights.sum())
     losses = []
     t1 = time.perf_counter()
     for step in range(1, steps + 1):
-        idx = torch.randint(0, n, (batch_size,), generator=gen)
+        idx = torch.multinomial(weights, batch_size, replacement=True, generator=gen)
         batch = {
             k: random_shift(v[idx].float() / 255.0, shift, gen) for k, v in demos.images.items()
         }
@@ -228,8 +241,20 @@ def main() -> None:
     ap.add_argument("--chunk", type=int, default=8)
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--shift",
+        type=int,
+        default=0,
+        help="random-shift augmentation in pixels (0: off;"
+        " the agent view is a fixed camera, so absolute image positions locate the cubes)",
+    )
+    ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     args = ap.parse_args()
-    meta = train(args.data, args.out, args.steps, args.batch_size, args.chunk, args.seed, args.lr)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    meta = train(
+        args.data, args.out, args.steps, args.batch_size, args.chunk, args.seed, args.lr, args.shift
+    )
     print(json.dumps(meta, indent=2))
 
 
