@@ -129,6 +129,19 @@ def main() -> None:
     }
     fake = FakeMarkerBackbone(chunk_len=4, noise_std=0.1)
     results["backbones"]["fake_marker"] = measure(fake, _obs(32, 2), args.rounds)
+    tiny = Path(__file__).resolve().parents[1] / "checkpoints" / "tiny_vla"
+    if tiny.is_dir():
+        from workers.backbones.lerobot import LerobotBackbone
+
+        bb = LerobotBackbone(
+            str(tiny)
+        )  # the real adapter: processors, state do() after the normalizer
+        obs = Observation(
+            images={c: torch.rand(1, 3, 96, 96) for c in bb.cameras},
+            state=torch.rand(1, 8),
+            instruction=["pick up the red cube"],
+        )
+        results["backbones"]["tiny_vla_lerobot_adapter"] = measure(bb, obs, args.rounds)
     if not args.skip_act:
         act = ACTBenchBackbone()
         r = measure(act, _obs(96, 8), args.rounds)

@@ -9,7 +9,7 @@ fast; images get a random shift of a few pixels as augmentation.
 Reproduce the shipped checkpoint (see README):
 
     python -m workers.backbones.tiny_vla.train --data data/tabletop_demos_po data/tabletop_demos_org \
-        --out checkpoints/tiny_vla --steps 3000 --seed 0
+        --out checkpoints/tiny_vla --steps 4000 --batch-size 64 --seed 0
 """
 
 from __future__ import annotations
@@ -125,6 +125,7 @@ def train(
     seed: int = 0,
     lr: float = 1e-3,
     shift: int = 0,
+    state_dropout: float = 0.0,
     log_every: int = 100,
 ) -> dict:
     from lerobot.configs.types import FeatureType, PolicyFeature
@@ -191,7 +192,13 @@ def train(
         batch = {
             k: random_shift(v[idx].float() / 255.0, shift, gen) for k, v in demos.images.items()
         }
-        batch["observation.state"] = state_n[idx]
+        state = state_n[idx]
+        if state_dropout:
+            # zero (= the dataset mean) the state of some samples, so that the policy must find
+            # the cubes in the images instead of replaying a state-indexed average trajectory
+            keep = torch.rand(batch_size, 1, generator=gen) >= state_dropout
+            state = state * keep
+        batch["observation.state"] = state
         batch["action"] = action_n[demos.chunk_index[idx]]
         batch["action_is_pad"] = demos.chunk_pad[idx]
         batch["task"] = list(tasks[idx.numpy()])
@@ -223,6 +230,7 @@ def train(
         "lr": lr,
         "seed": seed,
         "shift": shift,
+        "state_dropout": state_dropout,
         "final_loss": float(np.mean(losses[-100:])),
         "params": sum(p.numel() for p in policy.parameters()),
         "load_seconds": load_s,
@@ -247,6 +255,12 @@ def main() -> None:
         default=0,
         help="random-shift augmentation in pixels (0: off;"
         " the agent view is a fixed camera, so absolute image positions locate the cubes)",
+    )
+    ap.add_argument(
+        "--state-dropout",
+        type=float,
+        default=0.0,
+        help="share of samples trained with the state zeroed",
     )
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     args = ap.parse_args()

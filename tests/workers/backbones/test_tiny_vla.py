@@ -1,0 +1,66 @@
+"""The tiny VLA: a lerobot policy type of our own, trained by a script, loaded by the adapter."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from workers.backbones.tiny_vla.modeling_tiny_vla import tokenize
+
+ROOT = Path(__file__).resolve().parents[3]
+SHIPPED = ROOT / "checkpoints" / "tiny_vla"
+
+
+def test_tokenize_keeps_order_and_marks_unknown_words() -> None:
+    ids = tokenize(
+        ["Put the red, blue cubes", "the zebra"], ["blue", "cubes", "put", "red", "the"], 6
+    )
+    assert ids.tolist() == [[4, 6, 5, 2, 3, 0], [6, 1, 0, 0, 0, 0]]
+
+
+def test_shipped_checkpoint_is_small_safetensors_and_loads_through_the_adapter() -> None:
+    from workers.backbones.base import Observation
+    from workers.backbones.lerobot import LerobotBackbone
+
+    files = {p.name for p in SHIPPED.iterdir()}
+    assert {
+        "config.json",
+        "model.safetensors",
+        "policy_preprocessor.json",
+        "policy_postprocessor.json",
+    } <= files
+    assert sum(p.stat().st_size for p in SHIPPED.rglob("*") if p.is_file()) < 20 * 2**20
+    assert json.loads((SHIPPED / "config.json").read_text())["type"] == "tiny_vla"
+    meta = json.loads((SHIPPED / "train_meta.json").read_text())
+    assert meta["command"].startswith("python -m workers.backbones.tiny_vla.train")
+    bb = LerobotBackbone(str(SHIPPED))
+    assert bb.cameras == ("agentview", "wrist") and bb.state_dim == 8 and bb.action_dim == 7
+    g = torch.Generator().manual_seed(0)
+    images = {c: torch.rand(1, 3, 96, 96, generator=g).expand(2, -1, -1, -1) for c in bb.cameras}
+    obs = Observation(
+        images, torch.zeros(2, 8) + 0.5, ["pick up the red cube", "pick up the blue cube"]
+    )
+    chunk = bb.predict_chunk(obs)
+    assert chunk.shape == (2, 8, 7) and torch.isfinite(chunk).all()
+    # the instruction matters: same image and state, another color, another action
+    assert (chunk[0] - chunk[1]).abs().max() > 1e-3
+
+
+@pytest.mark.slow
+@pytest.mark.sim
+def test_train_script_produces_a_loadable_checkpoint(tmp_path) -> None:
+    from workers.backbones.lerobot import LerobotBackbone
+    from workers.backbones.tiny_vla.train import train
+    from workers.envs.tabletop_demos import record
+
+    record(tmp_path / "demos", ["pick_color"], episodes=1, image_size=32, first_episode=9)
+    meta = train([tmp_path / "demos"], tmp_path / "ckpt", steps=30, batch_size=16, log_every=10)
+    assert meta["frames"] > 20 and meta["episodes"] == 1 and meta["steps"] == 30
+    bb = LerobotBackbone(str(tmp_path / "ckpt"))
+    assert bb.chunk_len == 8 and bb.image_shapes == {
+        "observation.images.agentview": (3, 32, 32),
+        "observation.images.wrist": (3, 32, 32),
+    }
