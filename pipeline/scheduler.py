@@ -135,26 +135,8 @@ class Scheduler:
             self.summary.retries += 1
             self.pending.append(spec.retry())
             return
-        row = {
-            "run_id": spec.run_id,
-            "cell_id": spec.cell_id,
-            "task_id": spec.task_id,
-            "episode_index": spec.episode_index,
-            "seed": spec.seed,
-            "mode": spec.idr.mode,
-            "guidance": spec.idr.guidance,
-            "strategy": spec.intervention.strategy,
-            "alpha": spec.idr.alpha,
-            "beta": spec.idr.beta,
-            "lam": spec.idr.lam,
-            "tau": spec.idr.tau,
-            "backbone": self.worker_spec.backbone_kind,
-            "suite": self.worker_spec.env_suite,
-            "success": False,
-            "attempt": spec.attempt,
-            "error": reason,
-            **spec.meta,
-        }
+        row = spec.row_head(self.worker_spec.backbone_kind, self.worker_spec.env_suite)
+        row["error"] = reason
         self._accept(spec, EpisodeResult(row, []))
 
     def flush(self) -> None:

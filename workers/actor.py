@@ -81,25 +81,12 @@ class EpisodeWorker:
 
     def _episode_row_head(self, spec: EpisodeSpec) -> dict[str, Any]:
         task = self.tasks.get(spec.task_id)
+        suite = task.suite if task and task.suite else self.spec.env_suite
         return {
-            "run_id": spec.run_id,
-            "cell_id": spec.cell_id,
-            "mode": spec.idr.mode,
-            "guidance": spec.idr.guidance,
-            "strategy": spec.intervention.strategy,
-            "alpha": spec.idr.alpha,
-            "beta": spec.idr.beta,
-            "lam": spec.idr.lam,
-            "tau": spec.idr.tau,
-            "backbone": self.spec.backbone_kind,
-            "suite": (task.suite if task and task.suite else self.spec.env_suite),
-            "task_id": spec.task_id,
+            **spec.row_head(self.spec.backbone_kind, suite),
             "task_name": task.name if task else None,
             "instruction": None,
-            "episode_index": spec.episode_index,
-            "seed": spec.seed,
             "init_state_id": None,
-            "success": False,
             "steps": 0,
             "success_step": None,
             "max_steps": task.max_steps if task else None,
@@ -111,11 +98,9 @@ class EpisodeWorker:
             "e_img_mean": None,
             "e_prop_mean": None,
             "r_img_mean": None,
-            "attempt": spec.attempt,
             "worker": self.worker_id,
             "render_backend": self.render_backend,
             "crn": None,
-            **spec.meta,
         }
 
     def _rollout(self, spec: EpisodeSpec) -> tuple[list[dict[str, Any]], dict[str, Any]]:

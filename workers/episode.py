@@ -44,6 +44,28 @@ class EpisodeSpec:
     def key(self) -> tuple[str, str, int]:
         return (self.cell_id, self.task_id, self.episode_index)
 
+    def row_head(self, backbone: str, suite: str) -> dict[str, Any]:
+        """The episode-row columns this spec determines (the actor adds the outcome)."""
+        return {
+            "run_id": self.run_id,
+            "cell_id": self.cell_id,
+            "mode": self.idr.mode,
+            "guidance": self.idr.guidance,
+            "strategy": self.intervention.strategy,
+            "alpha": self.idr.alpha,
+            "beta": self.idr.beta,
+            "lam": self.idr.lam,
+            "tau": self.idr.tau,
+            "backbone": backbone,
+            "suite": suite,
+            "task_id": self.task_id,
+            "episode_index": self.episode_index,
+            "seed": self.seed,
+            "success": False,
+            "attempt": self.attempt,
+            **self.meta,
+        }
+
     def retry(self) -> EpisodeSpec:
         return EpisodeSpec(
             self.run_id,

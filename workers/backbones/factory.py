@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import difflib
-import importlib
-import inspect
 from typing import Any
 
 from workers.backbones.base import Backbone
+from workers.registry import check_params_bind, load_class
 
 BACKBONES: dict[str, str] = {
     "fake_marker": "workers.backbones.fakes:FakeMarkerBackbone",
@@ -18,17 +16,8 @@ BACKBONES: dict[str, str] = {
 }
 
 
-def check_backbone_kind(kind: str) -> None:
-    if kind not in BACKBONES:
-        close = difflib.get_close_matches(kind, list(BACKBONES), n=1)
-        hint = f"did you mean {close[0]!r}?" if close else f"known: {sorted(BACKBONES)}"
-        raise ValueError(f"backbone.kind={kind!r} is unknown; {hint}")
-
-
 def _cls(kind: str) -> Any:
-    check_backbone_kind(kind)
-    module, cls = BACKBONES[kind].split(":")
-    return getattr(importlib.import_module(module), cls)
+    return load_class(BACKBONES, kind, "backbone.kind")
 
 
 def check_backbone(kind: str, params: dict[str, Any]) -> None:
@@ -40,15 +29,6 @@ def check_backbone(kind: str, params: dict[str, Any]) -> None:
     check_params_bind(f"backbone.params (backbone {kind!r})", cls, params)
     if hasattr(cls, "check_params"):
         cls.check_params(params)
-
-
-def check_params_bind(where: str, cls: Any, params: dict[str, Any]) -> None:
-    sig = inspect.signature(cls)
-    try:
-        sig.bind(**params)
-    except TypeError as e:
-        accepted = [n for n in sig.parameters if n != "self"]
-        raise ValueError(f"{where}: {e}; accepted parameters: {accepted}") from None
 
 
 def make_backbone(kind: str, params: dict[str, Any]) -> Backbone:

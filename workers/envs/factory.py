@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import difflib
-import importlib
 from typing import Any
 
 from workers.envs.base import Env, TaskSpec
+from workers.registry import check_params_bind, load_class
 
 ENVS: dict[str, str] = {
     "fake_marker": "workers.envs.fakes:FakeMarkerEnv",
@@ -16,17 +15,10 @@ ENVS: dict[str, str] = {
 
 
 def _cls(suite: str) -> Any:
-    if suite not in ENVS:
-        close = difflib.get_close_matches(suite, list(ENVS), n=1)
-        hint = f"did you mean {close[0]!r}?" if close else f"known: {sorted(ENVS)}"
-        raise ValueError(f"env.suite={suite!r} is unknown; {hint}")
-    module, name = ENVS[suite].split(":")
-    return getattr(importlib.import_module(module), name)
+    return load_class(ENVS, suite, "env.suite")
 
 
 def check_suite(suite: str, params: dict[str, Any] | None = None) -> None:
-    from workers.backbones.factory import check_params_bind
-
     cls = _cls(suite)
     if params is not None:
         check_params_bind(f"env.params (suite {suite!r})", cls, params)

@@ -1,0 +1,32 @@
+"""Classes by name from a registry of "module:Class" strings, imported only when chosen.
+
+Heavy modules (simulators, model code) are imported when their entry is picked, not when the
+registry is read (lerobot's factory does the same); a wrong name gets a did-you-mean error
+naming the config field.
+"""
+
+from __future__ import annotations
+
+import difflib
+import importlib
+import inspect
+from typing import Any
+
+
+def load_class(registry: dict[str, str], name: str, field: str) -> Any:
+    if name not in registry:
+        close = difflib.get_close_matches(name, list(registry), n=1)
+        hint = f"did you mean {close[0]!r}?" if close else f"known: {sorted(registry)}"
+        raise ValueError(f"{field}={name!r} is unknown; {hint}")
+    module, cls = registry[name].split(":")
+    return getattr(importlib.import_module(module), cls)
+
+
+def check_params_bind(where: str, cls: Any, params: dict[str, Any]) -> None:
+    """Refuse params the class's constructor does not take, naming the ones it does."""
+    sig = inspect.signature(cls)
+    try:
+        sig.bind(**params)
+    except TypeError as e:
+        accepted = [n for n in sig.parameters if n != "self"]
+        raise ValueError(f"{where}: {e}; accepted parameters: {accepted}") from None
