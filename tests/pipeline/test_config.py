@@ -15,7 +15,9 @@ def _base() -> dict:
     return {"backbone": {"kind": "fake_marker"}, "env": {"suite": "fake_marker"}}
 
 
-@pytest.mark.parametrize("name", ["smoke.yaml", "default.yaml", "experts.yaml", "tiny_vla.yaml", "libero_smoke.yaml"])
+@pytest.mark.parametrize(
+    "name", ["smoke.yaml", "default.yaml", "experts.yaml", "tiny_vla.yaml", "libero_smoke.yaml"]
+)
 def test_presets_validate(name) -> None:
     cfg = load_config(CONF / name)
     assert cfg.cells()
