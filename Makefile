@@ -24,6 +24,8 @@ lint: setup
 bench: setup
 	$(VENV)/bin/python benchmarks/bench_idr_passes.py
 	$(VENV)/bin/python benchmarks/bench_engine.py
+	$(VENV)/bin/python benchmarks/bench_tabletop_env.py
+	$(VENV)/bin/python benchmarks/bench_libero_env.py
 
 clean:
 	rm -rf runs .pytest_cache

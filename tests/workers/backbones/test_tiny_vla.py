@@ -38,6 +38,7 @@ def test_shipped_checkpoint_is_small_safetensors_and_loads_through_the_adapter()
     assert meta["command"].startswith("python -m workers.backbones.tiny_vla.train")
     bb = LerobotBackbone(str(SHIPPED))
     assert bb.cameras == ("agentview", "wrist") and bb.state_dim == 8 and bb.action_dim == 7
+    assert bb.crn_mode == "deterministic" and bb.can_batch  # one 3B forward for IDR
     g = torch.Generator().manual_seed(0)
     images = {c: torch.rand(1, 3, 96, 96, generator=g).expand(2, -1, -1, -1) for c in bb.cameras}
     obs = Observation(

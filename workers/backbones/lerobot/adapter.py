@@ -37,7 +37,7 @@ from workers.interventions import intervene
 STATE_KEY = "observation.state"
 IMAGE_PREFIX = "observation.images."
 PICKLE_WEIGHTS = ("pytorch_model.bin", "model.bin", "model.pt", "model.pth", "model.ckpt")
-DETERMINISTIC_TYPES = frozenset({"act", "vqbet", "tdmpc"})
+DETERMINISTIC_TYPES = frozenset({"act", "vqbet", "tdmpc", "tiny_vla"})  # no sampling at inference
 
 
 def _is_local(path: str) -> bool:
