@@ -99,3 +99,22 @@ def test_non_run_dir_is_refused(tmp_path) -> None:
     (tmp_path / "run" / "notes.txt").write_text("mine")
     with pytest.raises(ConfigError, match="not an idr-eval run dir"):
         plan_run(load_config(CONF / "smoke.yaml"), tmp_path / "run")
+
+
+@pytest.mark.parametrize("preset", ["experts.yaml", "tiny_vla.yaml", "libero_smoke.yaml"])
+def test_preflight_does_not_import_a_simulator(preset, tmp_path) -> None:
+    """The driver checks configs before any actor starts; importing MuJoCo there would fix the
+    GL backend before a worker chooses it (in inline mode the worker is the driver)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; from pipeline.config import load_config; from pipeline.runner import plan_run;"
+        f"plan_run(load_config({str(CONF / preset)!r}), {str(tmp_path / 'run')!r});"
+        "print(sorted(m for m in ('mujoco', 'robosuite', 'OpenGL') if m in sys.modules))"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=CONF.parent
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip().splitlines()[-1] == "[]"

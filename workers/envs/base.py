@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -34,17 +34,26 @@ class LazyImages(Mapping[str, np.ndarray]):
     """Camera images rendered on first access, per camera, then cached.
 
     An env returns these so that steps executed open-loop from an action chunk (nobody reads
-    the images) and cameras a backbone does not use cost no rendering."""
+    the images) and cameras a backbone does not use cost no rendering. An env that renders the
+    live simulator passes ``is_current``: once it has stepped on, an image not yet rendered
+    cannot show this observation's moment any more, and reading it raises instead."""
 
-    def __init__(self, cameras: tuple[str, ...], render_one: Callable[[str], np.ndarray]) -> None:
+    def __init__(
+        self,
+        cameras: tuple[str, ...],
+        render_one: Callable[[str], np.ndarray],
+        is_current: Callable[[], bool] | None = None,
+    ) -> None:
         self._cameras = tuple(cameras)
         self._render_one = render_one
+        self._is_current = is_current
         self._images: dict[str, np.ndarray] = {}
 
     def __getitem__(self, key: str) -> np.ndarray:
         if key not in self._cameras:
             raise KeyError(key)
         if key not in self._images:
+            _require_current(self._is_current, f"image {key!r}")
             self._images[key] = self._render_one(key)
         return self._images[key]
 
@@ -59,11 +68,49 @@ class LazyImages(Mapping[str, np.ndarray]):
         return tuple(self._images)
 
 
+def _require_current(is_current: Callable[[], bool] | None, what: str) -> None:
+    if is_current is not None and not is_current():
+        raise RuntimeError(
+            f"{what} of an observation the env has stepped past: read it before stepping"
+        )
+
+
+class LazyState(Mapping[str, Any]):
+    """A dict computed on first access (the privileged simulator state only experts read),
+    with the same staleness rule as LazyImages."""
+
+    def __init__(
+        self, compute: Callable[[], dict[str, Any]], is_current: Callable[[], bool] | None = None
+    ) -> None:
+        self._compute = compute
+        self._is_current = is_current
+        self._data: dict[str, Any] | None = None
+
+    def _get(self) -> dict[str, Any]:
+        if self._data is None:
+            _require_current(self._is_current, "privileged state")
+            self._data = self._compute()
+        return self._data
+
+    def __getitem__(self, key: str) -> Any:
+        return self._get()[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._get())
+
+    def __len__(self) -> int:
+        return len(self._get())
+
+    @property
+    def computed(self) -> bool:
+        return self._data is not None
+
+
 @dataclass
 class EnvObservation:
     images: Mapping[str, np.ndarray]  # camera name -> uint8 (H, W, 3), maybe LazyImages
     state: np.ndarray  # float32 (S,)
-    privileged: dict | None = None  # simulator state for scripted experts, never for policies
+    privileged: Mapping[str, Any] | None = None  # simulator state for scripted experts only
 
 
 @runtime_checkable

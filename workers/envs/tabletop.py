@@ -25,7 +25,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from workers.envs.base import EnvObservation, LazyImages, TaskSpec
+from workers.envs.base import EnvObservation, LazyImages, LazyState, TaskSpec
+from workers.envs.tabletop_layout import BIN_CENTER, BIN_INNER_HALF, CUBE_HALF, TABLE_TOP_Z
 
 SUITE = "tabletop"
 CAMERAS = {"agentview": "agentview", "wrist": "robot0_eye_in_hand"}
@@ -206,7 +207,6 @@ class TabletopEnv:
     def _update_progress(self, scene: Any) -> None:
         ep = self._ep
         pos = scene.cube_positions()
-        from workers.envs.tabletop_sim import BIN_CENTER, BIN_INNER_HALF, CUBE_HALF, TABLE_TOP_Z
 
         if ep.task_id == "pick_color":
             if pos[ep.targets[0], 2] - CUBE_HALF > TABLE_TOP_Z + LIFT_HEIGHT:
@@ -249,8 +249,16 @@ class TabletopEnv:
         state = np.concatenate(
             [o["robot0_eef_pos"], quat2axisangle(o["robot0_eef_quat"]), o["robot0_gripper_qpos"]]
         ).astype(np.float32)
-        images = LazyImages(self.cameras, self._renderers[self._ep.task_id].render_one)
-        return EnvObservation(images=images, state=state, privileged=self.privileged())
+        # rendering and the privileged state read the live simulator: valid until the next step
+        ep, steps = self._ep, self._ep.steps
+
+        def current() -> bool:
+            return self._ep is ep and ep.steps == steps
+
+        images = LazyImages(self.cameras, self._renderers[ep.task_id].render_one, current)
+        return EnvObservation(
+            images=images, state=state, privileged=LazyState(self.privileged, current)
+        )
 
     def privileged(self) -> dict[str, Any]:
         """Simulator state for the scripted experts (never for learned policies)."""

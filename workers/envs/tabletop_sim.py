@@ -18,18 +18,14 @@ from robosuite.models.objects import BoxObject
 from robosuite.models.tasks import ManipulationTask
 from robosuite.utils.mjcf_utils import array_to_string
 
-CUBE_HALF = 0.02
-TABLE_TOP_Z = 0.8
-COLORS: dict[str, tuple[float, float, float, float]] = {
-    "red": (0.9, 0.1, 0.1, 1.0),
-    "green": (0.1, 0.75, 0.1, 1.0),
-    "blue": (0.1, 0.3, 0.95, 1.0),
-    "yellow": (0.95, 0.85, 0.1, 1.0),
-    "purple": (0.6, 0.15, 0.8, 1.0),
-}
-BIN_CENTER = np.array([0.0, 0.24])  # xy on the table
-BIN_INNER_HALF = 0.095  # inner half width of the bin
-BIN_WALL = (0.005, 0.025)  # wall half thickness, half height
+from workers.envs.tabletop_layout import (
+    BIN_CENTER,
+    BIN_INNER_HALF,
+    BIN_WALL,
+    COLORS,
+    CUBE_HALF,
+    TABLE_TOP_Z,
+)
 
 
 class TabletopScene(SingleArmEnv):

@@ -110,6 +110,15 @@ def test_images_render_only_when_read(env) -> None:
     img = obs.images["wrist"]
     assert img.shape == (64, 64, 3) and img.dtype == np.uint8 and obs.images.rendered == ("wrist",)
     assert obs.state.shape == (8,)
+    assert not obs.privileged.computed  # only experts read it; nobody paid for it here
+    old = obs
+    obs = env.step(np.zeros(7))
+    assert old.images["wrist"] is img  # rendered before the step: still served
+    with pytest.raises(RuntimeError, match="stepped past"):
+        old.images["agentview"]  # would show the new moment: refused
+    with pytest.raises(RuntimeError, match="stepped past"):
+        old.privileged["cube_pos"]
+    assert obs.privileged["cube_pos"].shape == (3, 3) and obs.privileged.computed
 
 
 @pytest.mark.parametrize(
