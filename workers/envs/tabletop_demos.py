@@ -2,9 +2,19 @@
 
 Each frame holds both camera images (uint8 HWC at ``image_size``, the look the env renders),
 the 8-d state, the 7-d action the expert executed and the instruction as the frame's task.
-Only successful episodes are kept (the expert succeeds in nearly all of them); episode indices
-start at ``first_episode`` so demonstrations never share init states with evaluation episodes
-(which start at 0) when ``first_episode`` is large.
+Episode indices start at ``first_episode`` so demonstrations never share init states with
+evaluation episodes (which start at 0) when ``first_episode`` is large.
+
+Two ways to leave the expert's own state distribution, whose absence is why a cloned policy that
+drifts a centimetre off the demonstrations never recovers (the frame's label is always the
+expert's action at the state actually visited; the expert is a stateless feedback rule, so it
+can label any state):
+
+* ``noise`` (DART, Laskey et al. 2017): the executed action is the expert's plus Gaussian noise
+  on the translation dims; only successful episodes are kept.
+* ``policy`` (DAgger, Ross et al. 2011): a lerobot checkpoint drives the robot (chunks of
+  ``replan_steps``) while the expert labels every visited state; episodes are kept whatever
+  their outcome, since the labels are what matter.
 
     python -m workers.envs.tabletop_demos --root data/tabletop_demos --episodes 40 \
         --tasks pick_color stack_color organize --image-size 96
@@ -45,8 +55,12 @@ def record(
     seed: int = 0,
     first_episode: int = 100_000,
     repo_id: str = "local/tabletop_demos",
+    noise: float = 0.0,
+    policy: Path | None = None,
+    replan_steps: int = 4,
 ) -> dict[str, dict[str, float]]:
-    """Record ``episodes`` successful demonstrations per task; returns per-task statistics."""
+    """Record ``episodes`` demonstrations per task (successful ones unless ``policy`` drives);
+    returns per-task statistics."""
     from workers.rendering import configure_rendering
 
     configure_rendering()
@@ -54,6 +68,7 @@ def record(
 
     from workers.envs.tabletop import TabletopEnv
     from workers.envs.tabletop_experts import expert_action
+    from workers.observation import to_policy_observation
 
     if root.exists():
         shutil.rmtree(root)
@@ -66,6 +81,12 @@ def record(
         use_videos=False,
     )
     env = TabletopEnv(image_size=image_size, cameras=cameras)
+    driver = None
+    if policy is not None:
+        from workers.backbones.lerobot.adapter import LerobotBackbone
+
+        driver = LerobotBackbone(path=str(policy), device="cpu")
+    rng = np.random.default_rng([seed, first_episode])
     stats: dict[str, dict[str, float]] = {}
     try:
         for task in tasks:
@@ -73,7 +94,9 @@ def record(
             while kept < episodes:
                 obs = env.reset(task, first_episode + tried, seed)
                 tried += 1
-                buffer = []
+                buffer, queue = [], []
+                if driver is not None:
+                    driver.reset()
                 while not env.done:
                     action = expert_action(obs.privileged).astype(np.float32)
                     frame = {CAMERA_KEYS[c]: obs.images[c] for c in cameras}
@@ -81,8 +104,17 @@ def record(
                         {"observation.state": obs.state, "action": action, "task": env.instruction}
                     )
                     buffer.append(frame)
-                    obs = env.step(action)
-                if not env.success:
+                    executed = action.copy()
+                    if driver is not None:
+                        if not queue:
+                            batch = to_policy_observation(obs, env.instruction, driver.cameras)
+                            chunk = driver.predict_chunk(batch)[0, :replan_steps]
+                            queue = list(chunk.numpy().astype(np.float32))
+                        executed = queue.pop(0)
+                    if noise:
+                        executed[:3] = np.clip(executed[:3] + rng.normal(0, noise, 3), -1, 1)
+                    obs = env.step(executed)
+                if driver is None and not env.success:
                     continue
                 for frame in buffer:
                     ds.add_frame(frame)
@@ -115,6 +147,13 @@ def main() -> None:
     ap.add_argument("--image-size", type=int, default=96)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--first-episode", type=int, default=100_000)
+    ap.add_argument(
+        "--noise", type=float, default=0.0, help="DART: std of noise added to executed xyz"
+    )
+    ap.add_argument(
+        "--policy", type=Path, default=None, help="DAgger: checkpoint that drives (expert labels)"
+    )
+    ap.add_argument("--replan-steps", type=int, default=4)
     args = ap.parse_args()
     record(
         args.root,
@@ -123,6 +162,9 @@ def main() -> None:
         args.image_size,
         seed=args.seed,
         first_episode=args.first_episode,
+        noise=args.noise,
+        policy=args.policy,
+        replan_steps=args.replan_steps,
     )
 
 

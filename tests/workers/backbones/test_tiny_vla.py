@@ -53,15 +53,51 @@ def test_shipped_checkpoint_is_small_safetensors_and_loads_through_the_adapter()
 @pytest.mark.slow
 @pytest.mark.sim
 def test_train_script_produces_a_loadable_checkpoint(tmp_path) -> None:
+    from workers.backbones.base import Observation
     from workers.backbones.lerobot import LerobotBackbone
     from workers.backbones.tiny_vla.train import train
     from workers.envs.tabletop_demos import record
 
     record(tmp_path / "demos", ["pick_color"], episodes=1, image_size=32, first_episode=9)
-    meta = train([tmp_path / "demos"], tmp_path / "ckpt", steps=30, batch_size=16, log_every=10)
+    meta = train(
+        [tmp_path / "demos"],
+        tmp_path / "ckpt",
+        steps=30,
+        batch_size=16,
+        log_every=10,
+        state_noise=0.1,
+        ignored_state_dims=(3, 4, 5),
+    )
     assert meta["frames"] > 20 and meta["episodes"] == 1 and meta["steps"] == 30
+    assert meta["ignored_state_dims"] == [3, 4, 5] and meta["state_noise"] == 0.1
     bb = LerobotBackbone(str(tmp_path / "ckpt"))
     assert bb.chunk_len == 8 and bb.image_shapes == {
         "observation.images.agentview": (3, 32, 32),
         "observation.images.wrist": (3, 32, 32),
     }
+    # the ignored dims (end-effector orientation) cannot move the action; a position can
+    g = torch.Generator().manual_seed(1)
+    images = {c: torch.rand(1, 3, 32, 32, generator=g).expand(3, -1, -1, -1) for c in bb.cameras}
+    state = torch.tensor([[0.0, 0.0, 0.9, 3.13, 0.0, 0.2, 0.02, -0.02]]).repeat(3, 1)
+    state[1, 3:6] += torch.tensor([0.3, -0.2, 0.1])
+    state[2, 0] += 0.1
+    chunk = bb.predict_chunk(Observation(images, state, ["pick up the red cube"] * 3))
+    assert torch.equal(chunk[0], chunk[1])
+    assert (chunk[0] - chunk[2]).abs().max() > 1e-4
+
+
+def test_ignored_state_dims_outside_the_state_are_refused() -> None:
+    from lerobot.configs.types import FeatureType, PolicyFeature
+
+    from workers.backbones.tiny_vla.configuration_tiny_vla import TinyVLAConfig
+
+    cfg = TinyVLAConfig(
+        input_features={
+            "observation.images.agentview": PolicyFeature(FeatureType.VISUAL, (3, 32, 32)),
+            "observation.state": PolicyFeature(FeatureType.STATE, (8,)),
+        },
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
+        ignored_state_dims=[3, 8],
+    )
+    with pytest.raises(ValueError, match=r"ignored_state_dims \[8\] outside the state's 8 dims"):
+        cfg.validate_features()

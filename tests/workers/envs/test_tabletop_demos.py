@@ -23,3 +23,38 @@ def test_recorded_demos_load_as_lerobot_dataset(tmp_path) -> None:
     assert frame["task"].startswith("pick up the ") and frame["task"].endswith(" cube")
     last = ds[ds.num_frames - 1]
     assert last["action"][6] == 1.0  # the expert ends holding the lifted cube
+
+
+def test_dart_noise_and_dagger_driver_keep_expert_labels(tmp_path) -> None:
+    """DART: noisy execution, clean labels, only successes kept. DAgger: a (here untrained)
+    policy drives, every visited state is kept with the expert's label, success or not."""
+    import numpy as np
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from workers.backbones.tiny_vla.train import train
+    from workers.envs.tabletop_demos import record
+
+    record(tmp_path / "clean", ["pick_color"], episodes=1, image_size=32, first_episode=7)
+    noisy = record(
+        tmp_path / "dart", ["pick_color"], episodes=1, image_size=32, first_episode=7, noise=0.5
+    )
+    # same init state, noisy execution: another trajectory, still a success
+    assert noisy["pick_color"]["episodes"] == 1
+    a_clean = LeRobotDataset("local/tabletop_demos", root=tmp_path / "clean")
+    a_noisy = LeRobotDataset("local/tabletop_demos", root=tmp_path / "dart")
+    assert not np.allclose(a_clean[5]["observation.state"], a_noisy[5]["observation.state"])
+
+    train([tmp_path / "clean"], tmp_path / "ckpt", steps=5, batch_size=8, log_every=5)
+    stats = record(
+        tmp_path / "dagger",
+        ["pick_color"],
+        episodes=1,
+        image_size=32,
+        first_episode=11,
+        policy=tmp_path / "ckpt",
+    )
+    assert stats["pick_color"]["tried"] == 1  # kept although a 5-step policy cannot succeed
+    ds = LeRobotDataset("local/tabletop_demos", root=tmp_path / "dagger")
+    labels = np.stack([ds[i]["action"].numpy() for i in range(ds.num_frames)])
+    assert ds.num_frames == stats["pick_color"]["frames"] > 20
+    assert np.abs(labels[:, :3]).max() <= 1.0 and set(np.unique(labels[:, 6])) <= {-1.0, 1.0}

@@ -35,6 +35,10 @@ class TinyVLAConfig(PreTrainedConfig):
     text_dim: int = 64
     hidden_dim: int = 256
     dropout: float = 0.1
+    # state dims the net reads (None: all); the others are multiplied by 0 inside the model.
+    # The tabletop state's end-effector orientation (dims 3-5) only moves by a few milliradians
+    # with the commanded motion, which a net fed it learns to read as "the last action"
+    ignored_state_dims: list[int] = field(default_factory=list)
     optimizer_lr: float = 1e-3
     optimizer_weight_decay: float = 1e-4
 
@@ -63,5 +67,9 @@ class TinyVLAConfig(PreTrainedConfig):
             raise ValueError("tiny_vla needs observation.state")
         if self.action_feature is None or self.action_feature.type is not FeatureType.ACTION:
             raise ValueError("tiny_vla needs an action output feature")
+        n_state = self.robot_state_feature.shape[0]
+        bad = [d for d in self.ignored_state_dims if not 0 <= d < n_state]
+        if bad:
+            raise ValueError(f"ignored_state_dims {bad} outside the state's {n_state} dims")
         if self.n_action_steps > self.chunk_size:
             raise ValueError(f"n_action_steps={self.n_action_steps} > chunk_size={self.chunk_size}")

@@ -103,6 +103,9 @@ class TinyVLAPolicy(PreTrainedPolicy):
             nn.ReLU(),
             nn.Linear(config.hidden_dim, config.chunk_size * self.action_dim),
         )
+        state_mask = torch.ones(self.state_dim)
+        state_mask[list(config.ignored_state_dims)] = 0.0
+        self.register_buffer("state_mask", state_mask, persistent=False)
         self._queue: deque[Tensor] = deque(maxlen=config.n_action_steps)
 
     def get_optim_params(self) -> dict:
@@ -130,7 +133,7 @@ class TinyVLAPolicy(PreTrainedPolicy):
             texts = [texts] * state.shape[0]
         text = self.encode_text(list(texts), state.device)
         feats = [self.cameras[k.replace(".", "_")](batch[k], text) for k in self.image_keys]
-        out = self.head(torch.cat([*feats, state, text], dim=-1))
+        out = self.head(torch.cat([*feats, state * self.state_mask, text], dim=-1))
         return out.view(-1, self.config.chunk_size, self.action_dim)
 
     def forward(self, batch: dict) -> tuple[Tensor, dict]:

@@ -106,6 +106,8 @@ def vocabulary(tasks: list[str]) -> list[str]:
 
 def random_shift(x: torch.Tensor, pad: int, gen: torch.Generator) -> torch.Tensor:
     """Shift each image by up to ``pad`` pixels (replicate-padded crop), as in DrQ."""
+    if pad == 0:
+        return x
     b, _, h, w = x.shape
     padded = F.pad(x, (pad, pad, pad, pad), mode="replicate")
     dx = torch.randint(0, 2 * pad + 1, (b,), generator=gen)
@@ -126,6 +128,8 @@ def train(
     lr: float = 1e-3,
     shift: int = 0,
     state_dropout: float = 0.0,
+    state_noise: float = 0.0,
+    ignored_state_dims: tuple[int, ...] = (),
     log_every: int = 100,
 ) -> dict:
     from lerobot.configs.types import FeatureType, PolicyFeature
@@ -169,6 +173,7 @@ def train(
         vocab=vocabulary(demos.tasks),
         chunk_size=chunk,
         n_action_steps=chunk,
+        ignored_state_dims=list(ignored_state_dims),
         device="cpu",
     )
     policy = TinyVLAPolicy(cfg)
@@ -198,6 +203,12 @@ def train(
             # the cubes in the images instead of replaying a state-indexed average trajectory
             keep = torch.rand(batch_size, 1, generator=gen) >= state_dropout
             state = state * keep
+        if state_noise:
+            # Gaussian noise on the normalized state: the end-effector orientation varies by a
+            # few thousandths of a radian with the commanded motion, so a net fed the exact
+            # state learns to copy its previous action from that tilt (the "copycat" shortcut)
+            # and drifts off in closed loop; noise drowns that signal, keeps positions usable
+            state = state + state_noise * torch.randn(state.shape, generator=gen)
         batch["observation.state"] = state
         batch["action"] = action_n[demos.chunk_index[idx]]
         batch["action_is_pad"] = demos.chunk_pad[idx]
@@ -208,7 +219,7 @@ def train(
         torch.nn.utils.clip_grad_norm_(policy.parameters(), 10.0)
         opt.step()
         sched.step()
-        losses.append(float(loss))
+        losses.append(float(loss.detach()))
         if step % log_every == 0 or step == steps:
             print(
                 f"step {step}/{steps} loss {np.mean(losses[-log_every:]):.4f} "
@@ -231,6 +242,8 @@ def train(
         "seed": seed,
         "shift": shift,
         "state_dropout": state_dropout,
+        "state_noise": state_noise,
+        "ignored_state_dims": list(ignored_state_dims),
         "final_loss": float(np.mean(losses[-100:])),
         "params": sum(p.numel() for p in policy.parameters()),
         "load_seconds": load_s,
@@ -262,12 +275,35 @@ def main() -> None:
         default=0.0,
         help="share of samples trained with the state zeroed",
     )
+    ap.add_argument(
+        "--state-noise",
+        type=float,
+        default=0.1,
+        help="std of Gaussian noise added to the normalized state in training",
+    )
+    ap.add_argument(
+        "--ignored-state-dims",
+        type=int,
+        nargs="*",
+        default=[3, 4, 5],
+        help="state dims the net does not read (default: the tabletop's eef orientation)",
+    )
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
     meta = train(
-        args.data, args.out, args.steps, args.batch_size, args.chunk, args.seed, args.lr, args.shift
+        args.data,
+        args.out,
+        args.steps,
+        args.batch_size,
+        args.chunk,
+        args.seed,
+        args.lr,
+        args.shift,
+        args.state_dropout,
+        args.state_noise,
+        tuple(args.ignored_state_dims),
     )
     print(json.dumps(meta, indent=2))
 
