@@ -26,6 +26,7 @@ bench: setup
 	$(VENV)/bin/python benchmarks/bench_engine.py
 	$(VENV)/bin/python benchmarks/bench_tabletop_env.py
 	$(VENV)/bin/python benchmarks/bench_libero_env.py
+	$(VENV)/bin/python benchmarks/fault_report.py
 
 clean:
 	rm -rf runs .pytest_cache

@@ -1,4 +1,4 @@
-"""``idr-eval``: run a config, rebuild a report, open the MLflow UI."""
+"""``idr-eval``: run a config, rebuild a report, compare runs, open the MLflow UI."""
 
 from __future__ import annotations
 
@@ -8,6 +8,10 @@ import sys
 from pathlib import Path
 
 from pipeline.config import ConfigError
+from pipeline.errors import RunError, is_disk_full
+from pipeline.signals import RunInterrupted, stop_on_signals
+
+LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1")
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -16,17 +20,26 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config, args.overrides)
     run_dir = Path(args.out) if args.out else Path(cfg.output_root) / cfg.name
-    plan = plan_run(cfg, run_dir)
+    plan = plan_run(cfg, run_dir, yes=args.yes)
     n_cells = len({s.cell_id for s in plan.all_specs()})
     print(
         f"run {plan.run_id}: {len(plan.all_specs())} episodes ({n_cells} cells x {len(plan.tasks)} tasks "
         f"x {cfg.episodes_per_task}) -> {run_dir}"
     )
-    summary = execute(plan)
+    try:
+        with stop_on_signals():  # SIGTERM / SIGINT: flush, mark MLflow KILLED, exit 143 / 130
+            summary = execute(plan)
+    except RunInterrupted as e:
+        print(
+            f"idr-eval: {e}: the finished episodes are stored in {run_dir} (MLflow runs marked "
+            "KILLED); run the same command again to resume",
+            file=sys.stderr,
+        )
+        return e.exit_code
     print(
         f"done in {summary.wall_seconds:.1f}s: {summary.stored} stored, {summary.skipped} already "
         f"stored, {summary.errors} errors, {summary.retries} retries, "
-        f"{summary.actors_replaced} actors replaced"
+        f"{summary.actors_replaced} actors replaced, {summary.timeouts} timeouts"
     )
     print((run_dir / "report.md").read_text())
     return 0
@@ -40,6 +53,16 @@ def _cmd_report(args: argparse.Namespace) -> int:
         raise ConfigError(f"{run_dir} is not a run dir (no episodes/ folder)")
     path = write_report(run_dir)
     print(path.read_text())
+    return 0
+
+
+def _cmd_compare(args: argparse.Namespace) -> int:
+    from pipeline.compare import compare
+
+    text, _ = compare(args.run_dirs, out=args.out, n_boot=args.bootstrap)
+    print(text)
+    if args.out:
+        print(f"written to {Path(args.out) / 'compare.md'}")
     return 0
 
 
@@ -78,6 +101,12 @@ def _cmd_ui(args: argparse.Namespace) -> int:
         str(args.port),
     ]
     print(f"MLflow UI for {uri} on http://{args.host}:{args.port} (Ctrl-C to stop)")
+    if args.host not in LOCAL_HOSTS:
+        print(
+            f"idr-eval: warning: --host {args.host} makes the MLflow UI (no authentication) "
+            "reachable from the network; prefer 127.0.0.1 and an SSH tunnel",
+            file=sys.stderr,
+        )
     return subprocess.call(cmd)
 
 
@@ -91,10 +120,20 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "overrides", nargs="*", help="dotted key=value overrides, e.g. executor.workers=1"
     )
+    run.add_argument(
+        "--yes", action="store_true", help="run a grid of more than max_cells cells (16 by default)"
+    )
     run.set_defaults(func=_cmd_run)
     rep = sub.add_parser("report", help="rebuild RUN_DIR/report.md from the Parquet files")
     rep.add_argument("run_dir")
     rep.set_defaults(func=_cmd_report)
+    cmp = sub.add_parser(
+        "compare", help="one table across runs: success per suite, Avg, Δ vs baseline, p"
+    )
+    cmp.add_argument("run_dirs", nargs="+", metavar="RUN_DIR")
+    cmp.add_argument("--out", help="folder for compare.md and the R_img heatmap across runs")
+    cmp.add_argument("--bootstrap", type=int, default=2000, help="bootstrap resamples for the CI")
+    cmp.set_defaults(func=_cmd_compare)
     ui = sub.add_parser("ui", help="MLflow UI for a run dir's store (default: runs/mlflow.db)")
     ui.add_argument("run_dir", nargs="?")
     ui.add_argument(
@@ -123,6 +162,18 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as e:
         print(f"idr-eval: error: {e}", file=sys.stderr)
         return 2
+    except RunError as e:
+        print(f"idr-eval: error: {e}", file=sys.stderr)
+        return 1
+    except OSError as e:
+        if not is_disk_full(e):
+            raise
+        print(
+            f"idr-eval: error: no space left on the device ({e}); free space, then run the same "
+            "command again to resume",
+            file=sys.stderr,
+        )
+        return 1
 
 
 if __name__ == "__main__":

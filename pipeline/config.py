@@ -11,13 +11,14 @@ from __future__ import annotations
 import difflib
 import hashlib
 import json
+import re
 from pathlib import Path
 from typing import Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from pipeline.grid import Cell, expand_grid
+from pipeline.grid import INTERVENTION_KEYS, Cell, expand_grid
 from workers.idr import GUIDANCES, MODES
 from workers.interventions import SPACES, STRATEGIES
 
@@ -27,7 +28,8 @@ class ConfigError(ValueError):
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # inf / nan in a typed number (gpus_per_worker=.inf) is always a mistake
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class BackboneConfig(_Model):
@@ -64,6 +66,12 @@ class ExecutorConfig(_Model):
         default=False, description="allow more local worker CPUs than this machine has"
     )
     flush_every: int = Field(default=8, ge=1, description="episodes per Parquet batch")
+    episode_timeout_s: float | None = Field(
+        default=None,
+        gt=0,
+        description="wall-clock limit per episode: a hung episode's actor is replaced and the "
+        "episode retried (inline: SIGALRM, main thread only); None: no limit",
+    )
 
 
 class TrackingConfig(_Model):
@@ -75,11 +83,13 @@ class TrackingConfig(_Model):
 
 
 class RunConfig(_Model):
-    name: str = "run"
+    name: str = Field(
+        default="run", description="run name; the default RUN_DIR is <output_root>/<name>"
+    )
     backbone: BackboneConfig
     env: EnvConfig
     episodes_per_task: int = Field(default=1, ge=1)
-    seed: int = Field(default=0, ge=0)
+    seed: int = Field(default=0, ge=0, le=2**63 - 1)  # stored as int64
     idr: dict[str, Any] = Field(
         default_factory=dict, description="IDR parameters shared by all cells (alpha, beta, ...)"
     )
@@ -91,6 +101,21 @@ class RunConfig(_Model):
     executor: ExecutorConfig = ExecutorConfig()
     tracking: TrackingConfig = TrackingConfig()
     output_root: str = "runs"
+    max_cells: int = Field(
+        default=16,
+        ge=1,
+        description="a grid with more cells is refused unless confirmed (`idr-eval run --yes`)",
+    )
+
+    @field_validator("name")
+    @classmethod
+    def _name_is_one_path_component(cls, v: str) -> str:
+        if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}", v):
+            raise ValueError(
+                f"{v!r} must be one path component (letters, digits, '.', '_', '-'; no '/' or "
+                "'..'): the default RUN_DIR is <output_root>/<name>"
+            )
+        return v
 
     @field_validator("idr")
     @classmethod
@@ -100,18 +125,30 @@ class RunConfig(_Model):
         for key in v:
             if key not in CELL_KEYS:
                 raise ValueError(f"unknown IDR parameter {key!r}; allowed: {sorted(CELL_KEYS)}")
+        if "tau" in v:
+            from pipeline.grid import parse_tau
+
+            parse_tau(v["tau"])  # a clear error for a misspelt calibrated form
         return v
 
     @model_validator(mode="after")
     def _cells_valid(self) -> RunConfig:
         cells = self.cells()  # raises ValueError naming the bad grid entry
-        if any(c.calibrated_tau for c in cells) and not any(
-            c.idr.mode == "diagnose" for c in cells
-        ):
+        calibrated = [c for c in cells if c.calibrated_tau is not None]
+        if calibrated and not any(c.idr.mode == "diagnose" for c in cells):
             raise ValueError(
                 "tau: calibrated needs a diagnose cell in the grid to measure E_img on "
                 "(add mode diagnose, e.g. grid=[{mode: [diagnose, E]}])"
             )
+        for c in calibrated:
+            if c.calibration_source(cells) is None:
+                iv = ", ".join(f"{k}={v}" for k, v in c.params().items() if k in INTERVENTION_KEYS)
+                raise ValueError(
+                    f"cell {c.cell_id!r} has tau: {c.calibrated_tau.text} but no diagnose cell "
+                    f"measures its intervention ({iv}, eps={c.idr.eps:g}); the effects depend on "
+                    "it: put mode diagnose in a group crossed with the intervention parameters, "
+                    "e.g. grid=[{mode: [diagnose, E]}, {strategy: [zero, mean]}]"
+                )
         return self
 
     def cells(self) -> list[Cell]:
@@ -119,7 +156,7 @@ class RunConfig(_Model):
 
     def fingerprint(self) -> str:
         """Hash of what determines results; a run dir may be resumed only with the same one."""
-        keep = self.model_dump(exclude={"executor", "tracking", "output_root", "name"})
+        keep = self.model_dump(exclude={"executor", "tracking", "output_root", "name", "max_cells"})
         return hashlib.sha256(json.dumps(keep, sort_keys=True, default=str).encode()).hexdigest()[
             :16
         ]
@@ -167,7 +204,8 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     try:
         value = yaml.safe_load(raw)
     except yaml.YAMLError as e:
-        raise ConfigError(f"override {text!r}: value is not valid YAML ({e.problem})") from None
+        why = getattr(e, "problem", None) or str(e).splitlines()[0]  # ReaderError: no .problem
+        raise ConfigError(f"override {text!r}: value is not valid YAML ({why})") from None
     return path, value
 
 

@@ -4,12 +4,22 @@ Like robomimic's sweep generator: ``[{mode: [baseline, E]}, {alpha: [0.05, 0.1],
 gives baseline plus E x {(0.05, 5), (0.1, 7)}. Cell ids are built from the varied parameters
 with short names (``E_a0.05_tau5``), so runs read well in tables and in the MLflow UI. All
 ``baseline`` cells behave the same whatever the other parameters, so they collapse into one
-cell named ``baseline``.
+cell named ``baseline``; ``diagnose`` cells collapse likewise over the parameters that change
+neither what they execute nor what they measure (alpha, beta, lam, tau, guidance), keeping
+the intervention settings (``diagnose_ivmean``): one diagnose cell per intervention is what tau
+calibration needs.
+
+``tau`` is a number (``999`` or ``.inf``: always on) or a calibrated form, resolved after the
+diagnose cell ran, per backbone x suite (see :class:`TauSpec`): ``calibrated`` (the paper's
+rule: the mean diagnosed effect), ``calibrated*K`` (K times that mean) or ``calibrated_qP``
+(its P-th percentile), also combined (``calibrated_q90*0.5``).
 """
 
 from __future__ import annotations
 
 import itertools
+import math
+import re
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
@@ -37,6 +47,74 @@ SHORT_NAMES = {
 
 
 CALIBRATED = "calibrated"
+#: Parameters a diagnose cell keeps in its id: those that change what it measures.
+DIAGNOSE_KEYS = frozenset((*INTERVENTION_KEYS, "eps"))
+_TAU_RE = re.compile(
+    r"^calibrated(?:_q(?P<q>\d+(?:\.\d*)?|\.\d+))?(?:\*(?P<k>\d+(?:\.\d*)?(?:e-?\d+)?|\.\d+))?$"
+)
+TAU_SYNTAX = (
+    "write a number (999 or .inf: always on), 'calibrated' (the diagnose cell's mean E_img, "
+    "the paper's rule), 'calibrated*K' (K times that mean, K > 0) or 'calibrated_qP' (the P-th "
+    "percentile of E_img over the diagnose cell's inferences, 0 < P < 100), or both "
+    "('calibrated_q90*0.5'); e.g. tau: calibrated*2"
+)
+
+
+@dataclass(frozen=True)
+class TauSpec:
+    """A tau computed from the diagnose cell, per backbone x suite, once it has run.
+
+    The statistic is taken over the diagnose cell's inferences of the guided effect: E_img for
+    ``guidance: visual``, E_prop for ``proprio`` (the gate thresholds the guided effect)."""
+
+    quantile: float | None = None  # percentile in (0, 100); None: the mean (the paper's rule)
+    scale: float = 1.0  # tau = scale * statistic
+
+    @property
+    def text(self) -> str:
+        """The config spelling, e.g. ``calibrated_q90*0.5``."""
+        q = f"_q{self.quantile:g}" if self.quantile is not None else ""
+        k = f"*{self.scale:g}" if self.scale != 1.0 else ""
+        return f"{CALIBRATED}{q}{k}"
+
+    @property
+    def short(self) -> str:
+        """For cell ids (file-name safe): ``cal``, ``calx2``, ``calq90``, ``calq90x0.5``."""
+        q = f"q{self.quantile:g}" if self.quantile is not None else ""
+        k = f"x{self.scale:g}" if self.scale != 1.0 else ""
+        return f"cal{q}{k}"
+
+    def resolve(self, effects: Any) -> float:
+        """tau from the diagnosed effects (one value per inference)."""
+        import numpy as np
+
+        values = np.asarray(effects, dtype=float)
+        values = values[np.isfinite(values)]
+        if values.size == 0:
+            return math.nan
+        stat = values.mean() if self.quantile is None else np.percentile(values, self.quantile)
+        return float(self.scale * stat)
+
+
+def parse_tau(value: Any) -> float | TauSpec:
+    """A number, or a :class:`TauSpec` for the calibrated forms; ValueError naming the syntax."""
+    if isinstance(value, TauSpec):
+        return value
+    if isinstance(value, bool):
+        raise ValueError(f"tau={value!r} is not a number or a calibrated form; {TAU_SYNTAX}")
+    if isinstance(value, int | float):
+        return value
+    if isinstance(value, str):
+        m = _TAU_RE.match(value.strip())
+        if m:
+            q = float(m["q"]) if m["q"] is not None else None
+            k = float(m["k"]) if m["k"] is not None else 1.0
+            if q is not None and not 0 < q < 100:
+                raise ValueError(f"tau={value!r}: the percentile must be in (0, 100); {TAU_SYNTAX}")
+            if not (0 < k < math.inf):
+                raise ValueError(f"tau={value!r}: the multiple must be > 0; {TAU_SYNTAX}")
+            return TauSpec(q, k)
+    raise ValueError(f"tau={value!r} is not a number or a calibrated form; {TAU_SYNTAX}")
 
 
 @dataclass(frozen=True)
@@ -47,19 +125,36 @@ class Cell:
     idr: IDRConfig
     intervention: InterventionConfig
     varied: tuple[tuple[str, Any], ...]  # the grid parameters that made this cell, in order
-    # tau: calibrated -> tau is set, after the diagnose cell ran, to the mean E_img it measured
-    # (the paper's rule); idr.tau holds a placeholder until then
-    calibrated_tau: bool = False
+    # tau: calibrated[...] -> tau is set, after the diagnose cell ran, from the effect it
+    # measured, per suite (the paper's rule); idr.tau holds a placeholder until then
+    calibrated_tau: TauSpec | None = None
 
     def with_tau(self, tau: float) -> Cell:
         return replace(self, idr=replace(self.idr, tau=tau))
 
     def params(self) -> dict[str, Any]:
-        """Flat parameters, for tables and MLflow."""
-        return {**asdict(self.idr), **{k: getattr(self.intervention, k) for k in INTERVENTION_KEYS}}
+        """Flat parameters, for tables and MLflow (a calibrated tau as its spelling)."""
+        out = {**asdict(self.idr), **{k: getattr(self.intervention, k) for k in INTERVENTION_KEYS}}
+        if self.calibrated_tau is not None:
+            out["tau"] = self.calibrated_tau.text
+        return out
+
+    def calibration_source(self, cells: list[Cell]) -> Cell | None:
+        """The diagnose cell whose measurements calibrate this cell's tau: the one with the
+        same intervention settings and eps (the effects depend on them); None if there is none."""
+        for c in cells:
+            if (
+                c.idr.mode == "diagnose"
+                and c.intervention == self.intervention
+                and c.idr.eps == self.idr.eps
+            ):
+                return c
+        return None
 
 
 def _fmt(value: Any) -> str:
+    if isinstance(value, TauSpec):
+        return value.short
     if isinstance(value, float):
         return "inf" if value == float("inf") else f"{value:g}"
     return str(value)
@@ -78,6 +173,11 @@ def _group_rows(i: int, group: Any) -> list[list[tuple[str, Any]]]:
         if key not in CELL_KEYS:
             raise ValueError(f"grid[{i}]: unknown parameter {key!r}; allowed: {sorted(CELL_KEYS)}")
         lists[key] = list(values) if isinstance(values, list | tuple) else [values]
+        if key == "tau":
+            try:
+                lists[key] = [parse_tau(v) for v in lists[key]]
+            except ValueError as e:
+                raise ValueError(f"grid[{i}]: {e}") from None
     lengths = {k: len(v) for k, v in lists.items()}
     if len(set(lengths.values())) != 1:
         raise ValueError(
@@ -92,6 +192,11 @@ def _group_rows(i: int, group: Any) -> list[list[tuple[str, Any]]]:
 def expand_grid(groups: list[dict[str, Any]], base: dict[str, Any] | None = None) -> list[Cell]:
     """Cells of the grid, in a stable order; raises ValueError naming the bad entry."""
     base = dict(base or {})
+    if "tau" in base:
+        try:
+            base["tau"] = parse_tau(base["tau"])
+        except ValueError as e:
+            raise ValueError(f"idr.{e}") from None
     unknown = set(base) - CELL_KEYS
     if unknown:
         raise ValueError(f"unknown IDR parameters {sorted(unknown)}; allowed: {sorted(CELL_KEYS)}")
@@ -108,22 +213,28 @@ def expand_grid(groups: list[dict[str, Any]], base: dict[str, Any] | None = None
     for combo in itertools.product(*per_group):
         varied = [kv for row in combo for kv in row]
         params = {**base, **dict(varied)}
-        calibrated = params.get("tau") == CALIBRATED
-        if calibrated:
+        tau_spec = params.get("tau") if isinstance(params.get("tau"), TauSpec) else None
+        if tau_spec is not None:
             params["tau"] = 0.0  # placeholder until calibration
         try:
             idr = IDRConfig(**{k: params[k] for k in IDR_KEYS if k in params})
             iv = InterventionConfig(**{k: params[k] for k in INTERVENTION_KEYS if k in params})
         except (TypeError, ValueError) as e:
             raise ValueError(f"grid cell {dict(varied)}: {e}") from None
+        collapsed = idr.mode in ("baseline", "diagnose")
         if idr.mode == "baseline":
             cid = "baseline"
             varied = [("mode", "baseline")]
+        elif idr.mode == "diagnose":
+            varied = [("mode", "diagnose")] + [kv for kv in varied if kv[0] in DIAGNOSE_KEYS]
+            cid = cell_name(varied)
         else:
             cid = cell_name(varied)
         if cid in cells:
-            if cid == "baseline":
+            if collapsed:
                 continue
             raise ValueError(f"grid gives two cells named {cid!r}: a value is listed twice")
-        cells[cid] = Cell(cid, idr, iv, tuple(varied), calibrated_tau=calibrated and idr.refines)
+        cells[cid] = Cell(
+            cid, idr, iv, tuple(varied), calibrated_tau=tau_spec if idr.refines else None
+        )
     return list(cells.values())

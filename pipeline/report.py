@@ -1,14 +1,23 @@
-"""report.md from the Parquet files alone (``idr-eval report RUN_DIR`` rebuilds it)."""
+"""report.md from the Parquet files alone (``idr-eval report RUN_DIR`` rebuilds it).
+
+The figures (``pipeline.figures``) are saved next to it in ``figures/`` and embedded; a figure
+that fails is reported in the text, never fails the report.
+"""
 
 from __future__ import annotations
 
+import logging
 import math
 from pathlib import Path
 
 import pandas as pd
 
 from pipeline import aggregate as agg
+from pipeline.calibration import read_calibration
 from pipeline.store import RunStore
+
+log = logging.getLogger("idr_eval.report")
+FIGURES_DIR = "figures"  # RUN_DIR/figures/<name>.png
 
 
 def _pct(x: float) -> str:
@@ -54,7 +63,46 @@ def main_table(episodes: pd.DataFrame) -> str:
     return _md(headers, rows)
 
 
-def build_report(run_dir: str | Path) -> str:
+def calibration_section(run_dir: Path) -> list[str]:
+    calib = read_calibration(run_dir)
+    if not calib or not calib.get("cells"):
+        return []
+    rows = [
+        [cell, c["spec"], c["effect"], c["source_cell"], suite, _num(tau, 4)]
+        for cell, c in calib["cells"].items()
+        for suite, tau in c["tau"].items()
+    ]
+    return [
+        "",
+        "## τ calibration (per backbone x suite, from the diagnose cell)",
+        "",
+        _md(["cell", "tau", "statistic of", "measured in", "suite", "value"], rows),
+    ]
+
+
+def figures_section(figures: tuple[dict[str, Path], dict[str, str]] | str | None) -> list[str]:
+    if figures is None:
+        return []
+    parts = ["", "## Figures", ""]
+    if isinstance(figures, str):
+        return [*parts, f"Figures failed: {figures}"]
+    from pipeline.figures import CAPTIONS
+
+    paths, skipped = figures
+    for name, path in paths.items():
+        caption = CAPTIONS.get(name, name)
+        parts += [f"**{caption}**", "", f"![{caption}]({path.parent.name}/{path.name})", ""]
+    if skipped:
+        parts.append(
+            "Not drawn: " + "; ".join(f"{name} ({why})" for name, why in skipped.items()) + "."
+        )
+    return parts
+
+
+def build_report(
+    run_dir: str | Path, figures: tuple[dict[str, Path], dict[str, str]] | str | None = None
+) -> str:
+    """The report text; ``figures``: what ``write_figures`` returned (or why it failed)."""
     run_dir = Path(run_dir)
     episodes = RunStore(run_dir).episodes().to_pandas()
     parts = [f"# IDR evaluation report: `{run_dir.name}`", ""]
@@ -146,6 +194,8 @@ def build_report(run_dir: str | Path) -> str:
             ],
         )
     )
+    parts += calibration_section(run_dir)
+    parts += figures_section(figures)
     errs = agg.errors(episodes)
     if not errs.empty:
         parts += ["", "## Errors (not counted as failures)", ""]
@@ -167,9 +217,19 @@ def build_report(run_dir: str | Path) -> str:
     return "\n".join(parts) + "\n"
 
 
-def write_report(run_dir: str | Path) -> Path:
+def write_report(run_dir: str | Path, figures: bool = True) -> Path:
+    """Write RUN_DIR/report.md (and, with ``figures``, RUN_DIR/figures/*.png)."""
     run_dir = Path(run_dir)
-    text = build_report(run_dir)
+    drawn: tuple[dict[str, Path], dict[str, str]] | str | None = None
+    if figures and RunStore(run_dir).episodes().num_rows:
+        try:
+            from pipeline.figures import write_figures
+
+            drawn = write_figures(run_dir)
+        except Exception as e:  # a figure must never cost the run its report
+            log.warning("figures failed: %s: %s", type(e).__name__, e, exc_info=True)
+            drawn = f"{type(e).__name__}: {e}"
+    text = build_report(run_dir, drawn)
     path = run_dir / "report.md"
     tmp = path.with_suffix(".md.tmp")
     tmp.write_text(text)

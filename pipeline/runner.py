@@ -15,10 +15,13 @@ import uuid
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from pipeline.calibration import calibrate
+from pipeline.calibration import CALIBRATION_FILE, calibrate
 from pipeline.config import ConfigError, RunConfig, dump_config
-from pipeline.report import write_report
+from pipeline.errors import DiskFullError
+from pipeline.paths import check_run_dir
+from pipeline.report import FIGURES_DIR, write_report
 from pipeline.scheduler import RunSummary, Scheduler, init_ray
+from pipeline.signals import critical_section
 from pipeline.store import RunStore
 from workers.backbones.factory import check_backbone
 from workers.envs.base import TaskSpec
@@ -109,9 +112,24 @@ def _resume_or_claim(cfg: RunConfig, run_dir: Path) -> str:
     return uuid.uuid4().hex[:12]
 
 
-def plan_run(cfg: RunConfig, run_dir: str | Path) -> RunPlan:
-    run_dir = Path(run_dir)
+def check_cell_budget(cfg: RunConfig, n_tasks: int | None = None, yes: bool = False) -> None:
+    """Refuse, before any work, a grid of more than ``max_cells`` cells unless confirmed."""
+    n = len(cfg.cells())
+    if n <= cfg.max_cells or yes:
+        return
+    episodes = f" ({n * n_tasks * cfg.episodes_per_task} episodes)" if n_tasks else ""
+    raise ConfigError(
+        f"max_cells: the grid gives {n} cells{episodes}, more than max_cells={cfg.max_cells}; "
+        f"pass --yes to run them all, or set max_cells={n} (or higher) in the config or as an "
+        "override, or shrink the grid"
+    )
+
+
+def plan_run(cfg: RunConfig, run_dir: str | Path, yes: bool = False) -> RunPlan:
+    """Everything checked, nothing started; ``yes`` confirms a grid larger than max_cells."""
+    run_dir = check_run_dir(run_dir, cfg.output_root)
     tasks = _select_tasks(cfg)
+    check_cell_budget(cfg, len(tasks), yes=yes)
     _check_executor(cfg)
     run_id = _resume_or_claim(cfg, run_dir)
     meta = {"code_version": code_version()}
@@ -142,13 +160,21 @@ def plan_run(cfg: RunConfig, run_dir: str | Path) -> RunPlan:
     return RunPlan(cfg, run_dir, run_id, tasks, specs, worker_spec, deferred)
 
 
+def _write_text_atomic(path: Path, text: str) -> None:
+    """Whole or not at all: a full disk leaves the old file, never a truncated one."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        tmp.write_text(text)
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 def _write_meta(plan: RunPlan) -> None:
     plan.run_dir.mkdir(parents=True, exist_ok=True)
-    (plan.run_dir / "config.yaml").write_text(dump_config(plan.cfg))
+    _write_text_atomic(plan.run_dir / "config.yaml", dump_config(plan.cfg))
     meta = {"run_id": plan.run_id, "fingerprint": plan.cfg.fingerprint(), "name": plan.cfg.name}
-    tmp = plan.run_dir / f".{RUN_META}.tmp"
-    tmp.write_text(json.dumps(meta, indent=2))
-    tmp.replace(plan.run_dir / RUN_META)
+    _write_text_atomic(plan.run_dir / RUN_META, json.dumps(meta, indent=2))
 
 
 def run_params(plan: RunPlan) -> dict[str, object]:
@@ -199,21 +225,34 @@ def execute(plan: RunPlan) -> RunSummary:
     total = len(plan.all_specs())
     on_flush = (lambda batch: tracker.progress(len(batch), total)) if tracker else None
 
+    suite_of = {t.task_id: t.suite or cfg.env.suite for t in plan.tasks}
+
     def calibrated_specs() -> list[EpisodeSpec]:
-        diagnose = next(c.cell_id for c in cfg.cells() if c.idr.mode == "diagnose")
-        result = calibrate(store, diagnose)
-        log.info(
-            "tau calibrated on %s: %.4g (mean E_img over %d inferences)",
-            diagnose,
-            result["tau"],
-            result["inferences"],
-        )
+        result = calibrate(store, cfg.cells())
+        for cell_id, c in result["cells"].items():
+            log.info(
+                "tau of %s (%s of %s in %s): %s",
+                cell_id,
+                c["spec"],
+                c["effect"],
+                c["source_cell"],
+                ", ".join(f"{suite} {tau:.4g}" for suite, tau in c["tau"].items()),
+            )
         if tracker is not None:
             tracker.log_calibration(result)
-        tau = float(result["tau"])
-        return [replace(s, idr=replace(s.idr, tau=tau)) for s in plan.calibrated]
+        out = []
+        for s in plan.calibrated:
+            taus = result["cells"][s.cell_id]["tau"]
+            suite = suite_of[s.task_id]
+            if suite not in taus:
+                raise RuntimeError(
+                    f"tau calibration: {s.cell_id!r} has no tau for suite {suite!r} (its "
+                    "diagnose cell stored no inferences there; see the errors in the report)"
+                )
+            out.append(replace(s, idr=replace(s.idr, tau=float(taus[suite]))))
+        return out
 
-    status = "FAILED"
+    status, disk_full = "FAILED", False
     try:
         summary = Scheduler(
             plan.worker_spec,
@@ -225,12 +264,36 @@ def execute(plan: RunPlan) -> RunSummary:
             deferred_total=len(plan.calibrated),
         ).run()
         status = "FINISHED"
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # SIGINT, or SIGTERM through pipeline.signals
         status = "KILLED"
         raise
+    except DiskFullError:
+        disk_full = True
+        raise
     finally:
-        report = write_report(plan.run_dir)
-        if tracker is not None:
-            episodes = store.episodes().to_pandas()
-            tracker.finish(episodes, [report, plan.run_dir / "config.yaml"], status)
+        with critical_section():  # a signal now waits until the report and MLflow are done
+            report = plan.run_dir / "report.md"
+            try:
+                if disk_full:  # it would fail too: `idr-eval report RUN_DIR` rebuilds it later
+                    log.error("report not written: the disk is full")
+                else:
+                    report = write_report(plan.run_dir)
+            except Exception as e:
+                _after_stop(status, "writing the report", e)
+            if tracker is not None:
+                try:
+                    episodes = store.episodes().to_pandas()
+                    figures = sorted((plan.run_dir / FIGURES_DIR).glob("*.png"))
+                    extra = [plan.run_dir / "config.yaml", plan.run_dir / CALIBRATION_FILE]
+                    tracker.finish(episodes, [report, *extra, *figures], status)
+                except Exception as e:
+                    _after_stop(status, f"marking the MLflow runs {status}", e)
     return summary
+
+
+def _after_stop(status: str, what: str, exc: Exception) -> None:
+    """A failure while closing a run: raised after a finished run; after a stopped one only
+    logged, so that it does not hide the error (or signal) that stopped the run."""
+    if status == "FINISHED":
+        raise exc
+    log.error("%s failed after the run stopped: %s: %s", what, type(exc).__name__, exc)

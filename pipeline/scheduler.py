@@ -7,8 +7,10 @@ in flight; ``inline`` runs one worker in this process, without Ray, for debuggin
 
 Faults: a dead actor is replaced and its episodes re-queued; an exception inside an episode
 comes back as an error row and is retried; after ``max_attempts`` the last error row is
-stored (never counted as a task failure). Results are handed to the store as they finish, in
-small batches; a key already stored is dropped, so a call that Ray ran twice is stored once.
+stored (never counted as a task failure). An episode past ``executor.episode_timeout_s`` has
+its actor killed and replaced (inline: SIGALRM, see pipeline.timeouts), and so has an actor
+that ran out of memory. Results are handed to the store as they finish, in small batches; a
+key already stored is dropped, so a call that Ray ran twice is stored once.
 """
 
 from __future__ import annotations
@@ -22,11 +24,15 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from pipeline import signals
 from pipeline.config import ExecutorConfig
+from pipeline.signals import critical_section
 from pipeline.store import RunStore
+from pipeline.timeouts import EpisodeTimeout, alarm, alarm_supported, timeout_reason
 from workers.episode import EpisodeResult, EpisodeSpec, WorkerSpec
 
 log = logging.getLogger("idr_eval.scheduler")
+STARTUP_TIMEOUT_S = 600  # an actor that has not loaded by then is taken as never starting
 
 
 @dataclass
@@ -38,6 +44,7 @@ class RunSummary:
     errors: int = 0  # keys stored as error rows after max_attempts
     retries: int = 0
     actors_replaced: int = 0
+    timeouts: int = 0  # episodes cut off at executor.episode_timeout_s
     duplicates_dropped: int = 0
     wall_seconds: float = 0.0
     startup_seconds: float = 0.0  # until the workers were ready (actors started, models loaded)
@@ -132,6 +139,9 @@ class Scheduler:
     def _fail_without_result(self, spec: EpisodeSpec, reason: str) -> None:
         """The actor died under this episode: retry, or store an error row at the last attempt."""
         if spec.attempt < self.ex.max_attempts:
+            log.warning(
+                "episode %s attempt %d failed, retrying: %s", spec.key, spec.attempt, reason
+            )
             self.summary.retries += 1
             self.pending.append(spec.retry())
             return
@@ -142,10 +152,11 @@ class Scheduler:
     def flush(self) -> None:
         if not self._buffer:
             return
-        batch, self._buffer = self._buffer, []
-        self.store.write(batch)
-        self._stored_keys.update(r.key for r in batch)
-        self.summary.stored += len(batch)
+        with critical_section():  # a SIGTERM waits until the batch is written and recorded
+            batch, self._buffer = self._buffer, []
+            self.store.write(batch)
+            self._stored_keys.update(r.key for r in batch)
+            self.summary.stored += len(batch)
         if self.on_flush is not None:
             self.on_flush(batch)
 
@@ -188,30 +199,76 @@ class Scheduler:
         worker = EpisodeWorker(self.worker_spec)
         self.summary.workers = [worker.ping()]
         self.summary.startup_seconds = time.monotonic() - t0
+        limit = self.ex.episode_timeout_s
+        if limit and not alarm_supported():
+            log.warning(
+                "executor.episode_timeout_s=%g is not enforced: the inline executor needs the "
+                "main thread for SIGALRM (use executor.kind=ray)",
+                limit,
+            )
         try:
             while self.pending or self._take_deferred():
                 spec = self.pending.popleft()
-                self._accept(spec, worker.run_episode(spec))
+                try:
+                    with alarm(limit):
+                        result = worker.run_episode(spec)
+                except EpisodeTimeout:
+                    log.warning("episode %s timed out: replacing the worker", spec.key)
+                    self.summary.timeouts += 1
+                    worker = self._replace_inline(worker)
+                    self._fail_without_result(spec, timeout_reason(limit or 0))
+                    continue
+                self._accept(spec, result)
+                if result.unhealthy:
+                    worker = self._replace_inline(worker)
                 self._tick()
         finally:
             worker.close()
 
+    def _replace_inline(self, worker: Any) -> Any:
+        """A fresh EpisodeWorker (the old one may be mid-step or out of memory)."""
+        from workers.actor import EpisodeWorker
+
+        try:
+            worker.close()
+        except Exception as exc:  # a broken worker may fail to close; it is dropped anyway
+            log.warning("closing the old worker failed: %s", exc)
+        self.summary.actors_replaced += 1
+        return EpisodeWorker(self.worker_spec)
+
     def _run_ray(self) -> None:
         import ray
-        from ray.exceptions import GetTimeoutError, RayActorError, WorkerCrashedError
 
         from workers.actor import remote_worker_class
 
         cls = remote_worker_class(self.ex.cpus_per_worker, self.ex.gpus_per_worker)
         actors: dict[int, Any] = {}
         self.actors = actors  # live view, for tests and diagnostics
+        # replacements still loading (ping ref, since when): their episode's clock waits
+        starting: dict[int, tuple[Any, float]] = {}
         next_id = 0
 
-        def start() -> int:
+        def start(replacement: bool = False) -> int:
             nonlocal next_id
             next_id += 1
             actors[next_id] = cls.remote(self.worker_spec)
+            if replacement:
+                starting[next_id] = (actors[next_id].ping.remote(), time.monotonic())
             return next_id
+
+        try:
+            self._start_actors(actors, start)
+            self._dispatch(actors, starting, start)
+        finally:  # also on SIGTERM / an error: no actor outlives the run
+            for a in actors.values():
+                try:
+                    ray.kill(a, no_restart=True)
+                except Exception as exc:
+                    log.warning("could not kill an actor: %s", exc)
+
+    def _start_actors(self, actors: dict[int, Any], start: Callable[..., int]) -> None:
+        import ray
+        from ray.exceptions import GetTimeoutError, RayActorError, WorkerCrashedError
 
         t0 = time.monotonic()
         for _ in range(min(self.ex.workers, len(self.pending))):
@@ -220,12 +277,15 @@ class Scheduler:
         for aid in list(actors):
             for attempt in range(1, self.ex.max_attempts + 1):
                 try:
-                    self.summary.workers.append(ray.get(actors[aid].ping.remote(), timeout=600))
+                    self.summary.workers.append(
+                        ray.get(actors[aid].ping.remote(), timeout=STARTUP_TIMEOUT_S)
+                    )
                     break
                 except GetTimeoutError:
                     raise RuntimeError(
-                        "actors did not start within 600 s: the cluster lacks the resources asked "
-                        f"for ({self.ex.cpus_per_worker} CPU, {self.ex.gpus_per_worker} GPU per worker)"
+                        f"actors did not start within {STARTUP_TIMEOUT_S} s: the cluster lacks the "
+                        f"resources asked for ({self.ex.cpus_per_worker} CPU, "
+                        f"{self.ex.gpus_per_worker} GPU per worker)"
                     ) from None
                 except (RayActorError, WorkerCrashedError) as exc:
                     # an actor that dies while loading (OOM, a crashing simulator) is replaced
@@ -234,26 +294,49 @@ class Scheduler:
                     log.warning(
                         "actor %d died while starting, replacing it: %s", aid, type(exc).__name__
                     )
-                    actors.pop(aid)
+                    ray.kill(actors.pop(aid), no_restart=True)
                     aid = start()
                     self.summary.actors_replaced += 1
         self.summary.startup_seconds = time.monotonic() - t0
+
+    def _dispatch(
+        self,
+        actors: dict[int, Any],
+        starting: dict[int, tuple[Any, float]],
+        start: Callable[..., int],
+    ) -> None:
+        import ray
+        from ray.exceptions import RayActorError, WorkerCrashedError
+
         # One episode per actor at a time: when an actor dies, the episode it was running is
         # the only one charged an attempt (queued calls would die with it, innocent). Episodes
         # last seconds and a call round trip ~1 ms, so queueing more would gain nothing.
         cap = self.ex.max_in_flight or len(actors)
+        limit = self.ex.episode_timeout_s
         in_flight: dict[Any, tuple[int, EpisodeSpec]] = {}
+        clock: dict[Any, float | None] = {}  # ref -> when its episode started (None: not yet)
         load = dict.fromkeys(actors, 0)
+
+        def replace(aid: int) -> None:
+            if aid in actors:
+                ray.kill(actors.pop(aid), no_restart=True)
+                load.pop(aid, None)
+                starting.pop(aid, None)
+                load[start(replacement=True)] = 0
+                self.summary.actors_replaced += 1
 
         while self.pending or in_flight or (not in_flight and self._take_deferred()):
             for aid in sorted(load, key=load.get):
                 if self.pending and load[aid] == 0 and len(in_flight) < cap:
                     spec = self.pending.popleft()
-                    in_flight[actors[aid].run_episode.remote(spec)] = (aid, spec)
+                    ref = actors[aid].run_episode.remote(spec)
+                    in_flight[ref] = (aid, spec)
+                    clock[ref] = None if aid in starting else time.monotonic()
                     load[aid] += 1
             ready, _ = ray.wait(list(in_flight), num_returns=1, timeout=1.0)
             for ref in ready:
                 aid, spec = in_flight.pop(ref)
+                clock.pop(ref, None)
                 if aid in load:
                     load[aid] -= 1
                 try:
@@ -261,17 +344,52 @@ class Scheduler:
                 except (RayActorError, WorkerCrashedError) as exc:
                     reason = f"{type(exc).__name__}: actor died during the episode"
                     log.warning("actor %d died under %s: replacing it", aid, spec.key)
-                    if aid in actors:
-                        ray.kill(actors.pop(aid), no_restart=True)
-                        load.pop(aid, None)
-                        load[start()] = 0
-                        self.summary.actors_replaced += 1
+                    replace(aid)
                     self._fail_without_result(spec, reason)
                     continue
                 self._accept(spec, result)
+                if result.unhealthy:
+                    log.warning("actor %d ran out of memory under %s: replacing it", aid, spec.key)
+                    replace(aid)
+            self._watch_starting(starting, in_flight, clock)
+            if limit:
+                now = time.monotonic()
+                for ref, (aid, spec) in list(in_flight.items()):
+                    began = clock.get(ref)
+                    if began is not None and now - began > limit:
+                        log.warning("episode %s timed out on actor %d: replacing it", spec.key, aid)
+                        del in_flight[ref], clock[ref]
+                        self.summary.timeouts += 1
+                        replace(aid)
+                        self._fail_without_result(spec, timeout_reason(limit))
             self._tick()
-        for a in actors.values():
-            ray.kill(a, no_restart=True)
+
+    def _watch_starting(
+        self,
+        starting: dict[int, tuple[Any, float]],
+        in_flight: dict[Any, tuple[int, EpisodeSpec]],
+        clock: dict[Any, float | None],
+    ) -> None:
+        """Start the episode clock of replacement actors that finished loading."""
+        if not starting:
+            return
+        import ray
+
+        pings = {ping: aid for aid, (ping, _) in starting.items()}
+        done, _ = ray.wait(list(pings), num_returns=len(pings), timeout=0)
+        now = time.monotonic()
+        for ping in done:
+            aid = pings[ping]
+            del starting[aid]
+            for ref, (a, _) in in_flight.items():
+                if a == aid and clock.get(ref) is None:
+                    clock[ref] = now
+        for _, since in starting.values():
+            if now - since > STARTUP_TIMEOUT_S:
+                raise RuntimeError(
+                    f"a replacement actor did not start within {STARTUP_TIMEOUT_S} s "
+                    f"({self.ex.cpus_per_worker} CPU, {self.ex.gpus_per_worker} GPU per worker)"
+                )
 
 
 def init_ray(address: str | None, num_cpus: float | None, num_gpus: float | None = None) -> None:
@@ -287,3 +405,4 @@ def init_ray(address: str | None, num_cpus: float | None, num_gpus: float | None
         ray.init(address=address, log_to_driver=True)
     else:
         ray.init(num_cpus=num_cpus, num_gpus=num_gpus, include_dashboard=False, log_to_driver=True)
+    signals.reinstall()  # ray.init replaced our SIGTERM handler with one that aborts

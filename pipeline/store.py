@@ -26,6 +26,7 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from pipeline.errors import DiskFullError, is_disk_full
 from workers.episode import EpisodeResult
 
 EPISODE_SCHEMA = pa.schema(
@@ -148,6 +149,11 @@ class RunStore:
             with open(tmp, "rb") as f:
                 os.fsync(f.fileno())
             os.replace(tmp, path)
+            dir_fd = os.open(path.parent, os.O_RDONLY)
+            try:
+                os.fsync(dir_fd)  # the rename itself survives a power cut
+            finally:
+                os.close(dir_fd)
         finally:
             if tmp.exists():
                 tmp.unlink()
@@ -164,8 +170,20 @@ class RunStore:
             part = f"cell={_safe(cell_id)}"
             episodes = rows_to_table([r.episode for r in items], EPISODE_SCHEMA)
             steps = rows_to_table([s for r in items for s in r.steps], STEP_SCHEMA)
-            self._write_atomic(steps, self.steps_dir / part / name)
-            self._write_atomic(episodes, self.episodes_dir / part / name)
+            steps_path = self.steps_dir / part / name
+            try:
+                self._write_atomic(steps, steps_path)
+                self._write_atomic(episodes, self.episodes_dir / part / name)
+            except OSError as e:
+                steps_path.unlink(missing_ok=True)  # no steps without their episodes
+                if is_disk_full(e):
+                    raise DiskFullError(
+                        f"no space left on the device of {self.run_dir} while writing a batch of "
+                        f"{len(items)} episodes ({e}); nothing partial was left and the "
+                        f"{self.stored_count()} episodes stored before are intact: free space, "
+                        "then run the same command again to resume"
+                    ) from e
+                raise
             n += len(items)
             self.rows_written += episodes.num_rows + steps.num_rows
         return n
@@ -182,6 +200,10 @@ class RunStore:
 
     def steps(self) -> pa.Table:
         return self._read(self.steps_dir, STEP_SCHEMA)
+
+    def stored_count(self) -> int:
+        files = self.episodes_dir.glob("cell=*/batch-*.parquet")
+        return sum(pq.ParquetFile(f).metadata.num_rows for f in files)
 
     def stored_keys(self) -> set[tuple[str, str, int]]:
         t = self.episodes().select(list(KEY)).to_pydict()

@@ -8,7 +8,11 @@ a resumed run logs into the same MLflow runs.
 
 Children carry the cell's parameters as params and as ``idr.*`` tags, so the UI's run
 comparison shows the cells side by side; metrics are logged when the run finishes (and a
-progress counter on the parent as batches land).
+progress counter on the parent as batches land). Every run of every RUN_DIR has the same param
+and tag keys (``backbone``, ``suite``, ``cell.alpha`` ..., ``idr.role`` = run | cell), so cells of
+several runs line up in one comparison (``idr-eval compare`` prints the UI search filter that
+selects them). A calibrated tau is logged as its spelling (``cell.tau = calibrated*2``) and,
+once measured, as metrics ``tau`` / ``tau/<suite>``.
 """
 
 from __future__ import annotations
@@ -103,7 +107,12 @@ class Tracker:
             self.children = dict(state.get("children", {}))
             self.client.update_run(self.parent_id, status="RUNNING")
         else:
-            tags = {"idr.run_id": run_id, "idr.run_dir": str(self.run_dir.resolve())}
+            tags = {
+                "idr.run_id": run_id,
+                "idr.run_dir": str(self.run_dir.resolve()),
+                "idr.role": "run",
+                **{f"idr.{k}": str(params[k]) for k in ("backbone", "suite") if k in params},
+            }
             self.parent_id = self.client.create_run(
                 self.experiment_id, run_name=run_name, tags=tags
             ).info.run_id
@@ -116,6 +125,11 @@ class Tracker:
                 "mlflow.parentRunId": self.parent_id,
                 "idr.run_id": run_id,
                 "idr.cell": cell.cell_id,
+                "idr.role": "cell",
+                "idr.run_name": run_name,
+                "idr.run_dir": str(self.run_dir.resolve()),
+                "idr.varied": ", ".join(f"{k}={_plain(v)}" for k, v in cell.varied),
+                **{f"idr.{k}": str(params[k]) for k in ("backbone", "suite") if k in params},
                 **{f"idr.{k}": str(v) for k, v in cell.params().items()},
             }
             child = self.client.create_run(
@@ -153,7 +167,21 @@ class Tracker:
         self._log_params(
             self.parent_id, {"tau_calibrated": result["tau"], "tau_source": result["source_cell"]}
         )
-        self._log_metrics(self.parent_id, {"tau_calibrated": float(result["tau"])})
+        parent = {"tau_calibrated": float(result["tau"])}
+        for g in result.get("groups", []):
+            key = _metric_key("e_img_mean", g["source_cell"], g["suite"])
+            parent[key] = g["e_img_mean"]
+        self._log_metrics(self.parent_id, parent)
+        for cell_id, c in result.get("cells", {}).items():
+            rid = self.children.get(cell_id)
+            if rid is None:
+                continue
+            metrics = {_metric_key("tau", suite): tau for suite, tau in c["tau"].items()}
+            if len(c["tau"]) == 1:
+                metrics["tau"] = next(iter(c["tau"].values()))
+            self._log_metrics(rid, metrics)
+            value = ", ".join(f"{suite}={tau:.4g}" for suite, tau in c["tau"].items())
+            self.client.set_tag(rid, "idr.tau_value", value)
 
     def progress(self, n_new: int, total: int) -> None:
         self._done += n_new
@@ -175,10 +203,15 @@ class Tracker:
             )
         for p in artifacts:
             if p.exists():
-                self.client.log_artifact(self.parent_id, str(p))
+                folder = "figures" if p.suffix == ".png" else None
+                self.client.log_artifact(self.parent_id, str(p), folder)
         for rid in self.children.values():
             self.client.set_terminated(rid, status=status)
         self.client.set_terminated(self.parent_id, status=status)
+
+
+def _plain(value: Any) -> str:
+    return getattr(value, "text", None) or str(value)
 
 
 def cell_metrics(episodes: pd.DataFrame) -> dict[str, dict[str, float]]:
@@ -192,8 +225,11 @@ def cell_metrics(episodes: pd.DataFrame) -> dict[str, dict[str, float]]:
             episodes=r.n,
             errors=r.errors,
         )
-    for r in agg.success_by_suite(episodes).itertuples():
+    suites = agg.success_by_suite(episodes)
+    for r in suites.itertuples():
         out[r.cell_id][_metric_key("success", r.suite)] = r.success_rate
+    for cell, g in suites.groupby("cell_id"):  # the paper's Avg: the mean of the suites' rates
+        out[cell]["success_avg"] = float(g["success_rate"].mean())
     for r in agg.success_by_task(episodes).itertuples():
         out[r.cell_id][_metric_key("success", r.suite, r.task_id)] = r.success_rate
     chains = agg.chain_metrics(episodes)

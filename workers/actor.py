@@ -25,6 +25,10 @@ class NonFiniteActionError(RuntimeError):
     """The backbone (or the refiner) produced NaN/inf; the step was not sent to the simulator."""
 
 
+class NonFiniteStateError(RuntimeError):
+    """The env returned a NaN/inf state (a diverged simulation); the episode is not scored."""
+
+
 def step_seed(seed: int, task_id: str, episode_index: int, inference_index: int) -> int:
     """Per-inference seed shared by all cells (paired comparisons see the same noise)."""
     ss = np.random.SeedSequence(
@@ -76,8 +80,12 @@ class EpisodeWorker:
             steps = []
             tb = traceback.format_exception(exc)
             row["error"] = f"{type(exc).__name__}: {exc}\n{''.join(tb[-3:])}"[:4000]
+            # out of memory: this process may be left broken; the scheduler replaces the worker
+            unhealthy = isinstance(exc, MemoryError)
+        else:
+            unhealthy = False
         row.update(started_at=started, finished_at=_now(), wall_seconds=time.perf_counter() - t0)
-        return EpisodeResult(row, steps)
+        return EpisodeResult(row, steps, unhealthy=unhealthy)
 
     def _episode_row_head(self, spec: EpisodeSpec) -> dict[str, Any]:
         task = self.tasks.get(spec.task_id)
@@ -156,6 +164,11 @@ class EpisodeWorker:
                         f"non-finite action at step {env.steps}: {action.tolist()}; not sent to the env"
                     )
                 obs = env.step(action)
+                if not np.isfinite(obs.state).all():
+                    raise NonFiniteStateError(
+                        f"non-finite state after step {env.steps}: {np.asarray(obs.state).tolist()}; "
+                        "the simulation diverged"
+                    )
                 if success_step is None and env.success:
                     success_step = env.steps
                 if env.done:

@@ -84,6 +84,8 @@ class EpisodeSpec:
 class EpisodeResult:
     episode: dict[str, Any]  # one row of the episodes table
     steps: list[dict[str, Any]]  # rows of the steps table (one per inference)
+    # the worker may be broken after this episode (it ran out of memory): replace it
+    unhealthy: bool = False
 
     @property
     def key(self) -> tuple[str, str, int]:

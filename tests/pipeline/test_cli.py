@@ -58,3 +58,22 @@ def test_bad_input_is_one_clear_error(tmp_path) -> None:
     assert not (tmp_path / "x").exists()
     r = _cli("run", "conf/nope.yaml")
     assert r.returncode == 2 and "not found" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_a_grid_over_max_cells_needs_yes(tmp_path, capsys) -> None:
+    from pipeline import cli
+    from pipeline.config import load_config
+    from pipeline.runner import plan_run
+
+    alpha = str(ROOT / "conf" / "grids" / "alpha.yaml")
+    out = tmp_path / "x"
+    rc = cli.main(["run", alpha, "--out", str(out), "max_cells=4", "tracking.enabled=false"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "Traceback" not in err
+    assert (
+        "max_cells: the grid gives 9 cells (90 episodes), more than max_cells=4; pass --yes" in err
+    )
+    assert not out.exists()  # refused before any work
+    assert cli.build_parser().parse_args(["run", alpha, "--yes"]).yes
+    plan = plan_run(load_config(alpha, ["max_cells=4"]), out, yes=True)
+    assert len({s.cell_id for s in plan.all_specs()}) == 9

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
+import numpy as np
 import pytest
 
-from pipeline.grid import expand_grid
+from pipeline.config import load_config
+from pipeline.grid import TauSpec, expand_grid, parse_tau
 
 
 def test_zip_within_cross_across() -> None:
@@ -63,3 +66,149 @@ def test_infinite_tau_name() -> None:
 def test_bad_grids(grid, pattern) -> None:
     with pytest.raises(ValueError, match=pattern):
         expand_grid(grid)
+
+
+# -- calibrated tau forms, diagnose collapse, the paper's ablation presets ------------------------
+
+GRIDS = Path(__file__).resolve().parents[2] / "conf" / "grids"
+
+
+@pytest.mark.parametrize(
+    ("text", "quantile", "scale", "short"),
+    [
+        ("calibrated", None, 1.0, "cal"),
+        ("calibrated*2", None, 2.0, "calx2"),
+        ("calibrated*.5", None, 0.5, "calx0.5"),
+        ("calibrated_q90", 90.0, 1.0, "calq90"),
+        ("calibrated_q97.5*0.5", 97.5, 0.5, "calq97.5x0.5"),
+    ],
+)
+def test_tau_spec_forms(text, quantile, scale, short) -> None:
+    spec = parse_tau(text)
+    assert isinstance(spec, TauSpec)
+    assert (spec.quantile, spec.scale, spec.short) == (quantile, scale, short)
+    assert parse_tau(spec.text) == spec  # the spelling round-trips
+
+
+def test_tau_spec_resolves_mean_multiple_and_percentile() -> None:
+    e = np.array([1.0, 2.0, 3.0, 4.0, np.nan])  # a NaN (no diagnostics) is ignored
+    assert parse_tau("calibrated").resolve(e) == pytest.approx(2.5)
+    assert parse_tau("calibrated*2").resolve(e) == pytest.approx(5.0)
+    assert parse_tau("calibrated_q50").resolve(e) == pytest.approx(2.5)
+    assert parse_tau("calibrated_q90*0.5").resolve(e) == pytest.approx(0.5 * 3.7)
+
+
+@pytest.mark.parametrize(
+    ("value", "pattern"),
+    [
+        ("calibrted", r"tau='calibrted' is not a number or a calibrated form; write a number"),
+        ("calibrated*0", r"the multiple must be > 0"),
+        ("calibrated_q100", r"the percentile must be in \(0, 100\)"),
+        ("calibrated*2x", r"not a number or a calibrated form.*e.g. tau: calibrated\*2"),
+    ],
+)
+def test_bad_tau_forms(value, pattern) -> None:
+    with pytest.raises(ValueError, match=pattern):
+        expand_grid([{"tau": [value]}])
+
+
+def test_calibrated_forms_in_cell_ids_and_params() -> None:
+    cells = expand_grid(
+        [{"mode": ["diagnose", "E"]}, {"tau": ["calibrated*0.5", "calibrated_q90", 999]}]
+    )
+    assert [c.cell_id for c in cells] == ["diagnose", "E_taucalx0.5", "E_taucalq90", "E_tau999"]
+    by_id = {c.cell_id: c for c in cells}
+    assert by_id["E_taucalq90"].calibrated_tau == TauSpec(90.0, 1.0)
+    assert by_id["E_taucalq90"].params()["tau"] == "calibrated_q90"
+    assert by_id["E_tau999"].calibrated_tau is None and by_id["E_tau999"].idr.tau == 999
+    assert by_id["diagnose"].calibrated_tau is None  # it measures; it is not calibrated
+    assert by_id["E_taucalx0.5"].calibration_source(cells) is by_id["diagnose"]
+
+
+def test_diagnose_cells_collapse_but_keep_the_intervention() -> None:
+    cells = expand_grid(
+        [{"mode": ["diagnose", "E"]}, {"alpha": [0.05, 0.1]}, {"strategy": ["zero", "mean"]}]
+    )
+    assert [c.cell_id for c in cells] == [
+        "diagnose_ivzero",
+        "diagnose_ivmean",
+        "E_a0.05_ivzero",
+        "E_a0.05_ivmean",
+        "E_a0.1_ivzero",
+        "E_a0.1_ivmean",
+    ]
+    e_mean = cells[3]
+    assert e_mean.calibration_source(cells).cell_id == "diagnose_ivmean"
+
+
+@pytest.mark.parametrize(
+    ("preset", "cell_ids"),
+    [
+        (
+            "alpha.yaml",
+            ["baseline", "diagnose"]
+            + [f"E_a{a}" for a in ("0.02", "0.05", "0.08", "0.1", "0.2", "0.5", "1")],
+        ),
+        (
+            "tau.yaml",
+            [
+                "baseline",
+                "diagnose",
+                "E_taucalx0.25",
+                "E_taucalx0.5",
+                "E_taucal",
+                "E_taucalx2",
+                "E_taucalx4",
+                "E_tau999",
+            ],
+        ),
+        (
+            "intervention.yaml",
+            [
+                "baseline",
+                "diagnose_ivzero",
+                "diagnose_ivmean",
+                "diagnose_ivgaussian",
+                "E_ivzero",
+                "E_ivmean",
+                "E_ivgaussian",
+            ],
+        ),
+        ("modes.yaml", ["baseline", "diagnose", "A", "B", "C", "D", "E", "F"]),
+        ("guidance.yaml", ["baseline", "diagnose", "E_gvisual", "E_gproprio"]),
+    ],
+)
+def test_ablation_presets_expand_to_the_papers_cells(preset, cell_ids) -> None:
+    cfg = load_config(GRIDS / preset)
+    cells = cfg.cells()
+    assert [c.cell_id for c in cells] == cell_ids
+    assert len(cells) <= cfg.max_cells  # runs without --yes
+    assert cfg.backbone.kind == "fake_marker" and cfg.env.suite == "fake_marker"
+    # every refining cell is calibrated on a diagnose cell of its own intervention, except
+    # the fixed numbers of the tau sweep (999: always on)
+    for c in cells:
+        if c.idr.refines and c.cell_id != "E_tau999":
+            assert c.calibrated_tau is not None
+            assert c.calibration_source(cells).intervention == c.intervention
+    if preset == "alpha.yaml":
+        alphas = sorted(c.idr.alpha for c in cells if c.idr.mode == "E")
+        assert {0.02, 0.05, 0.08, 0.1, 0.5, 1.0} <= set(alphas)
+    if preset == "intervention.yaml":
+        assert {c.intervention.strategy for c in cells} == {"zero", "mean", "gaussian"}
+
+
+def test_presets_point_at_the_tiny_vla_with_overrides() -> None:
+    """The overrides written in conf/grids/alpha.yaml give a valid tiny-VLA-on-tabletop config."""
+    cfg = load_config(
+        GRIDS / "modes.yaml",
+        [
+            "backbone.kind=lerobot",
+            "backbone.params={path: checkpoints/tiny_vla, device: cpu}",
+            "env.suite=tabletop",
+            "env.tasks=[pick_color, stack_color, organize]",
+            "env.params={image_size: 96, cameras: [agentview, wrist]}",
+            "intervention.state_space=normalized",
+        ],
+    )
+    assert cfg.backbone.params == {"path": "checkpoints/tiny_vla", "device": "cpu"}
+    assert [c.cell_id for c in cfg.cells()][-1] == "F"

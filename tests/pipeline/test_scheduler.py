@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
+from fault_audit import assert_clean, audit
 
 from pipeline.config import load_config
 from pipeline.runner import plan_run
@@ -56,7 +57,7 @@ def test_episode_exception_becomes_error_row_and_is_retried(tmp_path) -> None:
 
 
 @pytest.mark.slow
-def test_ray_kill_mid_run_loses_and_duplicates_nothing(tmp_path, ray_local) -> None:
+def test_ray_kill_mid_run_loses_and_duplicates_nothing(tmp_path, ray_local, fault_log) -> None:
     plan = _plan(
         tmp_path, "executor.kind=ray", "backbone.params.delay_s=0.01", "executor.flush_every=1"
     )
@@ -81,10 +82,18 @@ def test_ray_kill_mid_run_loses_and_duplicates_nothing(tmp_path, ray_local) -> N
     keys = _keys(plan.run_dir)
     assert len(keys) == 12 and set(keys.values()) == {1}
     assert summary.errors == 0  # the episodes of the dead actor were re-run, not failed
+    outcome = audit(plan.run_dir, {s.key for s in plan.specs})
+    assert_clean(outcome)
+    fault_log.record(
+        "actor killed (ray.kill)",
+        "ray.kill of a busy actor after 2 episodes are stored",
+        "replaced, its episode re-run; nothing lost or stored twice",
+        {**outcome, "actors_replaced": summary.actors_replaced},
+    )
 
 
 @pytest.mark.slow
-def test_crashing_process_is_retried_then_recorded(tmp_path, ray_local) -> None:
+def test_crashing_process_is_retried_then_recorded(tmp_path, ray_local, fault_log) -> None:
     plan = _plan(
         tmp_path,
         "executor.kind=ray",
@@ -101,9 +110,17 @@ def test_crashing_process_is_retried_then_recorded(tmp_path, ray_local) -> None:
     assert len(dead) == 2 and dead.error.str.contains("actor died").all()
     assert eps[eps.episode_index != 0].error.isna().all()
     assert summary.actors_replaced >= 2
+    outcome = audit(plan.run_dir, {s.key for s in plan.specs})
+    assert_clean(outcome)
+    fault_log.record(
+        "actor process crashes (segfault-like exit)",
+        "fake env calls os._exit(17) in every reset of episode 0",
+        "replaced and retried up to max_attempts, then one error row per key; the rest unaffected",
+        {**outcome, "actors_replaced": summary.actors_replaced},
+    )
 
 
-def test_driver_killed_mid_run_then_resumed(tmp_path) -> None:
+def test_driver_killed_mid_run_then_resumed(tmp_path, fault_log) -> None:
     out = tmp_path / "run"
     args = [
         sys.executable,
@@ -133,3 +150,12 @@ def test_driver_killed_mid_run_then_resumed(tmp_path) -> None:
     keys = _keys(out)
     assert len(keys) == 12 and set(keys.values()) == {1}
     assert f"{len(partial)} already stored" in r.stdout
+    cells, tasks = ("baseline", "E"), ("reach", "reach_chain")
+    outcome = audit(out, {(c, t, i) for c in cells for t in tasks for i in range(3)})
+    assert_clean(outcome)
+    fault_log.record(
+        "driver killed by SIGKILL",
+        "SIGKILL to `idr-eval run` after 3 batches; then the same command",
+        "no unreadable file; the same command resumes, nothing lost or stored twice",
+        {**outcome, "stored_at_kill": len(partial)},
+    )

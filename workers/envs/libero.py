@@ -187,6 +187,18 @@ def _suite(name: str) -> Any:
         return _libero_benchmark_module().get_benchmark(name)()
 
 
+def _init_states(bench: Any, index: int) -> np.ndarray:
+    """The task's fixed init states, as hf-libero's ``get_task_init_states`` finds them but
+    loaded without running pickled code (hf-libero unpickles them with weights_only=False)."""
+    from libero.libero import get_libero_path
+
+    from workers.safe_load import load_numpy_array
+
+    task = bench.get_task(index)
+    path = os.path.join(get_libero_path("init_states"), task.problem_folder, task.init_states_file)
+    return load_numpy_array(path)
+
+
 def _list_tasks(protocol: LiberoProtocol) -> list[TaskSpec]:
     ensure_config_env()  # every time: the suite tables below are cached per process
     return [
@@ -329,7 +341,7 @@ class LiberoEnv:
         self._close_sim()
         suite, index = spec.suite, int(spec.task_id.rsplit("/", 1)[1])
         bench = _suite(suite)
-        self._init_states = np.asarray(bench.get_task_init_states(index))
+        self._init_states = _init_states(bench, index)
         self._sim = self._make_sim(bench.get_task_bddl_file_path(index), spec.max_steps)
         self._sim_task = spec.task_id
 

@@ -26,6 +26,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from workers.envs.base import EnvObservation, LazyImages, LazyState, TaskSpec
+from workers.envs.stability import mujoco_instability, raise_if_unstable
 from workers.envs.tabletop_layout import BIN_CENTER, BIN_INNER_HALF, CUBE_HALF, TABLE_TOP_Z
 
 SUITE = "tabletop"
@@ -94,7 +95,10 @@ class TabletopEnv:
         max_steps: dict[str, int] | None = None,
         subtask_budget: int = DEFAULT_SUBTASK_BUDGET,
         fast_render: bool = True,
+        inject_instability: tuple[int, int] | None = None,
     ) -> None:
+        """``inject_instability``: a test hook, (episode_index, step): at that control step the
+        joint velocities are set to NaN before physics runs, as a diverging simulation would."""
         if image_size <= 0:
             raise ValueError(f"env.params.image_size={image_size} must be > 0")
         unknown = [c for c in cameras if c not in CAMERAS]
@@ -112,6 +116,8 @@ class TabletopEnv:
         self._scenes: dict[str, Any] = {}
         self._renderers: dict[str, Any] = {}
         self._ep: _Episode | None = None
+        self._inject = tuple(inject_instability) if inject_instability is not None else None
+        self._episode_index = -1
 
     @staticmethod
     def _check_max_steps(max_steps: dict[str, int] | None) -> dict[str, int]:
@@ -185,7 +191,8 @@ class TabletopEnv:
         scene = self._scene(task_id)
         scene.place_cubes(ep.cube_xy)
         self._last_obs = scene.reset()
-        self._ep = ep
+        mujoco_instability(scene.sim.data._data)  # clear what earlier episodes left
+        self._ep, self._episode_index = ep, episode_index
         return self._observe()
 
     def step(self, action: np.ndarray) -> EnvObservation:
@@ -199,8 +206,12 @@ class TabletopEnv:
         if not np.isfinite(action).all():
             raise ValueError(f"non-finite action {action.tolist()}")
         scene = self._scenes[self._ep.task_id]
+        data = scene.sim.data._data
+        if self._inject == (self._episode_index, self._ep.steps):
+            data.qvel[:] = np.nan
         self._last_obs, _, _, _ = scene.step(np.clip(action, -1.0, 1.0))
         self._ep.steps += 1
+        raise_if_unstable(data, f"at step {self._ep.steps} of {self._ep.init_state_id}")
         self._update_progress(scene)
         return self._observe()
 

@@ -1,0 +1,27 @@
+"""Errors that stop a run on a fault outside the config (a full disk, a signal).
+
+``ConfigError`` (pipeline.config) is for bad input, found before any work starts; the errors
+here are for faults met while running. Both reach the user as one line naming the fix, never
+a traceback (``idr-eval`` exits 2 for a ConfigError, 1 for a RunError).
+"""
+
+from __future__ import annotations
+
+import errno
+
+_NO_SPACE = {errno.ENOSPC, errno.EDQUOT}
+
+
+class RunError(RuntimeError):
+    """The run stopped on a fault; the message says what happened and how to go on."""
+
+
+class DiskFullError(RunError):
+    """No space left where the run writes; what was stored before is intact."""
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """ENOSPC / EDQUOT, also when it comes from pyarrow (which may not set errno)."""
+    if not isinstance(exc, OSError):
+        return False
+    return exc.errno in _NO_SPACE or "No space left on device" in str(exc)

@@ -1,0 +1,108 @@
+"""Fault 1, hung episodes: cut off at executor.episode_timeout_s, worker replaced, retried or
+recorded as a timeout error row; the run finishes."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+from fault_audit import assert_clean, audit
+
+from pipeline.config import load_config
+from pipeline.runner import plan_run
+from pipeline.scheduler import Scheduler
+from pipeline.store import RunStore
+from pipeline.timeouts import EpisodeTimeout, alarm
+from workers.backbones.fakes import FakeMarkerBackbone
+
+CONF = Path(__file__).resolve().parents[2] / "conf"
+GUARANTEE = (
+    "cut off after executor.episode_timeout_s, its worker replaced; retried, or stored as a "
+    "timeout error row after max_attempts; the run finishes"
+)
+
+
+def _run(tmp_path: Path, *overrides: str):
+    cfg = load_config(CONF / "smoke.yaml", ["tracking.enabled=false", *overrides])
+    plan = plan_run(cfg, tmp_path / "run")
+    t0 = time.monotonic()
+    summary = Scheduler(plan.worker_spec, plan.specs, RunStore(plan.run_dir), cfg.executor).run()
+    return plan, summary, time.monotonic() - t0
+
+
+def test_alarm_interrupts_a_hung_backbone_call() -> None:
+    backbone = FakeMarkerBackbone(hang_from_call=0)
+    t0 = time.monotonic()
+    with pytest.raises(EpisodeTimeout), alarm(0.3):
+        backbone.predict_chunk(SimpleNamespace(batch_size=1))  # never returns
+    assert time.monotonic() - t0 < 5
+
+
+@pytest.mark.parametrize(
+    ("where", "overrides", "timeouts"),
+    [
+        # the env's reset of episode 2 never returns, in every attempt: 2 keys x 2 attempts
+        ("env", ["env.tasks=[reach]", "env.params.hang_on=[2]"], 4),
+        # the backbone's first call never returns: the one episode of the run
+        (
+            "backbone",
+            [
+                "env.tasks=[reach]",
+                "episodes_per_task=1",
+                "grid=[{mode: [baseline]}]",
+                "backbone.params.hang_from_call=0",
+            ],
+            2,
+        ),
+    ],
+)
+def test_inline_hang_is_cut_off_and_recorded(tmp_path, fault_log, where, overrides, timeouts):
+    plan, summary, wall = _run(
+        tmp_path,
+        "executor.kind=inline",
+        "executor.episode_timeout_s=1",
+        "executor.max_attempts=2",
+        *overrides,
+    )
+    outcome = audit(plan.run_dir, {s.key for s in plan.all_specs()})
+    assert_clean(outcome)
+    eps = RunStore(plan.run_dir).episodes().to_pandas()
+    hung = eps[eps.error.notna()]
+    assert len(hung) == timeouts // 2 and (hung.attempt == 2).all()
+    assert hung.error.str.contains("executor.episode_timeout_s=1").all()
+    assert eps[eps.error.isna()].success.notna().all()
+    assert summary.timeouts == timeouts and summary.actors_replaced == timeouts
+    assert wall < 60
+    fault_log.record(
+        f"hung episode ({where}, inline)",
+        f"fake {where} call that never returns; episode_timeout_s=1, SIGALRM",
+        GUARANTEE,
+        {**outcome, "timeouts": summary.timeouts, "workers_replaced": summary.actors_replaced},
+    )
+
+
+@pytest.mark.slow
+def test_ray_hang_is_cut_off_and_retried(tmp_path, ray_local, fault_log) -> None:
+    plan, summary, wall = _run(
+        tmp_path,
+        "executor.kind=ray",
+        "executor.episode_timeout_s=4",
+        "executor.max_attempts=2",
+        "env.tasks=[reach]",
+        f"env.params={{hang_on: [1], once_dir: {tmp_path / 'once'}}}",
+    )
+    outcome = audit(plan.run_dir, {s.key for s in plan.all_specs()})
+    assert_clean(outcome)
+    eps = RunStore(plan.run_dir).episodes().to_pandas()
+    assert eps.error.isna().all()  # the hung episode was re-run on a fresh actor
+    assert sorted(eps.attempt) == [1, 1, 1, 1, 1, 2]
+    assert summary.timeouts == 1 and summary.actors_replaced == 1
+    assert wall < 120
+    fault_log.record(
+        "hung episode (env, ray)",
+        "fake env reset that never returns (once); episode_timeout_s=4",
+        GUARANTEE,
+        {**outcome, "timeouts": summary.timeouts, "actors_replaced": summary.actors_replaced},
+    )
