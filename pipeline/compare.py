@@ -62,7 +62,7 @@ def load_runs(run_dirs: list[str | Path]) -> list[RunEpisodes]:
         seen.add(p.resolve())
     runs = []
     for label, p in zip(_labels(paths), paths, strict=True):
-        eps = RunStore(p).episodes().to_pandas()
+        eps = RunStore(p, read_only=True).episodes().to_pandas()
         if eps.empty:
             raise ConfigError(f"compare: {p} has no episodes stored yet")
         runs.append(RunEpisodes(label, p, eps))

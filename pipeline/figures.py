@@ -115,7 +115,7 @@ def runs_effects(run_dirs: list[Path]) -> pd.DataFrame:
 
 
 def load_run(run_dir: str | Path) -> RunData:
-    store = RunStore(run_dir)
+    store = RunStore(run_dir, read_only=True)
     episodes = store.episodes().to_pandas()
     cols = [*KEY, "step", "e_img", "e_prop", "r_img", "gate", "gripper", "action_final"]
     table = store.steps().select(cols)

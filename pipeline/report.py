@@ -104,7 +104,7 @@ def build_report(
 ) -> str:
     """The report text; ``figures``: what ``write_figures`` returned (or why it failed)."""
     run_dir = Path(run_dir)
-    episodes = RunStore(run_dir).episodes().to_pandas()
+    episodes = RunStore(run_dir, read_only=True).episodes().to_pandas()
     parts = [f"# IDR evaluation report: `{run_dir.name}`", ""]
     if episodes.empty:
         return "\n".join([*parts, "No episodes stored yet."]) + "\n"
@@ -221,7 +221,7 @@ def write_report(run_dir: str | Path, figures: bool = True) -> Path:
     """Write RUN_DIR/report.md (and, with ``figures``, RUN_DIR/figures/*.png)."""
     run_dir = Path(run_dir)
     drawn: tuple[dict[str, Path], dict[str, str]] | str | None = None
-    if figures and RunStore(run_dir).episodes().num_rows:
+    if figures and RunStore(run_dir, read_only=True).episodes().num_rows:
         try:
             from pipeline.figures import write_figures
 

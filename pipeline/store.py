@@ -115,12 +115,18 @@ def rows_to_table(rows: list[dict[str, Any]], schema: pa.Schema) -> pa.Table:
 class RunStore:
     """Parquet tables of one run directory."""
 
-    def __init__(self, run_dir: str | Path) -> None:
+    def __init__(self, run_dir: str | Path, read_only: bool = False) -> None:
+        """``read_only``: for readers (report, compare, figures) that may open a run directory
+        while its driver is still writing: no crash recovery (which would delete a steps batch
+        whose episodes batch is being renamed into place) and only complete batches are read."""
         self.run_dir = Path(run_dir)
         self.episodes_dir = self.run_dir / "episodes"
         self.steps_dir = self.run_dir / "steps"
+        self.read_only = read_only
         self._seq = 0
         self.rows_written = 0
+        if read_only:
+            return
         for d in (self.episodes_dir, self.steps_dir):
             d.mkdir(parents=True, exist_ok=True)
         self._recover()
@@ -160,6 +166,8 @@ class RunStore:
 
     def write(self, results: Iterable[EpisodeResult]) -> int:
         """Write finished episodes (one batch per cell). Returns the number of episodes written."""
+        if self.read_only:
+            raise RuntimeError(f"RunStore({self.run_dir}) was opened read-only")
         by_cell: dict[str, list[EpisodeResult]] = defaultdict(list)
         for r in results:
             by_cell[r.episode["cell_id"]].append(r)
@@ -191,6 +199,8 @@ class RunStore:
     # -- reading -------------------------------------------------------------------------------
     def _read(self, root: Path, schema: pa.Schema) -> pa.Table:
         files = sorted(root.glob("cell=*/batch-*.parquet"))
+        if self.read_only and root == self.steps_dir:  # a batch counts once its episodes landed
+            files = [f for f in files if (self.episodes_dir / f.relative_to(root)).is_file()]
         if not files:
             return schema.empty_table()
         return pa.concat_tables([pq.read_table(f, schema=schema) for f in files])

@@ -79,3 +79,20 @@ def test_recovery_removes_orphans_and_temp_files(tmp_path) -> None:
     # the next batch number continues after the existing ones
     reopened.write([_result("E", "t", 1)])
     assert len(list((tmp_path / "episodes" / "cell=E").glob("batch-000002-*.parquet"))) == 1
+
+
+def test_read_only_reader_of_a_live_run_leaves_in_flight_batches_alone(tmp_path) -> None:
+    """report/compare/figures may open a run its driver is writing: a steps batch whose
+    episodes batch is not renamed in yet must be neither deleted nor counted."""
+    store = RunStore(tmp_path)
+    store.write([_result("E", "t", 0)])
+    (done,) = (tmp_path / "steps").rglob("*.parquet")
+    in_flight = done.with_name("batch-000002-cafe.parquet")
+    in_flight.write_bytes(done.read_bytes())  # steps landed, episodes about to
+    reader = RunStore(tmp_path, read_only=True)
+    assert in_flight.is_file()
+    assert reader.steps().num_rows == 2 and reader.episodes().num_rows == 1
+    with pytest.raises(RuntimeError, match="read-only"):
+        reader.write([_result("E", "t", 1)])
+    assert RunStore(tmp_path / "absent", read_only=True).episodes().num_rows == 0
+    assert not (tmp_path / "absent").exists()
