@@ -165,8 +165,10 @@ def main() -> None:
         "logging_share_of_episode_time": (store_s + mlflow_s) / episode_seconds,
         "note": "inline, one process, torch 1 thread; shares are of the summed episode time",
     }
-    if args.run_dir is not None:
+    if args.run_dir is not None and (args.run_dir / "episodes").is_dir():
         out["run"] = run_dir_throughput(args.run_dir)
+    elif args.run_dir is not None:
+        out["run"] = {"run_dir": str(args.run_dir), "missing": "no episodes: run `make run` first"}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=2) + "\n")
     print(json.dumps(out, indent=2))
