@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import argparse
 import shutil
+import signal
+import threading
 import time
 from pathlib import Path
 
@@ -88,10 +90,23 @@ def record(
         driver = LerobotBackbone(path=str(policy), device="cpu")
     rng = np.random.default_rng([seed, first_episode])
     stats: dict[str, dict[str, float]] = {}
+    # SIGINT / SIGTERM stop after the episode in progress and still finalize the dataset (some
+    # library in the stack swallows KeyboardInterrupt, and an unfinalized dataset is unreadable)
+    stop: list[int] = []
+    previous = (
+        {
+            sig: signal.signal(sig, lambda signum, _frame: stop.append(signum))
+            for sig in (signal.SIGINT, signal.SIGTERM)
+        }
+        if threading.current_thread() is threading.main_thread()
+        else {}
+    )
     try:
         for task in tasks:
+            if stop:
+                break
             kept, tried, frames, t0 = 0, 0, 0, time.perf_counter()
-            while kept < episodes:
+            while kept < episodes and not stop:
                 obs = env.reset(task, first_episode + tried, seed)
                 tried += 1
                 buffer, queue = [], []
@@ -134,8 +149,12 @@ def record(
                 flush=True,
             )
     finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         env.close()
         ds.finalize()
+    if stop:
+        print(f"stopped by signal {stop[0]}: {stats}", flush=True)
     return stats
 
 

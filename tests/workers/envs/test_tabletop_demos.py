@@ -58,3 +58,33 @@ def test_dart_noise_and_dagger_driver_keep_expert_labels(tmp_path) -> None:
     labels = np.stack([ds[i]["action"].numpy() for i in range(ds.num_frames)])
     assert ds.num_frames == stats["pick_color"]["frames"] > 20
     assert np.abs(labels[:, :3]).max() <= 1.0 and set(np.unique(labels[:, 6])) <= {-1.0, 1.0}
+
+
+def test_sigint_stops_after_the_episode_and_leaves_a_readable_dataset(tmp_path) -> None:
+    import json
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    root = tmp_path / "demos"
+    cmd = [sys.executable, "-m", "workers.envs.tabletop_demos", "--root", str(root)]
+    proc = subprocess.Popen(
+        [*cmd, "--episodes", "50", "--tasks", "pick_color", "--image-size", "32"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    info = root / "meta" / "info.json"
+    deadline = time.monotonic() + 240
+    while not (info.is_file() and json.loads(info.read_text())["total_episodes"] >= 1):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.stdout.read()
+        time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    out, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 0 and "stopped by signal 2" in out, out
+    ds = LeRobotDataset("local/tabletop_demos", root=root)
+    assert 1 <= ds.num_episodes < 50
+    assert ds[ds.num_frames - 1]["observation.state"].shape == (8,)
