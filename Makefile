@@ -24,8 +24,10 @@ lint: setup
 bench: setup
 	$(VENV)/bin/python benchmarks/bench_idr_passes.py
 	$(VENV)/bin/python benchmarks/bench_engine.py
+	$(VENV)/bin/python benchmarks/bench_cluster.py
 	$(VENV)/bin/python benchmarks/bench_tabletop_env.py
 	$(VENV)/bin/python benchmarks/bench_libero_env.py
+	$(VENV)/bin/python benchmarks/bench_default_run.py --run-dir $(RUN_DIR)
 	$(VENV)/bin/python benchmarks/fault_report.py
 
 clean:

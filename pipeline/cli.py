@@ -83,10 +83,7 @@ def _cmd_ui(args: argparse.Namespace) -> int:
     else:
         uri = default_uri(Path("runs") / "_")
     if not uri.startswith("sqlite:"):
-        print(
-            f"{uri} is a tracking server: open it in a browser (through an SSH tunnel if it is remote, "
-            f"e.g. ssh -L 5000:localhost:5000 HEAD_NODE) instead of starting a local UI."
-        )
+        print(_remote_ui_help(uri))
         return 0
     cmd = [
         sys.executable,
@@ -108,6 +105,23 @@ def _cmd_ui(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     return subprocess.call(cmd)
+
+
+def _remote_ui_help(uri: str) -> str:
+    """How to open the UI of a tracking server (it serves its own UI; nothing to start here)."""
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(uri)
+    host, port = parts.hostname or "SERVER", parts.port or (443 if parts.scheme == "https" else 80)
+    if host in LOCAL_HOSTS:
+        return f"{uri} is a tracking server on this machine: open {uri} in a browser."
+    return (
+        f"{uri} is a tracking server: it serves its own UI, nothing to start here. Open {uri} in "
+        "a browser if it is reachable from here; otherwise (it listens on a cluster's private "
+        f"network) tunnel to it and open http://127.0.0.1:{port}:\n"
+        f"  ssh -N -L {port}:{host}:{port} USER@HEAD_NODE        # a VM cluster (ray up)\n"
+        f"  kubectl port-forward svc/{host.split('.')[0]} {port}:{port}   # Kubernetes (KubeRay)"
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:

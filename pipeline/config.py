@@ -72,6 +72,62 @@ class ExecutorConfig(_Model):
         description="wall-clock limit per episode: a hung episode's actor is replaced and the "
         "episode retried (inline: SIGALRM, main thread only); None: no limit",
     )
+    # -- placement on a cluster (pipeline.cluster checks it against the nodes before any work)
+    actors_per_gpu: int | None = Field(
+        default=None,
+        ge=1,
+        description="actors sharing one GPU: each asks for 1/n of a GPU (instead of "
+        "gpus_per_worker); None: gpus_per_worker decides",
+    )
+    resources: dict[str, float] = Field(
+        default_factory=dict,
+        description="custom Ray resources per actor, e.g. {node_type_gpu: 0.01} to pin actors "
+        "to nodes started with --resources (a local run declares them on its one node)",
+    )
+    placement: Literal["default", "spread"] = Field(
+        default="default",
+        description="spread: actors on as many nodes as possible (Ray's SPREAD strategy); "
+        "default: Ray's (fill a node, then the next)",
+    )
+    autoscaling: bool = Field(
+        default=False,
+        description="the cluster adds nodes on demand (Ray autoscaler, KubeRay): do not refuse "
+        "a run that the nodes up now cannot hold",
+    )
+
+    @field_validator("resources")
+    @classmethod
+    def _custom_resources(cls, v: dict[str, float]) -> dict[str, float]:
+        for name, amount in v.items():
+            if name in ("CPU", "GPU", "memory", "object_store_memory"):
+                raise ValueError(
+                    f"{name!r} is not a custom resource: use cpus_per_worker / gpus_per_worker / "
+                    "actors_per_gpu"
+                )
+            if not (amount > 0 and amount == amount and amount != float("inf")):
+                raise ValueError(f"resources.{name}: must be a finite number > 0 (got {amount})")
+        return v
+
+    @model_validator(mode="after")
+    def _one_gpu_setting(self) -> ExecutorConfig:
+        if self.actors_per_gpu is not None and self.gpus_per_worker not in (
+            0,
+            1 / self.actors_per_gpu,
+        ):
+            raise ValueError(
+                f"actors_per_gpu={self.actors_per_gpu} and gpus_per_worker="
+                f"{self.gpus_per_worker:g} disagree: set one of them"
+            )
+        return self
+
+    @property
+    def gpu_share(self) -> float:
+        """GPUs asked for by one actor (fractional when actors share a GPU)."""
+        return 1 / self.actors_per_gpu if self.actors_per_gpu else self.gpus_per_worker
+
+    def actor_demand(self) -> dict[str, float]:
+        """What one actor asks the cluster for, as Ray resource names."""
+        return {"CPU": self.cpus_per_worker, "GPU": self.gpu_share, **self.resources}
 
 
 class TrackingConfig(_Model):
@@ -80,6 +136,13 @@ class TrackingConfig(_Model):
         default=None, description="MLflow URI; None = sqlite in the output root"
     )
     experiment: str = "idr-eval"
+    reconnect_wait_s: float = Field(
+        default=60.0,
+        ge=0,
+        description="a tracking server that goes down mid-run: at the end of the run, wait this "
+        "long for it to come back before leaving MLflow to a rerun (the Parquet files are "
+        "written either way)",
+    )
 
 
 class RunConfig(_Model):

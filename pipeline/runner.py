@@ -20,7 +20,7 @@ from pipeline.config import ConfigError, RunConfig, dump_config
 from pipeline.errors import DiskFullError
 from pipeline.paths import check_run_dir
 from pipeline.report import FIGURES_DIR, write_report
-from pipeline.scheduler import RunSummary, Scheduler, init_ray
+from pipeline.scheduler import RunSummary, Scheduler
 from pipeline.signals import critical_section
 from pipeline.store import RunStore
 from workers.backbones.factory import check_backbone
@@ -203,14 +203,25 @@ def execute(plan: RunPlan) -> RunSummary:
     """Run the plan: schedule the episodes not yet stored, write the report, track in MLflow."""
     from pipeline.tracking import Tracker, resolve_uri
 
-    _write_meta(plan)
     cfg = plan.cfg
+    if cfg.executor.kind == "ray":
+        # before anything is written: an unreachable cluster, or one that cannot hold the
+        # actors (too few GPUs, a custom resource no node has), is one clear error
+        from pipeline.cluster import connect
+
+        connect(cfg.executor)
+    _write_meta(plan)
     store = RunStore(plan.run_dir)
     tracker = None
     if cfg.tracking.enabled:  # opened before any actor starts: a bad store is refused up front
         uri = resolve_uri(cfg.tracking.uri, plan.run_dir)
         try:
-            tracker = Tracker(uri, cfg.tracking.experiment, plan.run_dir)
+            tracker = Tracker(
+                uri,
+                cfg.tracking.experiment,
+                plan.run_dir,
+                reconnect_wait_s=cfg.tracking.reconnect_wait_s,
+            )
         except RuntimeError as e:
             raise ConfigError(
                 f"tracking.uri: {e}; fix the URI or set tracking.enabled=false"
@@ -219,9 +230,6 @@ def execute(plan: RunPlan) -> RunSummary:
         tracker.start(
             run_name=run_name, run_id=plan.run_id, params=run_params(plan), cells=cfg.cells()
         )
-    if cfg.executor.kind == "ray":
-        ex = cfg.executor
-        init_ray(ex.address, None if ex.address else ex.workers * ex.cpus_per_worker)
     total = len(plan.all_specs())
     on_flush = (lambda batch: tracker.progress(len(batch), total)) if tracker else None
 

@@ -33,6 +33,9 @@ from workers.episode import EpisodeResult, EpisodeSpec, WorkerSpec
 
 log = logging.getLogger("idr_eval.scheduler")
 STARTUP_TIMEOUT_S = 600  # an actor that has not loaded by then is taken as never starting
+# a replacement that has not started by then (its node lost, no capacity left) hands its
+# queued episode to a started actor; it still gets work if it starts later
+REQUEUE_AFTER_S = 30.0
 
 
 @dataclass
@@ -241,7 +244,9 @@ class Scheduler:
 
         from workers.actor import remote_worker_class
 
-        cls = remote_worker_class(self.ex.cpus_per_worker, self.ex.gpus_per_worker)
+        cls = remote_worker_class(
+            self.ex.cpus_per_worker, self.ex.gpu_share, self.ex.resources, self.ex.placement
+        )
         actors: dict[int, Any] = {}
         self.actors = actors  # live view, for tests and diagnostics
         # replacements still loading (ping ref, since when): their episode's clock waits
@@ -285,7 +290,7 @@ class Scheduler:
                     raise RuntimeError(
                         f"actors did not start within {STARTUP_TIMEOUT_S} s: the cluster lacks the "
                         f"resources asked for ({self.ex.cpus_per_worker} CPU, "
-                        f"{self.ex.gpus_per_worker} GPU per worker)"
+                        f"{self.ex.gpu_share:g} GPU per worker)"
                     ) from None
                 except (RayActorError, WorkerCrashedError) as exc:
                     # an actor that dies while loading (OOM, a crashing simulator) is replaced
@@ -306,7 +311,7 @@ class Scheduler:
         start: Callable[..., int],
     ) -> None:
         import ray
-        from ray.exceptions import RayActorError, WorkerCrashedError
+        from ray.exceptions import NodeDiedError, RayActorError, WorkerCrashedError
 
         # One episode per actor at a time: when an actor dies, the episode it was running is
         # the only one charged an attempt (queued calls would die with it, innocent). Episodes
@@ -326,7 +331,12 @@ class Scheduler:
                 self.summary.actors_replaced += 1
 
         while self.pending or in_flight or (not in_flight and self._take_deferred()):
+            # A replacement still loading gets work only while no started actor is left: after
+            # a node is lost, its replacement may wait for capacity that never comes back.
+            started = any(a not in starting for a in load)
             for aid in sorted(load, key=load.get):
+                if started and aid in starting:
+                    continue
                 if self.pending and load[aid] == 0 and len(in_flight) < cap:
                     spec = self.pending.popleft()
                     ref = actors[aid].run_episode.remote(spec)
@@ -341,7 +351,7 @@ class Scheduler:
                     load[aid] -= 1
                 try:
                     result = ray.get(ref)
-                except (RayActorError, WorkerCrashedError) as exc:
+                except (RayActorError, WorkerCrashedError, NodeDiedError) as exc:
                     reason = f"{type(exc).__name__}: actor died during the episode"
                     log.warning("actor %d died under %s: replacing it", aid, spec.key)
                     replace(aid)
@@ -351,7 +361,7 @@ class Scheduler:
                 if result.unhealthy:
                     log.warning("actor %d ran out of memory under %s: replacing it", aid, spec.key)
                     replace(aid)
-            self._watch_starting(starting, in_flight, clock)
+            self._watch_starting(starting, in_flight, clock, load)
             if limit:
                 now = time.monotonic()
                 for ref, (aid, spec) in list(in_flight.items()):
@@ -369,8 +379,10 @@ class Scheduler:
         starting: dict[int, tuple[Any, float]],
         in_flight: dict[Any, tuple[int, EpisodeSpec]],
         clock: dict[Any, float | None],
+        load: dict[int, int] | None = None,
     ) -> None:
-        """Start the episode clock of replacement actors that finished loading."""
+        """Start the episode clock of replacement actors that finished loading; hand the
+        episodes of one that waits for capacity (a lost node) to the started actors."""
         if not starting:
             return
         import ray
@@ -384,16 +396,40 @@ class Scheduler:
             for ref, (a, _) in in_flight.items():
                 if a == aid and clock.get(ref) is None:
                     clock[ref] = now
-        for _, since in starting.values():
-            if now - since > STARTUP_TIMEOUT_S:
+        started = load is not None and any(a not in starting for a in load)
+        for aid, (_, since) in starting.items():
+            held = [ref for ref, (a, _) in in_flight.items() if a == aid]
+            if started and held and now - since > REQUEUE_AFTER_S:
+                log.warning(
+                    "replacement actor %d has waited %.0f s for resources (a node lost?): its "
+                    "episode goes to a started actor",
+                    aid,
+                    now - since,
+                )
+                for ref in held:  # not charged an attempt: it never began
+                    _, spec = in_flight.pop(ref)
+                    clock.pop(ref, None)
+                    load[aid] -= 1
+                    self.pending.appendleft(spec)
+                    try:
+                        ray.cancel(ref)
+                    except Exception as exc:
+                        log.debug("could not cancel a queued episode: %s", exc)
+            elif held and now - since > STARTUP_TIMEOUT_S:
                 raise RuntimeError(
                     f"a replacement actor did not start within {STARTUP_TIMEOUT_S} s "
-                    f"({self.ex.cpus_per_worker} CPU, {self.ex.gpus_per_worker} GPU per worker)"
+                    f"({self.ex.cpus_per_worker} CPU, {self.ex.gpu_share:g} GPU per worker)"
                 )
 
 
-def init_ray(address: str | None, num_cpus: float | None, num_gpus: float | None = None) -> None:
-    """Connect to a cluster (``address``) or start a local one with ``num_cpus``."""
+def init_ray(
+    address: str | None,
+    num_cpus: float | None,
+    num_gpus: float | None = None,
+    resources: dict[str, float] | None = None,
+) -> None:
+    """Connect to a cluster (``address``) or start a local one with ``num_cpus`` (and custom
+    ``resources``). ``pipeline.cluster.connect`` probes the address and checks capacity first."""
     import ray
 
     if ray.is_initialized():
@@ -404,5 +440,11 @@ def init_ray(address: str | None, num_cpus: float | None, num_gpus: float | None
     if address:
         ray.init(address=address, log_to_driver=True)
     else:
-        ray.init(num_cpus=num_cpus, num_gpus=num_gpus, include_dashboard=False, log_to_driver=True)
+        ray.init(
+            num_cpus=num_cpus,
+            num_gpus=num_gpus,
+            resources=resources,
+            include_dashboard=False,
+            log_to_driver=True,
+        )
     signals.reinstall()  # ray.init replaced our SIGTERM handler with one that aborts

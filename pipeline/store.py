@@ -64,6 +64,7 @@ EPISODE_SCHEMA = pa.schema(
         ("error", pa.string()),
         ("attempt", pa.int64()),
         ("worker", pa.string()),
+        ("node", pa.string()),  # HOSTNAME/RAY_NODE_ID of the actor (inline: the hostname)
         ("render_backend", pa.string()),
         ("crn", pa.bool_()),
         ("started_at", pa.string()),

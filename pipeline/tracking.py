@@ -20,7 +20,9 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +32,12 @@ from pipeline import aggregate as agg
 
 log = logging.getLogger("idr_eval.tracking")
 TRACKING_FILE = "tracking.json"
+RECHECK_S = 2.0  # how often a tracking server that went down is asked whether it is back
+HTTP_RETRY_DEFAULTS = {  # for a tracking server (the user's own settings win)
+    "MLFLOW_HTTP_REQUEST_MAX_RETRIES": "2",
+    "MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR": "1",
+    "MLFLOW_HTTP_REQUEST_TIMEOUT": "30",
+}
 
 
 def default_uri(run_dir: Path) -> str:
@@ -65,15 +73,43 @@ def probe(uri: str, timeout: float = 5.0) -> None:
         ) from None
 
 
-class Tracker:
-    """Parent + child MLflow runs of one RUN_DIR, created or resumed."""
+def _answers(uri: str) -> bool:
+    try:
+        probe(uri, timeout=2.0)
+    except RuntimeError:
+        return False
+    return True
 
-    def __init__(self, uri: str, experiment: str, run_dir: Path) -> None:
+
+class Tracker:
+    """Parent + child MLflow runs of one RUN_DIR, created or resumed.
+
+    A tracking server that goes down mid-run does not stop the run: what would be logged is
+    held back (the episodes keep going to Parquet), sent when the server answers again, and at
+    the end of a finished run the tracker waits up to ``reconnect_wait_s`` for it; if it is
+    still down, it says so, and rerunning the same command (nothing is re-run) completes the
+    MLflow runs. A server that is down at the start is refused before any work (:func:`probe`).
+    """
+
+    def __init__(
+        self, uri: str, experiment: str, run_dir: Path, reconnect_wait_s: float = 60.0
+    ) -> None:
         from mlflow import MlflowClient
 
         probe(uri)
         self.uri = uri
         self.run_dir = run_dir
+        self.reconnect_wait_s = reconnect_wait_s
+        self._server = uri.startswith(("http://", "https://"))
+        if self._server:
+            # MLflow retries a failed request for minutes by default (7 tries, backoff x2); a
+            # server that went down is noticed by probe() and caught up with later instead
+            for key, value in HTTP_RETRY_DEFAULTS.items():
+                os.environ.setdefault(key, value)
+        self._pending: list[Callable[[], None]] = []  # held back while the server is down
+        self._down_since: float | None = None
+        self._next_probe = 0.0
+        self.offline_seconds = 0.0  # how long the server was down during this run
         self.client = MlflowClient(tracking_uri=uri)
         try:
             exp = self.client.get_experiment_by_name(experiment)
@@ -164,6 +200,9 @@ class Tracker:
 
     def log_calibration(self, result: dict[str, Any]) -> None:
         """The calibrated tau on the parent and on every child that uses it."""
+        self._call(lambda: self._log_calibration(result))
+
+    def _log_calibration(self, result: dict[str, Any]) -> None:
         self._log_params(
             self.parent_id, {"tau_calibrated": result["tau"], "tau_source": result["source_cell"]}
         )
@@ -183,15 +222,98 @@ class Tracker:
             value = ", ".join(f"{suite}={tau:.4g}" for suite, tau in c["tau"].items())
             self.client.set_tag(rid, "idr.tau_value", value)
 
+    # -- a tracking server that goes down mid-run --------------------------------------------
+    @property
+    def online(self) -> bool:
+        """False while the tracking server is down (asked again at most every RECHECK_S)."""
+        if self._down_since is None:
+            return True
+        now = time.monotonic()
+        if now < self._next_probe:
+            return False
+        self._next_probe = now + RECHECK_S
+        if not _answers(self.uri):
+            return False
+        down = now - self._down_since
+        self.offline_seconds += down
+        self._down_since = None
+        log.warning(
+            "MLflow tracking server %s answers again after %.0f s down: sending the %d "
+            "update(s) held back",
+            self.uri,
+            down,
+            len(self._pending),
+        )
+        return True
+
+    def _went_down(self, exc: BaseException) -> None:
+        self._next_probe = time.monotonic() + RECHECK_S
+        if self._down_since is None:
+            self._down_since = time.monotonic()
+            log.warning(
+                "MLflow tracking server %s is down (%s: %s): the run goes on and the episodes "
+                "keep going to Parquet; MLflow is updated when the server is back, or at the end",
+                self.uri,
+                type(exc).__name__,
+                str(exc).splitlines()[0][:200] if str(exc) else "",
+            )
+
+    def _flush_pending(self) -> bool:
+        """Send what was held back; False (and kept) while the server is down."""
+        if not self.online:
+            return False
+        while self._pending:
+            try:
+                self._pending[0]()
+            except Exception as exc:
+                if not self._server or _answers(self.uri):
+                    raise  # not an outage: a real error
+                self._went_down(exc)
+                return False
+            self._pending.pop(0)
+        return True
+
+    def _call(self, fn: Callable[[], None]) -> bool:
+        self._pending.append(fn)
+        return self._flush_pending()
+
     def progress(self, n_new: int, total: int) -> None:
         self._done += n_new
         if self.parent_id:
-            self._log_metrics(self.parent_id, {"episodes_stored": self._done}, step=self._done)
+            parent, done = self.parent_id, self._done
+            self._call(lambda: self._log_metrics(parent, {"episodes_stored": done}, step=done))
 
     def finish(
         self, episodes: pd.DataFrame, artifacts: list[Path], status: str = "FINISHED"
-    ) -> None:
-        """Log the per-cell metrics and the artifacts, and end the runs with ``status``."""
+    ) -> bool:
+        """Log the per-cell metrics and the artifacts, and end the runs with ``status``.
+
+        Returns False when the tracking server is down and stayed down (for up to
+        ``reconnect_wait_s`` after a finished run): MLflow is then left to a rerun."""
+        if self._call(lambda: self._finish(episodes, artifacts, status)):
+            return True
+        wait = self.reconnect_wait_s if status == "FINISHED" else 0.0
+        if wait > 0:
+            log.warning(
+                "waiting up to %g s for the MLflow tracking server %s to come back", wait, self.uri
+            )
+        deadline = time.monotonic() + wait
+        while time.monotonic() < deadline:
+            time.sleep(min(RECHECK_S, max(deadline - time.monotonic(), 0.0)))
+            self._next_probe = 0.0
+            if self._flush_pending():
+                return True
+        log.error(
+            "MLflow was not updated: the tracking server %s is down. The results are complete "
+            "in %s; run the same `idr-eval run` command again once the server is back: nothing "
+            "is re-run, and the MLflow runs get their metrics and artifacts and end as %s",
+            self.uri,
+            self.run_dir,
+            status,
+        )
+        return False
+
+    def _finish(self, episodes: pd.DataFrame, artifacts: list[Path], status: str) -> None:
         if not episodes.empty:
             for cell_id, metrics in cell_metrics(episodes).items():
                 if cell_id in self.children:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import socket
+import sys
 import time
 import traceback
 import zlib
@@ -65,6 +66,7 @@ class EpisodeWorker:
         self.policy = IDRPolicy(self.backbone, batched=spec.batched)
         self.tasks = {t.task_id: t for t in self.env.tasks()}
         self.worker_id = f"{socket.gethostname()}:{os.getpid()}"
+        self.node = current_node()
 
     def ping(self) -> str:
         return self.worker_id
@@ -107,6 +109,7 @@ class EpisodeWorker:
             "e_prop_mean": None,
             "r_img_mean": None,
             "worker": self.worker_id,
+            "node": self.node,
             "render_backend": self.render_backend,
             "crn": None,
         }
@@ -206,8 +209,36 @@ class EpisodeWorker:
             env.close()
 
 
-def remote_worker_class(num_cpus: float, num_gpus: float) -> Any:
-    """The Ray actor class wrapping EpisodeWorker (Ray imported here, lazily)."""
+def remote_worker_class(
+    num_cpus: float,
+    num_gpus: float,
+    resources: dict[str, float] | None = None,
+    placement: str = "default",
+) -> Any:
+    """The Ray actor class wrapping EpisodeWorker (Ray imported here, lazily): ``num_gpus`` may
+    be a fraction (actors sharing a GPU), ``resources`` custom Ray resources per actor,
+    ``placement`` ``spread`` for Ray's SPREAD scheduling strategy."""
     import ray
 
-    return ray.remote(num_cpus=num_cpus, num_gpus=num_gpus, max_restarts=0)(EpisodeWorker)
+    return ray.remote(
+        num_cpus=num_cpus,
+        num_gpus=num_gpus,
+        resources=dict(resources) if resources else None,
+        scheduling_strategy="SPREAD" if placement == "spread" else "DEFAULT",
+        max_restarts=0,
+    )(EpisodeWorker)
+
+
+def current_node() -> str:
+    """Where this worker runs: ``HOSTNAME/RAY_NODE_ID`` inside a Ray actor (several nodes can
+    share a host), the hostname elsewhere (the inline executor)."""
+    host = socket.gethostname()
+    ray = sys.modules.get("ray")
+    if ray is not None and ray.is_initialized():
+        try:
+            ctx = ray.get_runtime_context()
+            if ctx.get_actor_id() is not None:
+                return f"{host}/{ctx.get_node_id()}"
+        except Exception:  # an old or partial Ray: the hostname still says where
+            pass
+    return host

@@ -18,7 +18,15 @@ from pipeline.scheduler import Scheduler
 from pipeline.store import RunStore
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
-VOLATILE = ["wall_seconds", "inference_ms_mean", "worker", "started_at", "finished_at", "run_id"]
+VOLATILE = [
+    "wall_seconds",
+    "inference_ms_mean",
+    "worker",
+    "node",
+    "started_at",
+    "finished_at",
+    "run_id",
+]
 GUARANTEE = (
     "the step is not sent to the simulator; the episode ends as an error row naming the cause; "
     "every other episode is unaffected"

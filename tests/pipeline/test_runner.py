@@ -12,7 +12,15 @@ from pipeline.runner import execute, plan_run
 from pipeline.store import RunStore
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
-VOLATILE = ["wall_seconds", "inference_ms_mean", "worker", "started_at", "finished_at", "run_id"]
+VOLATILE = [
+    "wall_seconds",
+    "inference_ms_mean",
+    "worker",
+    "node",
+    "started_at",
+    "finished_at",
+    "run_id",
+]
 
 
 def _episodes(run_dir: Path) -> pd.DataFrame:

@@ -1,0 +1,176 @@
+"""Placement on a cluster: resources per actor from config, checked against the nodes before
+any work; a cluster address that does not answer is one clear error within seconds."""
+
+from __future__ import annotations
+
+import socket
+import time
+from pathlib import Path
+
+import pytest
+
+from pipeline import cli
+from pipeline.cluster import check_capacity, probe_address
+from pipeline.config import ConfigError, ExecutorConfig, load_config
+from workers.actor import EpisodeWorker, current_node, remote_worker_class
+
+CONF = Path(__file__).resolve().parents[2] / "conf"
+
+
+def _closed_port() -> int:
+    with socket.socket() as s:  # bound, then closed: nobody listens there
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _node(cpu: float, gpu: float = 0, **custom: float) -> dict[str, float]:
+    return {"CPU": cpu, "GPU": gpu, "memory": 8e9, **custom}
+
+
+def test_gpu_share_and_custom_resources_from_config() -> None:
+    cfg = load_config(
+        CONF / "smoke.yaml",
+        [
+            "executor.actors_per_gpu=4",
+            "executor.cpus_per_worker=2",
+            "executor.resources={node_type_gpu: 0.01}",
+            "executor.placement=spread",
+        ],
+    )
+    ex = cfg.executor
+    assert ex.gpu_share == 0.25
+    assert ex.actor_demand() == {"CPU": 2, "GPU": 0.25, "node_type_gpu": 0.01}
+    opts = remote_worker_class(ex.cpus_per_worker, ex.gpu_share, ex.resources, ex.placement)
+    options = opts._default_options
+    assert options["num_gpus"] == 0.25 and options["num_cpus"] == 2
+    assert options["resources"] == {"node_type_gpu": 0.01}
+    assert options["scheduling_strategy"] == "SPREAD"
+    assert ExecutorConfig(gpus_per_worker=0.5).gpu_share == 0.5
+
+
+@pytest.mark.parametrize(
+    ("override", "pattern"),
+    [
+        ("executor.actors_per_gpu=0", "actors_per_gpu"),
+        ("executor.resources={GPU: 1}", "not a custom resource"),
+        ("executor.resources={fast: -1}", r"resources\.fast: must be a finite number > 0"),
+        ("executor.placement=pack", "placement"),
+    ],
+)
+def test_bad_placement_settings_are_refused(override: str, pattern: str) -> None:
+    with pytest.raises(ConfigError, match=pattern):
+        load_config(CONF / "smoke.yaml", [override])
+    with pytest.raises(ConfigError, match="disagree"):
+        load_config(
+            CONF / "smoke.yaml", ["executor.actors_per_gpu=2", "executor.gpus_per_worker=1"]
+        )
+
+
+def test_capacity_is_checked_against_the_nodes() -> None:
+    cpu_nodes = [_node(4), _node(4)]
+    gpu_node = [_node(8, gpu=1)]
+    # GPUs asked of a CPU-only cluster: says what the cluster has
+    with pytest.raises(ConfigError, match=r"GPU 1 but no node has.*2 node\(s\) with CPU 8, GPU 0"):
+        check_capacity(ExecutorConfig(workers=2, gpus_per_worker=1), cpu_nodes)
+    # 4 actors x 0.5 GPU on one GPU: too many; 4 per GPU fit
+    with pytest.raises(ConfigError, match=r"need GPU 2, but the cluster has 1 node\(s\).*GPU 1"):
+        check_capacity(ExecutorConfig(workers=4, gpus_per_worker=0.5), gpu_node)
+    check_capacity(ExecutorConfig(workers=4, actors_per_gpu=4), gpu_node)
+    # an actor cannot span nodes: 3 actors of 2 CPUs do not fit on 2 nodes of 3 CPUs
+    with pytest.raises(ConfigError, match="at most 2 such actor"):
+        check_capacity(ExecutorConfig(workers=3, cpus_per_worker=2), [_node(3), _node(3)])
+    # a custom resource no node has, and one a node has
+    with pytest.raises(ConfigError, match="'tpu_slice'"):
+        check_capacity(ExecutorConfig(workers=1, resources={"tpu_slice": 1}), cpu_nodes)
+    check_capacity(
+        ExecutorConfig(workers=2, resources={"wide": 1}), [_node(4, wide=1), _node(4, wide=1)]
+    )
+
+
+def test_unreachable_cluster_is_a_clear_error_within_seconds(tmp_path, capsys) -> None:
+    port = _closed_port()
+    t0 = time.monotonic()
+    with pytest.raises(ConfigError, match=f"no Ray cluster answers at 127.0.0.1:{port}"):
+        probe_address(f"127.0.0.1:{port}")
+    with pytest.raises(ConfigError, match="expected HOST:PORT"):
+        probe_address("head-node")
+    with pytest.raises(ConfigError, match="dashboard"):
+        probe_address("http://127.0.0.1:8265")
+    # the CLI: exit 2, one line, nothing created, no Ray started
+    out = tmp_path / "run"
+    code = cli.main(
+        ["run", str(CONF / "smoke.yaml"), "--out", str(out), f"executor.address=127.0.0.1:{port}"]
+    )
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("idr-eval: error:") == 1 and "Traceback" not in err
+    assert "executor.address" in err and not out.exists()
+    assert time.monotonic() - t0 < 15
+
+
+def test_auto_without_a_cluster_names_the_ways_to_get_one(monkeypatch) -> None:
+    port = _closed_port()
+    monkeypatch.setenv("RAY_ADDRESS", f"127.0.0.1:{port}")  # what `ray job submit` would set
+    with pytest.raises(ConfigError, match=r"executor.address='auto' \(127.0.0.1:\d+\)"):
+        probe_address("auto")
+
+
+def test_inline_episodes_record_the_hostname(tmp_path) -> None:
+    from pipeline.runner import plan_run
+
+    cfg = load_config(CONF / "smoke.yaml", ["executor.kind=inline", "episodes_per_task=1"])
+    plan = plan_run(cfg, tmp_path / "run")
+    worker = EpisodeWorker(plan.worker_spec)
+    try:
+        row = worker.run_episode(plan.specs[0]).episode
+    finally:
+        worker.close()
+    assert row["node"] == current_node() == socket.gethostname()
+
+
+def test_ray_address_without_executor_address_is_explained(monkeypatch) -> None:
+    """Inside a Ray job (RAY_ADDRESS set) a config without executor.address would start a
+    local Ray against that cluster: refused, naming the fix, before Ray is touched."""
+    from pipeline.cluster import connect
+
+    monkeypatch.setenv("RAY_ADDRESS", "10.0.0.1:6379")
+    with pytest.raises(ConfigError, match=r"add executor\.address=auto"):
+        connect(ExecutorConfig())
+
+
+def test_replacement_waiting_for_a_lost_node_hands_its_episode_on(tmp_path, monkeypatch) -> None:
+    """Two actors lost at once, both replaced, only one replacement can start: after
+    REQUEUE_AFTER_S the other's queued episode goes back to the queue (no attempt charged) for
+    the started actor; with no started actor it waits, up to STARTUP_TIMEOUT_S."""
+    import ray
+
+    from pipeline import scheduler
+    from pipeline.runner import plan_run
+    from pipeline.store import RunStore
+
+    cfg = load_config(CONF / "smoke.yaml", ["tracking.enabled=false"])
+    plan = plan_run(cfg, tmp_path / "run")
+    sched = scheduler.Scheduler(plan.worker_spec, [], RunStore(tmp_path / "run"), cfg.executor)
+    spec = plan.specs[0]
+    cancelled: list[str] = []
+    monkeypatch.setattr(ray, "wait", lambda refs, num_returns, timeout: ([], refs))
+    monkeypatch.setattr(ray, "cancel", cancelled.append)
+    now = time.monotonic()
+
+    def state(waited: float) -> tuple[dict, dict, dict]:
+        return {2: ("ping", now - waited)}, {"ref": (2, spec)}, {"ref": None}
+
+    starting, in_flight, clock = state(5.0)  # not long yet: it keeps its episode
+    sched._watch_starting(starting, in_flight, clock, {1: 0, 2: 1})
+    assert in_flight and not sched.pending
+    starting, in_flight, clock = state(scheduler.REQUEUE_AFTER_S + 1)
+    load = {1: 0, 2: 1}  # actor 1 started, actor 2 still waiting for resources
+    sched._watch_starting(starting, in_flight, clock, load)
+    assert not in_flight and list(sched.pending) == [spec] and spec.attempt == 1
+    assert load[2] == 0 and cancelled == ["ref"]
+    sched.pending.clear()
+    starting, in_flight, clock = state(scheduler.REQUEUE_AFTER_S + 1)
+    sched._watch_starting(starting, in_flight, clock, {2: 1})  # no started actor: it waits
+    assert in_flight and not sched.pending
+    starting, in_flight, clock = state(scheduler.STARTUP_TIMEOUT_S + 1)
+    with pytest.raises(RuntimeError, match="did not start within"):
+        sched._watch_starting(starting, in_flight, clock, {2: 1})
