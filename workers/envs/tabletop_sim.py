@@ -92,6 +92,11 @@ class TabletopScene(SingleArmEnv):
 
     def _reset_internal(self) -> None:
         super()._reset_internal()
+        # robosuite's Panda gripper integrates its command (current_action += speed * sign(a))
+        # and only a hard reset rebuilds it: without this, an episode's first gripper motions
+        # depend on how the previous episode on the same scene ended (up to 1.7 cm of drift)
+        gripper = self.robots[0].gripper
+        gripper.current_action = np.zeros_like(gripper.current_action)
         xy = self._pending_cube_xy
         if xy is None:  # robosuite resets once while constructing: a neutral row of cubes
             xy = np.stack(

@@ -145,3 +145,27 @@ def test_unknown_task_lists_valid_ones(env) -> None:
         match=r"'fly' is not a tabletop task; valid: \['pick_color', 'stack_color', 'organize'\]",
     ):
         env.reset("fly", 0, 0)
+
+
+def test_an_episode_does_not_depend_on_the_one_before(env) -> None:
+    """Paired cells and resumed runs rely on (task, episode, seed) fixing the whole trajectory,
+    whichever episode an actor ran before on the same scene (robosuite's gripper keeps its
+    integrated command across soft resets unless the scene clears it)."""
+    from workers.envs.tabletop import TabletopEnv
+
+    def roll(e, episode: int, gripper: float) -> np.ndarray:
+        e.reset("pick_color", episode, 0)
+        states = []
+        for t in range(30):
+            obs = e.step(np.array([0.3, -0.2, -0.5, 0, 0, 0, gripper if t < 20 else -1.0]))
+            states.append(obs.state)
+        return np.array(states)
+
+    roll(env, 4, gripper=1.0)  # ends with the gripper command wound up by the close
+    after = roll(env, 7, gripper=-1.0)
+    fresh_env = TabletopEnv(image_size=32, cameras=("agentview",))
+    try:
+        fresh = roll(fresh_env, 7, gripper=-1.0)
+    finally:
+        fresh_env.close()
+    np.testing.assert_array_equal(after, fresh)
