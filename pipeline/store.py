@@ -73,6 +73,18 @@ EPISODE_SCHEMA = pa.schema(
     ]
 )
 
+# Episode columns that differ between two runs of the same config (timing, placement, run id);
+# every other column is fixed by the config, the code and the (task, episode, seed) key.
+VOLATILE_COLUMNS = (
+    "wall_seconds",
+    "inference_ms_mean",
+    "worker",
+    "node",
+    "started_at",
+    "finished_at",
+    "run_id",
+)
+
 STEP_SCHEMA = pa.schema(
     [
         ("run_id", pa.string()),

@@ -15,18 +15,9 @@ from fault_audit import assert_clean, audit
 from pipeline.config import config_from_dict, load_config
 from pipeline.runner import plan_run
 from pipeline.scheduler import Scheduler
-from pipeline.store import RunStore
+from pipeline.store import VOLATILE_COLUMNS, RunStore
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
-VOLATILE = [
-    "wall_seconds",
-    "inference_ms_mean",
-    "worker",
-    "node",
-    "started_at",
-    "finished_at",
-    "run_id",
-]
 GUARANTEE = (
     "the step is not sent to the simulator; the episode ends as an error row naming the cause; "
     "every other episode is unaffected"
@@ -40,7 +31,7 @@ def _run(run_dir: Path, *overrides: str) -> tuple[pd.DataFrame, object]:
     )
     plan = plan_run(cfg, run_dir)
     Scheduler(plan.worker_spec, plan.specs, RunStore(run_dir), cfg.executor).run()
-    eps = RunStore(run_dir).episodes().to_pandas().drop(columns=VOLATILE)
+    eps = RunStore(run_dir).episodes().to_pandas().drop(columns=list(VOLATILE_COLUMNS))
     return eps.set_index(["cell_id", "task_id", "episode_index"]).sort_index(), plan
 
 

@@ -9,22 +9,13 @@ import pytest
 
 from pipeline.config import ConfigError, load_config
 from pipeline.runner import execute, plan_run
-from pipeline.store import RunStore
+from pipeline.store import VOLATILE_COLUMNS, RunStore
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
-VOLATILE = [
-    "wall_seconds",
-    "inference_ms_mean",
-    "worker",
-    "node",
-    "started_at",
-    "finished_at",
-    "run_id",
-]
 
 
 def _episodes(run_dir: Path) -> pd.DataFrame:
-    df = RunStore(run_dir).episodes().to_pandas().drop(columns=VOLATILE)
+    df = RunStore(run_dir).episodes().to_pandas().drop(columns=list(VOLATILE_COLUMNS))
     return df.sort_values(["cell_id", "task_id", "episode_index"]).reset_index(drop=True)
 
 
