@@ -85,6 +85,35 @@ def test_train_script_produces_a_loadable_checkpoint(tmp_path) -> None:
     assert torch.equal(chunk[0], chunk[1])
     assert (chunk[0] - chunk[2]).abs().max() > 1e-4
 
+    # fine-tuning (--init) starts from the checkpoint's weights and keeps its normalization
+    # stats (a policy's inputs must mean what they meant), whatever the new data's stats are
+    from safetensors.torch import load_file
+
+    tuned = train(
+        [tmp_path / "demos"],
+        tmp_path / "tuned",
+        steps=5,
+        batch_size=16,
+        log_every=5,
+        ignored_state_dims=(3, 4, 5),
+        init=tmp_path / "ckpt",
+        lr=1e-2,
+    )
+    assert tuned["init"] == str(tmp_path / "ckpt") and tuned["steps"] == 5
+    norm = "policy_preprocessor_step_3_normalizer_processor.safetensors"
+    before, after = load_file(tmp_path / "ckpt" / norm), load_file(tmp_path / "tuned" / norm)
+    assert before.keys() == after.keys()
+    assert all(torch.equal(before[k], after[k]) for k in before)
+    w0, w1 = (load_file(tmp_path / d / "model.safetensors") for d in ("ckpt", "tuned"))
+    assert any(not torch.equal(w0[k], w1[k]) for k in w0)  # it did train
+    # instructions with a word the checkpoint never saw are refused, naming the word
+    cfg_path = tmp_path / "ckpt" / "config.json"
+    cfg = json.loads(cfg_path.read_text())
+    cfg["vocab"] = [w for w in cfg["vocab"] if w != "cube"]
+    cfg_path.write_text(json.dumps(cfg))
+    with pytest.raises(ValueError, match=r"never saw: \['cube'\]"):
+        train([tmp_path / "demos"], tmp_path / "bad", steps=1, init=tmp_path / "ckpt")
+
 
 def test_ignored_state_dims_outside_the_state_are_refused() -> None:
     from lerobot.configs.types import FeatureType, PolicyFeature

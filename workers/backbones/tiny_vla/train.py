@@ -118,6 +118,22 @@ def random_shift(x: torch.Tensor, pad: int, gen: torch.Generator) -> torch.Tenso
     return padded.permute(0, 2, 3, 1)[bidx, rows, cols].permute(0, 3, 1, 2)
 
 
+def _checkpoint_stats(path: Path) -> dict[str, dict[str, torch.Tensor]]:
+    """The normalization stats a lerobot checkpoint's preprocessor was saved with."""
+    from safetensors.torch import load_file
+
+    files = sorted(Path(path).glob("policy_preprocessor_step_*_normalizer_processor.safetensors"))
+    if not files:
+        raise FileNotFoundError(
+            f"{path}: no policy_preprocessor normalizer stats to fine-tune from"
+        )
+    stats: dict[str, dict[str, torch.Tensor]] = {}
+    for name, value in load_file(str(files[0])).items():
+        key, stat = name.rsplit(".", 1)
+        stats.setdefault(key, {})[stat] = value
+    return stats
+
+
 def train(
     data: list[Path],
     out: Path,
@@ -131,6 +147,8 @@ def train(
     state_noise: float = 0.0,
     ignored_state_dims: tuple[int, ...] = (),
     log_every: int = 100,
+    device: str = "cpu",
+    init: Path | None = None,
 ) -> dict:
     from lerobot.configs.types import FeatureType, PolicyFeature
     from lerobot.processor.factory import make_default_pre_post_processors
@@ -146,42 +164,60 @@ def train(
     load_s = time.perf_counter() - t0
     print(f"loaded {n} frames from {[str(d) for d in data]} in {load_s:.0f}s", flush=True)
 
-    s_mean, s_std = demos.state.mean(0), demos.state.std(0).clamp(min=1e-3)
-    a_mean, a_std = demos.action.mean(0), demos.action.std(0).clamp(min=1e-3)
-    stats = {
-        "observation.state": {
-            "mean": s_mean,
-            "std": s_std,
-            "min": demos.state.min(0).values,
-            "max": demos.state.max(0).values,
-        },
-        "action": {
-            "mean": a_mean,
-            "std": a_std,
-            "min": demos.action.min(0).values,
-            "max": demos.action.max(0).values,
-        },
-    }
-    inputs = {
-        k: PolicyFeature(FeatureType.VISUAL, tuple(v.shape[1:])) for k, v in demos.images.items()
-    }
-    inputs["observation.state"] = PolicyFeature(FeatureType.STATE, (demos.state.shape[1],))
-    outputs = {"action": PolicyFeature(FeatureType.ACTION, (demos.action.shape[1],))}
-    cfg = TinyVLAConfig(
-        input_features=inputs,
-        output_features=outputs,
-        vocab=vocabulary(demos.tasks),
-        chunk_size=chunk,
-        n_action_steps=chunk,
-        ignored_state_dims=list(ignored_state_dims),
-        device="cpu",
-    )
-    policy = TinyVLAPolicy(cfg)
+    if init is not None:
+        # fine-tune: the init checkpoint's normalization and vocabulary stay (a policy's inputs
+        # and outputs must mean what they meant when it was trained)
+        cfg = TinyVLAConfig.from_pretrained(init)
+        stats = _checkpoint_stats(init)
+        missing = sorted(set(vocabulary(demos.tasks)) - set(cfg.vocab))
+        if missing:
+            raise ValueError(f"--init {init}: instructions use words it never saw: {missing}")
+        if list(cfg.ignored_state_dims) != list(ignored_state_dims):
+            print(
+                f"--init: keeping its ignored_state_dims {cfg.ignored_state_dims}"
+                f" (asked {list(ignored_state_dims)})",
+                flush=True,
+            )
+        if cfg.chunk_size != chunk:
+            raise ValueError(f"--init {init} predicts chunks of {cfg.chunk_size}, --chunk {chunk}")
+        policy = TinyVLAPolicy.from_pretrained(init, config=cfg)
+    else:
+        stats = {
+            key: {
+                "mean": values.mean(0),
+                "std": values.std(0).clamp(min=1e-3),
+                "min": values.min(0).values,
+                "max": values.max(0).values,
+            }
+            for key, values in (("observation.state", demos.state), ("action", demos.action))
+        }
+        inputs = {
+            k: PolicyFeature(FeatureType.VISUAL, tuple(v.shape[1:]))
+            for k, v in demos.images.items()
+        }
+        inputs["observation.state"] = PolicyFeature(FeatureType.STATE, (demos.state.shape[1],))
+        outputs = {"action": PolicyFeature(FeatureType.ACTION, (demos.action.shape[1],))}
+        cfg = TinyVLAConfig(
+            input_features=inputs,
+            output_features=outputs,
+            vocab=vocabulary(demos.tasks),
+            chunk_size=chunk,
+            n_action_steps=chunk,
+            ignored_state_dims=list(ignored_state_dims),
+            device="cpu",
+        )
+        policy = TinyVLAPolicy(cfg)
+    s_mean, s_std = stats["observation.state"]["mean"], stats["observation.state"]["std"]
+    a_mean, a_std = stats["action"]["mean"], stats["action"]["std"]
+    policy = policy.to(device)
     policy.train()
     opt = torch.optim.AdamW(policy.parameters(), lr=lr, weight_decay=cfg.optimizer_weight_decay)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=steps, eta_min=lr * 0.05)
-    state_n = (demos.state - s_mean) / s_std
-    action_n = (demos.action - a_mean) / a_std
+    # the whole dataset lives on the training device (uint8 images: ~55 KB a frame, two cameras)
+    images = {k: v.to(device) for k, v in demos.images.items()}
+    state_n = ((demos.state - s_mean) / s_std).to(device)
+    action_n = ((demos.action - a_mean) / a_std).to(device)
+    chunk_index, chunk_pad = demos.chunk_index.to(device), demos.chunk_pad.to(device)
     tasks = np.array(demos.tasks, dtype=object)
     # balance task families (the organize chain has ~5x the frames of a pick): each family gets
     # an equal share of every batch
@@ -194,24 +230,26 @@ def train(
     t1 = time.perf_counter()
     for step in range(1, steps + 1):
         idx = torch.multinomial(weights, batch_size, replacement=True, generator=gen)
+        didx = idx.to(device)
         batch = {
-            k: random_shift(v[idx].float() / 255.0, shift, gen) for k, v in demos.images.items()
+            k: random_shift(v[didx].float() / 255.0, shift, gen).to(device)
+            for k, v in images.items()
         }
-        state = state_n[idx]
+        state = state_n[didx]
         if state_dropout:
             # zero (= the dataset mean) the state of some samples, so that the policy must find
             # the cubes in the images instead of replaying a state-indexed average trajectory
             keep = torch.rand(batch_size, 1, generator=gen) >= state_dropout
-            state = state * keep
+            state = state * keep.to(device)
         if state_noise:
             # Gaussian noise on the normalized state: the end-effector orientation varies by a
             # few thousandths of a radian with the commanded motion, so a net fed the exact
             # state learns to copy its previous action from that tilt (the "copycat" shortcut)
             # and drifts off in closed loop; noise drowns that signal, keeps positions usable
-            state = state + state_noise * torch.randn(state.shape, generator=gen)
+            state = state + state_noise * torch.randn(state.shape, generator=gen).to(device)
         batch["observation.state"] = state
-        batch["action"] = action_n[demos.chunk_index[idx]]
-        batch["action_is_pad"] = demos.chunk_pad[idx]
+        batch["action"] = action_n[chunk_index[didx]]
+        batch["action_is_pad"] = chunk_pad[didx]
         batch["task"] = list(tasks[idx.numpy()])
         loss, _ = policy(batch)
         opt.zero_grad()
@@ -226,7 +264,7 @@ def train(
                 f"({(time.perf_counter() - t1) / step * 1e3:.0f} ms/step)",
                 flush=True,
             )
-    policy.eval()
+    policy.eval().to("cpu")
     out.mkdir(parents=True, exist_ok=True)
     policy.save_pretrained(out)
     pre, post = make_default_pre_post_processors(cfg, dataset_stats=stats)
@@ -248,6 +286,8 @@ def train(
         "params": sum(p.numel() for p in policy.parameters()),
         "load_seconds": load_s,
         "train_seconds": time.perf_counter() - t1,
+        "device": device,
+        "init": str(init) if init else None,
     }
     (out / "train_meta.json").write_text(json.dumps(meta, indent=2) + "\n")
     return meta
@@ -289,6 +329,17 @@ def main() -> None:
         help="state dims the net does not read (default: the tabletop's eef orientation)",
     )
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    ap.add_argument(
+        "--init",
+        type=Path,
+        default=None,
+        help="fine-tune this tiny_vla checkpoint (keeps its normalization stats and vocabulary)",
+    )
+    ap.add_argument(
+        "--device",
+        default="cpu",
+        help="where to train (cpu, cuda); the saved checkpoint is for CPU either way",
+    )
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -304,6 +355,8 @@ def main() -> None:
         args.state_dropout,
         args.state_noise,
         tuple(args.ignored_state_dims),
+        device=args.device,
+        init=args.init,
     )
     print(json.dumps(meta, indent=2))
 
