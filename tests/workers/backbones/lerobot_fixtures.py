@@ -106,3 +106,134 @@ def build_diffusion(out: Path, image: int = 64, state: int = 8, action: int = 7)
     return save_checkpoint(
         DiffusionPolicy(cfg).eval(), cfg, _stats(image, state, action, ("agentview",)), out
     )
+
+
+# -- pi0 / pi0.5 -------------------------------------------------------------------------------
+# lerobot 0.6.1 cannot run its smallest pi variant (paligemma_variant="gemma_300m"): the SigLIP
+# projector is hard-wired to 2048-d while gemma_300m's language embeddings are 1024-d, so
+# embed_prefix fails; with that fixed it would still be ~1.9B parameters (~66 s to build,
+# ~9.5 GB RSS on CPU). The tests therefore shrink lerobot's gemma variant table and the
+# PaliGemma vision config in-process (``tiny_pi_gemma``): same classes, same code paths, tiny
+# widths. The patch must be active both when building and when loading a checkpoint.
+
+PI_SPECIAL_TOKENS = ("<pad>", "<eos>", "<bos>", "<unk>")  # PaliGemma's ids 0, 1, 2, 3
+
+
+def build_local_tokenizer(out: Path, instructions: list[str]) -> Path:
+    """A word-level tokenizer trained offline on ``instructions`` and pi0.5's prompt words
+    (state bins 0..255 included), with PaliGemma's special tokens and a leading <bos>."""
+    from tokenizers import Tokenizer, models, pre_tokenizers, processors, trainers
+    from transformers import PreTrainedTokenizerFast
+
+    corpus = [*instructions, "Task: , State: ;\nAction: ", " ".join(map(str, range(256)))]
+    tok = Tokenizer(models.WordLevel(unk_token="<unk>"))
+    tok.pre_tokenizer = pre_tokenizers.Whitespace()
+    tok.train_from_iterator(
+        corpus, trainers.WordLevelTrainer(special_tokens=list(PI_SPECIAL_TOKENS))
+    )
+    tok.post_processor = processors.TemplateProcessing(
+        single="<bos> $A", pair="<bos> $A $B", special_tokens=[("<bos>", 2)]
+    )
+    fast = PreTrainedTokenizerFast(
+        tokenizer_object=tok,
+        pad_token="<pad>",
+        eos_token="<eos>",
+        bos_token="<bos>",
+        unk_token="<unk>",
+    )
+    fast.save_pretrained(out)
+    return out
+
+
+def tiny_pi_gemma(mp, width: int = 64, depth: int = 2) -> None:
+    """Shrink pi0/pi0.5's gemma variants and SigLIP tower via ``mp`` (a pytest MonkeyPatch).
+
+    lerobot's joint attention hard-codes 8 heads (``1 * 8 * head_dim``): keep num_heads=8."""
+    from lerobot.policies.pi0 import modeling_pi0
+    from lerobot.policies.pi05 import modeling_pi05
+
+    for mod in (modeling_pi0, modeling_pi05):
+        gemma = mod.GemmaConfig(
+            width=width,
+            depth=depth,
+            mlp_dim=2 * width,
+            num_heads=8,
+            num_kv_heads=1,
+            head_dim=width // 8,
+        )
+        orig = mod.PaliGemmaForConditionalGenerationWithPiGemma
+
+        def paligemma(config, _orig=orig):
+            v = config.vision_config
+            v.hidden_size, v.intermediate_size = 32, 64
+            v.num_hidden_layers, v.num_attention_heads = 1, 2
+            v.projection_dim = config.text_config.hidden_size  # lerobot's 2048 fits only gemma_2b
+            return _orig(config=config)
+
+        mp.setattr(mod, "get_gemma_config", lambda variant, _g=gemma: _g)
+        mp.setattr(mod, "PaliGemmaForConditionalGenerationWithPiGemma", paligemma)
+
+
+def _pi_stats(image: int, state: int, action: int, cams: tuple[str, ...]) -> dict:
+    """``_stats`` plus the q01 / q99 quantiles pi0.5's QUANTILES normalizer reads."""
+    stats = _stats(image, state, action, cams)
+    g = torch.Generator().manual_seed(1)
+    for key, dim in (("observation.state", state), ("action", action)):
+        stats[key]["q01"] = -0.5 - torch.rand(dim, generator=g)
+        stats[key]["q99"] = 1.0 + torch.rand(dim, generator=g)
+    return stats
+
+
+def build_pi(
+    kind: str,
+    out: Path,
+    tokenizer_dir: Path,
+    mp,
+    image: int = 32,
+    resolution: int = 28,
+    state: int = 8,
+    action: int = 7,
+    chunk: int = 4,
+    cams: tuple[str, ...] = ("agentview", "wrist"),
+) -> Path:
+    """A random-weight pi0 (``kind="pi0"``) or pi0.5 (``"pi05"``) checkpoint at the gemma_300m
+    variants (shrunk by ``tiny_pi_gemma``, which must be active), whose saved preprocessor names
+    the local tokenizer folder instead of google/paligemma-3b-pt-224."""
+    from lerobot.processor import TokenizerProcessorStep
+
+    if kind == "pi05":
+        from lerobot.policies.pi05 import processor_pi05 as proc
+        from lerobot.policies.pi05.configuration_pi05 import PI05Config as Config
+        from lerobot.policies.pi05.modeling_pi05 import PI05Policy as Policy
+    elif kind == "pi0":
+        from lerobot.policies.pi0 import processor_pi0 as proc
+        from lerobot.policies.pi0.configuration_pi0 import PI0Config as Config
+        from lerobot.policies.pi0.modeling_pi0 import PI0Policy as Policy
+    else:
+        raise ValueError(f"kind must be pi0 or pi05, not {kind!r}")
+    inputs, outputs = _features(image, state, action, cams)
+    cfg = Config(
+        input_features=inputs,
+        output_features=outputs,
+        paligemma_variant="gemma_300m",
+        action_expert_variant="gemma_300m",
+        image_resolution=(resolution, resolution),
+        chunk_size=chunk,
+        n_action_steps=chunk,
+        num_inference_steps=2,
+        max_state_dim=state,
+        max_action_dim=8,
+        tokenizer_max_length=32,
+        device="cpu",
+    )
+    with mp.context() as m:
+        m.setattr(
+            proc,
+            "TokenizerProcessorStep",
+            lambda tokenizer_name, **kw: TokenizerProcessorStep(
+                tokenizer_name=str(tokenizer_dir), **kw
+            ),
+        )
+        torch.manual_seed(0)
+        policy = Policy(cfg).eval()
+        return save_checkpoint(policy, cfg, _pi_stats(image, state, action, cams), out)

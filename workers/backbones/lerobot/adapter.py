@@ -38,6 +38,10 @@ STATE_KEY = "observation.state"
 IMAGE_PREFIX = "observation.images."
 PICKLE_WEIGHTS = ("pytorch_model.bin", "model.bin", "model.pt", "model.pth", "model.ckpt")
 DETERMINISTIC_TYPES = frozenset({"act", "vqbet", "tdmpc", "tiny_vla"})  # no sampling at inference
+# pi0 / pi0.5 take ``noise`` through ``**kwargs`` (forwarded to ``model.sample_actions``): the
+# signature alone does not show it. X-VLA names a ``noise`` argument and ignores it.
+NOISE_VIA_KWARGS_TYPES = frozenset({"pi0", "pi05"})
+NOISE_IGNORED_TYPES = frozenset({"xvla"})
 
 
 def _is_local(path: str) -> bool:
@@ -139,7 +143,10 @@ class LerobotBackbone:
         self.state_dim = int(state.shape[0]) if state is not None else 0
         self.action_dim = int(cfg.output_features["action"].shape[0])
         self.chunk_len = int(chunk_len or getattr(cfg, "n_action_steps", None) or cfg.chunk_size)
-        takes_noise = "noise" in inspect.signature(self.policy.predict_action_chunk).parameters
+        takes_noise = cfg.type not in NOISE_IGNORED_TYPES and (
+            cfg.type in NOISE_VIA_KWARGS_TYPES
+            or "noise" in inspect.signature(self.policy.predict_action_chunk).parameters
+        )
         if cfg.type in DETERMINISTIC_TYPES:
             self.crn_mode = "deterministic"
         elif takes_noise:
