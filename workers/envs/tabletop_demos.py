@@ -149,10 +149,14 @@ def record(
                 flush=True,
             )
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-        env.close()
-        ds.finalize()
+        # signals stay deferred until the dataset is finalized: a second Ctrl-C (or a scheduler
+        # repeating SIGTERM) during finalize would otherwise leave it unreadable
+        try:
+            env.close()
+            ds.finalize()
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
     if stop:
         print(f"stopped by signal {stop[0]}: {stats}", flush=True)
     return stats

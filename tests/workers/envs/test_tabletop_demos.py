@@ -83,8 +83,15 @@ def test_sigint_stops_after_the_episode_and_leaves_a_readable_dataset(tmp_path) 
         assert proc.poll() is None and time.monotonic() < deadline, proc.stdout.read()
         time.sleep(0.5)
     proc.send_signal(signal.SIGINT)
+    # and again, as an impatient user or a scheduler repeating SIGTERM would, until it exits:
+    # a signal during finalize must not leave an unreadable dataset
+    while proc.poll() is None and time.monotonic() < deadline:
+        proc.send_signal(signal.SIGTERM)
+        time.sleep(0.05)
     out, _ = proc.communicate(timeout=120)
-    assert proc.returncode == 0 and "stopped by signal 2" in out, out
+    # a SIGTERM that lands after the dataset is finalized may end the process (handlers are
+    # restored then): the data is what must survive
+    assert proc.returncode in (0, -signal.SIGTERM) and "stopped by signal 2" in out, out
     ds = LeRobotDataset("local/tabletop_demos", root=root)
     assert 1 <= ds.num_episodes < 50
     assert ds[ds.num_frames - 1]["observation.state"].shape == (8,)
