@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Reproduce checkpoints/tiny_vla from scratch: expert demonstrations, DART demonstrations, a first
-# policy, DAgger data that policy visits (labelled by the expert), the final policy.
-# About 90 minutes on 2 idle cores (recording ~60, training ~25). Data goes to data/ (gitignored).
+# policy, DAgger data the policies visit (labelled by the expert), v6, a fine-tune of v6 (shipped).
+# About 3 hours on 2 idle cores (recording ~85 min, training ~85 min). Data goes to data/ (gitignored).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
@@ -26,7 +26,33 @@ rec --root data/dagger_stack_0 --episodes 30 --tasks stack_color --policy data/t
 rec --root data/dagger_stack_1 --episodes 30 --tasks stack_color --policy data/tiny_vla_dart \
     --first-episode 301000
 wait
-# 5. the shipped policy
+# 5. a second policy (the one shipped before v6)
 "$PY" -m workers.backbones.tiny_vla.train --data data/tabletop_demos_po data/dart_pick_color \
     data/dart_stack_color data/dagger_stack_0 data/dagger_stack_1 data/tabletop_demos_org \
-    data/dart_organize --out "$OUT" --steps 4000 --batch-size 64 --seed 0 --threads 1
+    data/dart_organize --out data/tiny_vla_v4 --steps 4000 --batch-size 64 --seed 0 --threads 1
+# 6. DAgger with the second policy on stack_color and organize
+rec --root data/dagger_stack_2 --episodes 25 --tasks stack_color --policy data/tiny_vla_v4 \
+    --first-episode 302000 &
+rec --root data/dagger_stack_3 --episodes 25 --tasks stack_color --policy data/tiny_vla_v4 \
+    --first-episode 303000
+wait
+rec --root data/dagger_organize_0 --episodes 15 --tasks organize --policy data/tiny_vla_v4 \
+    --first-episode 310000
+# 7. v6: all of the above from scratch, 4x the steps of the second policy (~45 min)
+"$PY" -m workers.backbones.tiny_vla.train --data data/tabletop_demos_po data/dart_pick_color \
+    data/dart_stack_color data/dagger_stack_0 data/dagger_stack_1 data/dagger_stack_2 \
+    data/dagger_stack_3 data/tabletop_demos_org data/dart_organize data/dagger_organize_0 \
+    --out data/tiny_vla_v6 --steps 16000 --batch-size 64 --seed 0 --threads 1
+# 8. DAgger with v6
+rec --root data/dagger_stack_4 --episodes 25 --tasks stack_color --policy data/tiny_vla_v6 \
+    --first-episode 304000 &
+{ rec --root data/dagger_stack_5 --episodes 15 --tasks stack_color --policy data/tiny_vla_v6 \
+    --first-episode 305000 && rec --root data/dagger_organize_1 --episodes 10 --tasks organize \
+    --policy data/tiny_vla_v6 --first-episode 311000; }
+wait
+# 9. the shipped policy: v6 fine-tuned on everything (keeps v6's normalization and vocabulary)
+"$PY" -m workers.backbones.tiny_vla.train --data data/tabletop_demos_po data/dart_pick_color \
+    data/dart_stack_color data/dagger_stack_0 data/dagger_stack_1 data/dagger_stack_2 \
+    data/dagger_stack_3 data/tabletop_demos_org data/dart_organize data/dagger_organize_0 \
+    data/dagger_stack_4 data/dagger_stack_5 data/dagger_organize_1 --init data/tiny_vla_v6 \
+    --out "$OUT" --steps 4000 --batch-size 64 --lr 3e-4 --seed 0 --threads 1
