@@ -86,9 +86,19 @@ def test_train_script_produces_a_loadable_checkpoint(tmp_path) -> None:
     assert (chunk[0] - chunk[2]).abs().max() > 1e-4
 
     # fine-tuning (--init) starts from the checkpoint's weights and keeps its normalization
-    # stats (a policy's inputs must mean what they meant), whatever the new data's stats are
-    from safetensors.torch import load_file
+    # stats (a policy's inputs must mean what they meant), not the new data's: shift the init
+    # checkpoint's stats so that recomputing them from the data would show
+    import shutil
 
+    from safetensors.torch import load_file, save_file
+
+    norm = "policy_preprocessor_step_3_normalizer_processor.safetensors"
+    shutil.copytree(tmp_path / "ckpt", tmp_path / "init")
+    shifted = {
+        k: v + 1.0 if k.endswith(".mean") else v
+        for k, v in load_file(tmp_path / "init" / norm).items()
+    }
+    save_file(shifted, tmp_path / "init" / norm)
     tuned = train(
         [tmp_path / "demos"],
         tmp_path / "tuned",
@@ -96,14 +106,13 @@ def test_train_script_produces_a_loadable_checkpoint(tmp_path) -> None:
         batch_size=16,
         log_every=5,
         ignored_state_dims=(3, 4, 5),
-        init=tmp_path / "ckpt",
+        init=tmp_path / "init",
         lr=1e-2,
     )
-    assert tuned["init"] == str(tmp_path / "ckpt") and tuned["steps"] == 5
-    norm = "policy_preprocessor_step_3_normalizer_processor.safetensors"
-    before, after = load_file(tmp_path / "ckpt" / norm), load_file(tmp_path / "tuned" / norm)
-    assert before.keys() == after.keys()
-    assert all(torch.equal(before[k], after[k]) for k in before)
+    assert tuned["init"] == str(tmp_path / "init") and tuned["steps"] == 5
+    after = load_file(tmp_path / "tuned" / norm)
+    assert after.keys() == shifted.keys()
+    assert all(torch.equal(shifted[k], after[k]) for k in shifted)
     w0, w1 = (load_file(tmp_path / d / "model.safetensors") for d in ("ckpt", "tuned"))
     assert any(not torch.equal(w0[k], w1[k]) for k in w0)  # it did train
     # instructions with a word the checkpoint never saw are refused, naming the word

@@ -231,10 +231,7 @@ def train(
     for step in range(1, steps + 1):
         idx = torch.multinomial(weights, batch_size, replacement=True, generator=gen)
         didx = idx.to(device)
-        batch = {
-            k: random_shift(v[didx].float() / 255.0, shift, gen).to(device)
-            for k, v in images.items()
-        }
+        batch = {k: random_shift(v[didx].float() / 255.0, shift, gen) for k, v in images.items()}
         state = state_n[didx]
         if state_dropout:
             # zero (= the dataset mean) the state of some samples, so that the policy must find
