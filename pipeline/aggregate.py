@@ -187,6 +187,30 @@ def diagnostics_by_cell(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
     return df.groupby("cell_id")[cols].mean().reset_index()
 
 
+def failure_causes(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
+    """Failed episodes per cell and task, counted by cause (error rows are not failures).
+
+    Columns: cell_id, task_id, n (episodes without error), failed, then one count per cause
+    (``timeout`` and the env's own codes), most frequent first; empty when nothing failed.
+    Episodes stored before the ``failure`` column existed count as ``unknown``."""
+    df = _frame(episodes)
+    df = df[df["error"].isna()]
+    if "failure" not in df:
+        df = df.assign(failure=None)
+    failed = df[~df["success"].astype(bool)]
+    if failed.empty:
+        return pd.DataFrame(columns=["cell_id", "task_id", "n", "failed"])
+    causes = failed["failure"].fillna("unknown")
+    counts = pd.crosstab([failed["cell_id"], failed["task_id"]], causes)
+    counts = counts[counts.sum().sort_values(ascending=False, kind="stable").index]
+    n = df.groupby(["cell_id", "task_id"]).size().rename("n")
+    out = counts.join(n, how="left")
+    out.insert(0, "failed", counts.sum(axis=1))
+    out.insert(0, "n", out.pop("n"))
+    out.columns.name = None
+    return out.reset_index()
+
+
 def errors(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
     df = _frame(episodes)
     return df[df["error"].notna()][["cell_id", "task_id", "episode_index", "attempt", "error"]]

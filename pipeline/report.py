@@ -160,6 +160,19 @@ def build_report(
                 ],
             )
         )
+    causes = agg.failure_causes(episodes)
+    if not causes.empty:
+        cause_cols = list(causes.columns[4:])
+        parts += ["", "## Failures by cause (episodes without success; errors excluded)", ""]
+        parts.append(
+            _md(
+                ["cell", "task", "n", "failed", *cause_cols],
+                [
+                    [r["cell_id"], r["task_id"], r["n"], r["failed"], *[r[c] for c in cause_cols]]
+                    for r in causes.to_dict("records")
+                ],
+            )
+        )
     times = agg.completion_times(episodes)
     parts += ["", "## Completion time", ""]
     parts.append(

@@ -54,6 +54,10 @@ EPISODE_SCHEMA = pa.schema(
         ("max_steps", pa.int64()),
         ("subtasks_done", pa.int64()),
         ("subtasks_total", pa.int64()),
+        # failed episodes (error rows excluded): a code (timeout, or the env's own, e.g. the
+        # tabletop chain's wrong_order / subtask_budget) and the env's words for it
+        ("failure", pa.string()),
+        ("failure_detail", pa.string()),
         ("sim_seconds", pa.float64()),
         ("wall_seconds", pa.float64()),
         ("inference_ms_mean", pa.float64()),

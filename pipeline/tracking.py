@@ -337,7 +337,8 @@ def _plain(value: Any) -> str:
 
 
 def cell_metrics(episodes: pd.DataFrame) -> dict[str, dict[str, float]]:
-    """Per cell: success overall/suite/task, Avg Len, completion times, diagnostics, Δ vs baseline."""
+    """Per cell: success overall/suite/task, Avg Len, completion times, diagnostics, Δ vs baseline,
+    failed episodes by cause."""
     out: dict[str, dict[str, float]] = {c: {} for c in episodes["cell_id"].unique()}
     for r in agg.success_overall(episodes).itertuples():
         out[r.cell_id].update(
@@ -368,6 +369,10 @@ def cell_metrics(episodes: pd.DataFrame) -> dict[str, dict[str, float]]:
         out[r.cell_id].update(
             gate_rate=r.gate_rate, e_img=r.e_img_mean, e_prop=r.e_prop_mean, r_img=r.r_img_mean
         )
+    causes = agg.failure_causes(episodes)
+    for cell, g in causes.groupby("cell_id"):  # failed episodes by cause, over the cell's tasks
+        for cause in causes.columns[4:]:
+            out[cell][_metric_key("failures", cause)] = float(g[cause].sum())
     for d in agg.paired_vs_baseline(episodes):
         out[d.cell_id].update(
             delta_vs_baseline=d.diff,

@@ -102,6 +102,8 @@ class EpisodeWorker:
             "max_steps": task.max_steps if task else None,
             "subtasks_done": 0,
             "subtasks_total": task.subtasks_total if task else None,
+            "failure": None,
+            "failure_detail": None,
             "sim_seconds": 0.0,
             "inference_ms_mean": None,
             "gate_rate": None,
@@ -191,6 +193,7 @@ class EpisodeWorker:
             "steps": env.steps,
             "success_step": success_step,
             "subtasks_done": env.subtasks_done,
+            **episode_failure(env, self.tasks[spec.task_id].max_steps),
             "sim_seconds": env.steps / env.control_hz,
             "inference_ms_mean": mean("inference_ms"),
             # in diagnose mode: the rate of the gate the full method would have applied
@@ -207,6 +210,20 @@ class EpisodeWorker:
         env, self.env = getattr(self, "env", None), None
         if env is not None:
             env.close()
+
+
+def episode_failure(env: Any, max_steps: int) -> dict[str, str | None]:
+    """Why a finished episode failed: the env's own cause where it ends episodes early
+    (``failure_cause`` / ``failure_reason``, e.g. the tabletop chain's wrong_order), else
+    ``timeout`` (the step budget ran out). Both None for a success."""
+    if env.success:
+        return {"failure": None, "failure_detail": None}
+    cause = getattr(env, "failure_cause", None)
+    if cause:
+        return {"failure": str(cause), "failure_detail": getattr(env, "failure_reason", None)}
+    if env.steps >= max_steps:
+        return {"failure": "timeout", "failure_detail": f"no success within {max_steps} steps"}
+    return {"failure": "ended", "failure_detail": f"the env ended the episode at step {env.steps}"}
 
 
 def remote_worker_class(

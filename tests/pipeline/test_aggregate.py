@@ -145,3 +145,31 @@ def test_steps_summary_by_hand() -> None:
     rows = per_bin.filter(pa.compute.equal(per_bin["cell_id"], "E")).to_pylist()
     # progress: ep0 steps 0, .5, 1 -> bins 0, 1, 1; ep1 step 0 of 0 -> bin 0
     assert [(r["progress_bin"], r["e_img_mean"]) for r in rows] == [(0, 2.5), (1, 2.5)]
+
+
+def test_failure_causes_count_failed_episodes_by_cause() -> None:
+    df = _episodes()
+    # task a: baseline fails episodes 2, 3, 4 (two timeouts, one of the env's own causes)
+    fail = {(c, "a", i): "timeout" for c in ("baseline", "E") for i in range(5)}
+    fail[("baseline", "a", 4)] = "wrong_order"
+    df["failure"] = [
+        None if s or e is not None else fail.get((c, t, i), "subtask_budget")
+        for c, t, i, s, e in zip(
+            df.cell_id, df.task_id, df.episode_index, df.success, df.error, strict=True
+        )
+    ]
+    t = agg.failure_causes(df).set_index(["cell_id", "task_id"])
+    assert list(t.columns[:2]) == ["n", "failed"]
+    assert list(t.columns[2:]) == ["timeout", "subtask_budget", "wrong_order"]  # by frequency
+    assert t.loc[("baseline", "a")].tolist() == [5, 3, 2, 0, 1]
+    assert t.loc[("E", "a")].tolist() == [5, 1, 1, 0, 0]
+    # chain: episodes done 0 and 2 of 5 failed; the error row is neither counted nor a failure
+    assert t.loc[("E", "chain")].tolist() == [3, 2, 0, 2, 0]
+
+
+def test_failure_causes_of_old_rows_are_unknown_and_all_successes_give_empty() -> None:
+    df = _episodes()
+    t = agg.failure_causes(df).set_index(["cell_id", "task_id"])  # no failure column at all
+    assert list(t.columns) == ["n", "failed", "unknown"]
+    assert t.loc[("baseline", "a"), "unknown"] == 3
+    assert agg.failure_causes(df[df["success"]]).empty

@@ -45,6 +45,10 @@ def test_inline_and_ray_give_identical_tables(tmp_path, ray_local) -> None:
     # the IDR cell ran the counterfactual passes; the baseline did not
     assert a.loc[a.cell_id == "E", "e_img_mean"].notna().all()
     assert a.loc[a.cell_id == "baseline", "e_img_mean"].isna().all()
+    # every failed episode has a cause (the fake ends episodes only at max_steps), no success has
+    assert (a.loc[~a.success, "failure"] == "timeout").all() and a.loc[
+        a.success, "failure"
+    ].isna().all()
 
 
 def test_resume_skips_stored_keys(tmp_path) -> None:

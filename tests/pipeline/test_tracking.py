@@ -54,6 +54,8 @@ def test_parent_and_one_child_per_cell(tmp_path) -> None:
         assert run.data.metrics["avg_len"] == pytest.approx(
             sub[sub.task_id == "reach_chain"].subtasks_done.mean()
         )
+        # failed episodes by cause (the fake ends episodes only at max_steps: all timeouts)
+        assert run.data.metrics.get("failures/timeout", 0.0) == (~sub.success).sum()
     assert (
         "gate_rate" in by_cell["E"].data.metrics
         and "gate_rate" not in by_cell["baseline"].data.metrics

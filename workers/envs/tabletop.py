@@ -47,7 +47,8 @@ class _Episode:
     subtasks_done: int = 0
     last_progress_step: int = 0
     success: bool = False
-    failed: str | None = None
+    failed: str | None = None  # why the episode ended early (text)
+    failed_cause: str | None = None  # the same as a stable code: wrong_order | subtask_budget
     init_state_id: str = ""
     placed: set[int] = field(default_factory=set)
 
@@ -241,6 +242,7 @@ class TabletopEnv:
                     ep.failed = (
                         f"{ep.colors[i]} cube put in the bin before the {ep.colors[expected]} one"
                     )
+                    ep.failed_cause = "wrong_order"
                     return
                 ep.placed.add(i)
                 ep.subtasks_done += 1
@@ -252,6 +254,7 @@ class TabletopEnv:
                 ep.failed = (
                     f"subtask {ep.subtasks_done + 1} not done within {self.subtask_budget} steps"
                 )
+                ep.failed_cause = "subtask_budget"
 
     def _observe(self) -> EnvObservation:
         from robosuite.utils.transform_utils import quat2axisangle
@@ -303,6 +306,12 @@ class TabletopEnv:
     @property
     def failure_reason(self) -> str | None:
         return self._ep.failed if self._ep else None
+
+    @property
+    def failure_cause(self) -> str | None:
+        """Why the episode ended before max_steps, as a code the report counts (None: it did
+        not end early)."""
+        return self._ep.failed_cause if self._ep else None
 
     @property
     def done(self) -> bool:

@@ -60,6 +60,7 @@ def record(
     noise: float = 0.0,
     policy: Path | None = None,
     replan_steps: int = 4,
+    place_tol: float | None = None,
 ) -> dict[str, dict[str, float]]:
     """Record ``episodes`` demonstrations per task (successful ones unless ``policy`` drives);
     returns per-task statistics."""
@@ -69,7 +70,7 @@ def record(
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     from workers.envs.tabletop import TabletopEnv
-    from workers.envs.tabletop_experts import expert_action
+    from workers.envs.tabletop_experts import PLACE_TOL, expert_action
     from workers.observation import to_policy_observation
 
     if root.exists():
@@ -88,6 +89,7 @@ def record(
         from workers.backbones.lerobot.adapter import LerobotBackbone
 
         driver = LerobotBackbone(path=str(policy), device="cpu")
+    place_tol = PLACE_TOL if place_tol is None else place_tol
     rng = np.random.default_rng([seed, first_episode])
     stats: dict[str, dict[str, float]] = {}
     # SIGINT / SIGTERM stop after the episode in progress and still finalize the dataset (some
@@ -113,7 +115,7 @@ def record(
                 if driver is not None:
                     driver.reset()
                 while not env.done:
-                    action = expert_action(obs.privileged).astype(np.float32)
+                    action = expert_action(obs.privileged, place_tol).astype(np.float32)
                     frame = {CAMERA_KEYS[c]: obs.images[c] for c in cameras}
                     frame.update(
                         {"observation.state": obs.state, "action": action, "task": env.instruction}
@@ -177,6 +179,12 @@ def main() -> None:
         "--policy", type=Path, default=None, help="DAgger: checkpoint that drives (expert labels)"
     )
     ap.add_argument("--replan-steps", type=int, default=4)
+    ap.add_argument(
+        "--place-tol",
+        type=float,
+        default=None,
+        help="expert: xy distance (m) to the goal at which a held cube is lowered (default 0.0096)",
+    )
     args = ap.parse_args()
     record(
         args.root,
@@ -188,6 +196,7 @@ def main() -> None:
         noise=args.noise,
         policy=args.policy,
         replan_steps=args.replan_steps,
+        place_tol=args.place_tol,
     )
 
 

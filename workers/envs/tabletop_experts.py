@@ -22,6 +22,10 @@ from workers.envs.tabletop_layout import BIN_CENTER, CUBE_HALF, TABLE_TOP_Z
 HOVER_Z = TABLE_TOP_Z + 0.12  # eef height for travel (clears the bin walls with a cube held)
 GAIN = 25.0  # action per metre of position error (OSC: 1.0 = 5 cm per step)
 XY_TOL = 0.012
+# carry: the held cube is lowered once its xy is this close to the goal. The recordings behind
+# checkpoints up to v7 used XY_TOL * 0.8; a wider tolerance makes the labels near the goal less
+# sensitive to a centimetre of error (lower while correcting, rather than hover and correct)
+PLACE_TOL = XY_TOL * 0.8
 OPEN, CLOSE = -1.0, 1.0
 BIN_SLOTS = np.array(
     [[-0.045, -0.045], [0.045, -0.045], [-0.045, 0.045], [0.045, 0.045], [0.0, 0.0]]
@@ -47,8 +51,11 @@ def _goal(priv: dict[str, Any], cube: int) -> tuple[np.ndarray, float] | None:
     return BIN_CENTER + slot, TABLE_TOP_Z + 0.008 + CUBE_HALF + 0.015
 
 
-def expert_action(priv: dict[str, Any]) -> np.ndarray:
-    """One 7-d OSC action from the privileged state of the tabletop env."""
+def expert_action(priv: dict[str, Any], place_tol: float = PLACE_TOL) -> np.ndarray:
+    """One 7-d OSC action from the privileged state of the tabletop env.
+
+    ``place_tol``: how close (xy, metres) the held cube must be to its goal before it is
+    lowered and released; the lowering keeps correcting xy."""
     eef = priv["eef_pos"]
     width = float(priv["gripper_qpos"][0] - priv["gripper_qpos"][1])
     task = priv["task_id"]
@@ -72,7 +79,7 @@ def expert_action(priv: dict[str, Any]) -> np.ndarray:
     if goal is None:  # pick: lift straight up
         return _move(eef, np.array([c[0], c[1], HOVER_Z]), CLOSE)
     xy, release_z = goal
-    if np.linalg.norm(eef[:2] - xy) > XY_TOL * 0.8:
+    if np.linalg.norm(eef[:2] - xy) > place_tol:
         if c[2] < TABLE_TOP_Z + 0.09 and np.linalg.norm(eef[:2] - xy) > 0.03:
             return _move(eef, np.array([eef[0], eef[1], HOVER_Z]), CLOSE)  # lift before carrying
         return _move(
@@ -90,7 +97,12 @@ class TabletopExpertBackbone:
     can_batch = False
     cameras: tuple[str, ...] = ()  # privileged state only: nothing needs rendering
 
-    def __init__(self, chunk_len: int = 1) -> None:
+    def __init__(self, chunk_len: int = 1, place_tol: float = PLACE_TOL) -> None:
+        if not 0.0 < place_tol < 2 * CUBE_HALF:
+            raise ValueError(
+                f"backbone.params.place_tol={place_tol}: must be in (0, {2 * CUBE_HALF}) metres"
+            )
+        self.place_tol = float(place_tol)
         if chunk_len != 1:
             raise ValueError(
                 "backbone.params.chunk_len: the expert is closed-loop, use 1 (and replan_steps 1)"
@@ -111,5 +123,5 @@ class TabletopExpertBackbone:
             raise ValueError(
                 "tabletop_expert needs privileged state: use it with env suite 'tabletop'"
             )
-        actions = np.stack([expert_action(p) for p in privs])
+        actions = np.stack([expert_action(p, self.place_tol) for p in privs])
         return torch.from_numpy(actions).float()[:, None, :]

@@ -50,6 +50,17 @@ def test_expert_succeeds(env, task, episodes) -> None:
         assert done == env.task.subtasks_total and steps < env.task.max_steps
 
 
+def test_expert_with_a_wider_place_tolerance_still_succeeds(env) -> None:
+    """place_tol 2 cm (lower the held cube while still correcting xy): still a perfect expert."""
+    from workers.envs.tabletop_experts import TabletopExpertBackbone, expert_action
+
+    for task, i in (("stack_color", 110), ("stack_color", 111), ("organize", 110)):
+        success, _, steps = _run(env, task, i, lambda p: expert_action(p, place_tol=0.02))
+        assert success, f"{task} episode {i}: failed after {steps} steps ({env.failure_reason})"
+    with pytest.raises(ValueError, match="place_tol"):
+        TabletopExpertBackbone(place_tol=0.05)
+
+
 def test_chain_stops_at_first_failure(env) -> None:
     """An expert told a wrong order puts two cubes right, then a wrong one: chain ends at 2/5."""
     from workers.envs.tabletop_experts import expert_action
@@ -61,7 +72,17 @@ def test_chain_stops_at_first_failure(env) -> None:
 
     success, done, _ = _run(env, "organize", 7, swapped)
     assert not success and done == 2 and env.done
-    assert "put in the bin before" in env.failure_reason
+    assert "put in the bin before" in env.failure_reason and env.failure_cause == "wrong_order"
+
+
+def test_chain_ends_when_a_subtask_overruns_its_budget(env) -> None:
+    """Standing still: organize ends after subtask_budget steps, with that cause."""
+    success, done, steps = _run(env, "organize", 0, lambda p: np.array([0, 0, 0, 0, 0, 0, -1.0]))
+    assert not success and done == 0 and steps == env.subtask_budget < env.task.max_steps
+    assert env.failure_cause == "subtask_budget" and "subtask 1 not done" in env.failure_reason
+    # the next episode starts clean
+    env.reset("organize", 1, 0)
+    assert env.failure_cause is None and env.failure_reason is None
 
 
 def test_wrong_actions_fail_and_episode_ends_at_max_steps(env) -> None:
@@ -69,6 +90,7 @@ def test_wrong_actions_fail_and_episode_ends_at_max_steps(env) -> None:
         env, "pick_color", 0, lambda p: np.array([0, 0, 1.0, 0, 0, 0, -1.0])
     )
     assert not success and done == 0 and steps == env.task.max_steps
+    assert env.failure_cause is None  # not ended early: the worker records a timeout
     with pytest.raises(RuntimeError, match="after the episode is done"):
         env.step(np.zeros(7))
 
