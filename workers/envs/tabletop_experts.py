@@ -20,6 +20,7 @@ import torch
 from workers.envs.tabletop_layout import BIN_CENTER, CUBE_HALF, TABLE_TOP_Z
 
 HOVER_Z = TABLE_TOP_Z + 0.12  # eef height for travel (clears the bin walls with a cube held)
+CARRY_Z = 0.09  # a held cube is lifted to this height above the table before it travels
 GAIN = 25.0  # action per metre of position error (OSC: 1.0 = 5 cm per step)
 XY_TOL = 0.012
 # carry: the held cube is lowered once its xy is this close to the goal. The recordings behind
@@ -80,7 +81,7 @@ def expert_action(priv: dict[str, Any], place_tol: float = PLACE_TOL) -> np.ndar
         return _move(eef, np.array([c[0], c[1], HOVER_Z]), CLOSE)
     xy, release_z = goal
     if np.linalg.norm(eef[:2] - xy) > place_tol:
-        if c[2] < TABLE_TOP_Z + 0.09 and np.linalg.norm(eef[:2] - xy) > 0.03:
+        if c[2] < TABLE_TOP_Z + CARRY_Z and np.linalg.norm(eef[:2] - xy) > 0.03:
             return _move(eef, np.array([eef[0], eef[1], HOVER_Z]), CLOSE)  # lift before carrying
         return _move(
             eef, np.array([xy[0], xy[1], HOVER_Z if eef[2] > release_z + 0.03 else eef[2]]), CLOSE
