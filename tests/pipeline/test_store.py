@@ -96,3 +96,21 @@ def test_read_only_reader_of_a_live_run_leaves_in_flight_batches_alone(tmp_path)
         reader.write([_result("E", "t", 1)])
     assert RunStore(tmp_path / "absent", read_only=True).episodes().num_rows == 0
     assert not (tmp_path / "absent").exists()
+
+
+def test_batches_written_before_a_column_was_added_read_as_nulls(tmp_path) -> None:
+    """A run dir from before the failure columns existed still reads, and resumes next to
+    new batches: the missing columns come back null."""
+    store = RunStore(tmp_path)
+    store.write([_result("E", "t", 0)])
+    (old,) = (tmp_path / "episodes").rglob("batch-*.parquet")
+    table = pq.read_table(old)
+    pq.write_table(table.drop_columns(["failure", "failure_detail"]), old)
+    r = _result("E", "t", 1)
+    r.episode.update(failure="timeout", failure_detail="no success within 10 steps")
+    RunStore(tmp_path).write([r])
+    eps = RunStore(tmp_path).episodes()
+    assert eps.schema == EPISODE_SCHEMA
+    rows = eps.select(["episode_index", "failure"]).to_pylist()
+    by_index = {r["episode_index"]: r["failure"] for r in rows}
+    assert by_index == {0: None, 1: "timeout"}
