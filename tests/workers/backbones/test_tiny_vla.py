@@ -123,6 +123,26 @@ def test_train_script_produces_a_loadable_checkpoint(tmp_path) -> None:
     with pytest.raises(ValueError, match=r"never saw: \['cube'\]"):
         train([tmp_path / "demos"], tmp_path / "bad", steps=1, init=tmp_path / "ckpt")
 
+    # the architecture is chosen from scratch (a finer keypoint map, narrower layers) and saved
+    # with the checkpoint; a fine-tune keeps its checkpoint's, so asking for one is refused
+    arch = {"cnn_channels": (8, 16, 32), "cnn_strides": (2, 2, 1)}
+    fine = train([tmp_path / "demos"], tmp_path / "fine", steps=3, batch_size=8, architecture=arch)
+    assert fine["architecture"]["cnn_strides"] == [2, 2, 1] and fine["params"] < meta["params"]
+    bb = LerobotBackbone(str(tmp_path / "fine"))
+    enc = next(iter(bb.policy.cameras.values()))
+    assert [c.stride for c in enc.convs] == [(2, 2), (2, 2), (1, 1)]
+    assert [c.out_channels for c in enc.convs] == [8, 16, 32]
+    feats = enc.convs[2](enc.convs[1](enc.convs[0](torch.zeros(1, 5, 32, 32))))
+    assert feats.shape[-2:] == (8, 8)  # 32 px / 4, where strides 2 2 2 give 4 x 4
+    with pytest.raises(ValueError, match="keeps its own architecture: leave out --cnn-strides"):
+        train(
+            [tmp_path / "demos"],
+            tmp_path / "bad",
+            steps=1,
+            init=tmp_path / "fine",
+            architecture={"cnn_strides": (2, 2, 2)},
+        )
+
 
 def test_ignored_state_dims_outside_the_state_are_refused() -> None:
     from lerobot.configs.types import FeatureType, PolicyFeature
@@ -138,4 +158,8 @@ def test_ignored_state_dims_outside_the_state_are_refused() -> None:
         ignored_state_dims=[3, 8],
     )
     with pytest.raises(ValueError, match=r"ignored_state_dims \[8\] outside the state's 8 dims"):
+        cfg.validate_features()
+    cfg.ignored_state_dims = [3]
+    cfg.cnn_strides = (2, 2)
+    with pytest.raises(ValueError, match=r"cnn_strides \[2, 2\] needs one stride per layer"):
         cfg.validate_features()

@@ -32,6 +32,9 @@ class TinyVLAConfig(PreTrainedConfig):
     vocab: list[str] = field(default_factory=list)  # instruction words; 0 = pad, 1 = unknown
     max_tokens: int = 24
     cnn_channels: tuple[int, ...] = (16, 32, 64)
+    # one stride per conv layer; the keypoints come from the last map (96 px / 8 = 12 x 12 with
+    # the default: a cell spans several centimetres of table)
+    cnn_strides: tuple[int, ...] = (2, 2, 2)
     text_dim: int = 64
     hidden_dim: int = 256
     dropout: float = 0.1
@@ -67,6 +70,11 @@ class TinyVLAConfig(PreTrainedConfig):
             raise ValueError("tiny_vla needs observation.state")
         if self.action_feature is None or self.action_feature.type is not FeatureType.ACTION:
             raise ValueError("tiny_vla needs an action output feature")
+        if len(self.cnn_strides) != len(self.cnn_channels):
+            raise ValueError(
+                f"cnn_strides {list(self.cnn_strides)} needs one stride per layer of "
+                f"cnn_channels {list(self.cnn_channels)}"
+            )
         n_state = self.robot_state_feature.shape[0]
         bad = [d for d in self.ignored_state_dims if not 0 <= d < n_state]
         if bad:

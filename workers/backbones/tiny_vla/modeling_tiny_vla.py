@@ -40,12 +40,15 @@ class SpatialSoftmax(nn.Module):
 class CameraEncoder(nn.Module):
     """A small CNN whose last layer is FiLM-modulated by the instruction."""
 
-    def __init__(self, channels: tuple[int, ...], text_dim: int) -> None:
+    def __init__(
+        self, channels: tuple[int, ...], text_dim: int, strides: tuple[int, ...] | None = None
+    ) -> None:
         super().__init__()
+        strides = strides or (2,) * len(channels)
         layers, c_in = [], 5  # RGB + two coordinate channels (CoordConv): positions are the task
-        for i, c in enumerate(channels):
+        for i, (c, s) in enumerate(zip(channels, strides, strict=True)):
             layers.append(
-                nn.Conv2d(c_in, c, 5 if i == 0 else 3, stride=2, padding=2 if i == 0 else 1)
+                nn.Conv2d(c_in, c, 5 if i == 0 else 3, stride=s, padding=2 if i == 0 else 1)
             )
             c_in = c
         self.convs = nn.ModuleList(layers)
@@ -90,7 +93,9 @@ class TinyVLAPolicy(PreTrainedPolicy):
         self.text_rnn = nn.GRU(config.text_dim, config.text_dim, batch_first=True)
         self.cameras = nn.ModuleDict(
             {
-                k.replace(".", "_"): CameraEncoder(tuple(config.cnn_channels), config.text_dim)
+                k.replace(".", "_"): CameraEncoder(
+                    tuple(config.cnn_channels), config.text_dim, tuple(config.cnn_strides)
+                )
                 for k in self.image_keys
             }
         )

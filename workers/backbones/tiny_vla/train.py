@@ -149,13 +149,22 @@ def train(
     log_every: int = 100,
     device: str = "cpu",
     init: Path | None = None,
+    architecture: dict | None = None,
 ) -> dict:
+    """``architecture``: TinyVLAConfig fields of the net (cnn_channels, cnn_strides, text_dim,
+    hidden_dim) for a policy trained from scratch; a fine-tune keeps its checkpoint's."""
     from lerobot.configs.types import FeatureType, PolicyFeature
     from lerobot.processor.factory import make_default_pre_post_processors
 
     from workers.backbones.tiny_vla.configuration_tiny_vla import TinyVLAConfig
     from workers.backbones.tiny_vla.modeling_tiny_vla import TinyVLAPolicy
 
+    architecture = {k: v for k, v in (architecture or {}).items() if v is not None}
+    if init is not None and architecture:
+        raise ValueError(
+            f"--init {init} keeps its own architecture: leave out "
+            + ", ".join(f"--{k.replace('_', '-')}" for k in architecture)
+        )
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
     t0 = time.perf_counter()
@@ -205,7 +214,9 @@ def train(
             n_action_steps=chunk,
             ignored_state_dims=list(ignored_state_dims),
             device="cpu",
+            **architecture,
         )
+        cfg.validate_features()  # e.g. one stride per conv layer, before any training
         policy = TinyVLAPolicy(cfg)
     s_mean, s_std = stats["observation.state"]["mean"], stats["observation.state"]["std"]
     a_mean, a_std = stats["action"]["mean"], stats["action"]["std"]
@@ -285,6 +296,15 @@ def train(
         "train_seconds": time.perf_counter() - t1,
         "device": device,
         "init": str(init) if init else None,
+        "architecture": {
+            k: list(v) if isinstance(v, tuple | list) else v
+            for k, v in (
+                ("cnn_channels", cfg.cnn_channels),
+                ("cnn_strides", cfg.cnn_strides),
+                ("text_dim", cfg.text_dim),
+                ("hidden_dim", cfg.hidden_dim),
+            )
+        },
     }
     (out / "train_meta.json").write_text(json.dumps(meta, indent=2) + "\n")
     return meta
@@ -327,6 +347,18 @@ def main() -> None:
     )
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     ap.add_argument(
+        "--cnn-channels", type=int, nargs="+", default=None, help="from scratch: 16 32 64"
+    )
+    ap.add_argument(
+        "--cnn-strides",
+        type=int,
+        nargs="+",
+        default=None,
+        help="from scratch: one per layer, 2 2 2 (2 2 1: a 24 x 24 keypoint map at 96 px)",
+    )
+    ap.add_argument("--text-dim", type=int, default=None, help="from scratch: 64")
+    ap.add_argument("--hidden-dim", type=int, default=None, help="from scratch: 256")
+    ap.add_argument(
         "--init",
         type=Path,
         default=None,
@@ -354,6 +386,12 @@ def main() -> None:
         tuple(args.ignored_state_dims),
         device=args.device,
         init=args.init,
+        architecture={
+            "cnn_channels": tuple(args.cnn_channels) if args.cnn_channels else None,
+            "cnn_strides": tuple(args.cnn_strides) if args.cnn_strides else None,
+            "text_dim": args.text_dim,
+            "hidden_dim": args.hidden_dim,
+        },
     )
     print(json.dumps(meta, indent=2))
 
