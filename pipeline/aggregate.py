@@ -187,6 +187,9 @@ def diagnostics_by_cell(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
     return df.groupby("cell_id")[cols].mean().reset_index()
 
 
+FAILURE_KEYS = ("cell_id", "task_id", "n", "failed")  # failure_causes' columns before the causes
+
+
 def failure_causes(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
     """Failed episodes per cell and task, counted by cause (error rows are not failures).
 
@@ -199,7 +202,7 @@ def failure_causes(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
         df = df.assign(failure=None)
     failed = df[~df["success"].astype(bool)]
     if failed.empty:
-        return pd.DataFrame(columns=["cell_id", "task_id", "n", "failed"])
+        return pd.DataFrame(columns=list(FAILURE_KEYS))
     causes = failed["failure"].fillna("unknown")
     counts = pd.crosstab([failed["cell_id"], failed["task_id"]], causes)
     counts = counts[counts.sum().sort_values(ascending=False, kind="stable").index]

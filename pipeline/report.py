@@ -162,7 +162,7 @@ def build_report(
         )
     causes = agg.failure_causes(episodes)
     if not causes.empty:
-        cause_cols = list(causes.columns[4:])
+        cause_cols = list(causes.columns[len(agg.FAILURE_KEYS) :])
         parts += ["", "## Failures by cause (episodes without success; errors excluded)", ""]
         parts.append(
             _md(

@@ -371,7 +371,7 @@ def cell_metrics(episodes: pd.DataFrame) -> dict[str, dict[str, float]]:
         )
     causes = agg.failure_causes(episodes)
     for cell, g in causes.groupby("cell_id"):  # failed episodes by cause, over the cell's tasks
-        for cause in causes.columns[4:]:
+        for cause in causes.columns[len(agg.FAILURE_KEYS) :]:
             out[cell][_metric_key("failures", cause)] = float(g[cause].sum())
     for d in agg.paired_vs_baseline(episodes):
         out[d.cell_id].update(

@@ -134,6 +134,10 @@ def _checkpoint_stats(path: Path) -> dict[str, dict[str, torch.Tensor]]:
     return stats
 
 
+# the net's size: TinyVLAConfig fields, chosen for a run from scratch (--cnn-channels, ...)
+ARCHITECTURE_FIELDS = ("cnn_channels", "cnn_strides", "text_dim", "hidden_dim")
+
+
 def train(
     data: list[Path],
     out: Path,
@@ -151,8 +155,8 @@ def train(
     init: Path | None = None,
     architecture: dict | None = None,
 ) -> dict:
-    """``architecture``: TinyVLAConfig fields of the net (cnn_channels, cnn_strides, text_dim,
-    hidden_dim) for a policy trained from scratch; a fine-tune keeps its checkpoint's."""
+    """``architecture``: TinyVLAConfig fields of the net (``ARCHITECTURE_FIELDS``) for a policy
+    trained from scratch; a fine-tune keeps its checkpoint's."""
     from lerobot.configs.types import FeatureType, PolicyFeature
     from lerobot.processor.factory import make_default_pre_post_processors
 
@@ -298,12 +302,8 @@ def train(
         "init": str(init) if init else None,
         "architecture": {
             k: list(v) if isinstance(v, tuple | list) else v
-            for k, v in (
-                ("cnn_channels", cfg.cnn_channels),
-                ("cnn_strides", cfg.cnn_strides),
-                ("text_dim", cfg.text_dim),
-                ("hidden_dim", cfg.hidden_dim),
-            )
+            for k in ARCHITECTURE_FIELDS
+            for v in [getattr(cfg, k)]
         },
     }
     (out / "train_meta.json").write_text(json.dumps(meta, indent=2) + "\n")
@@ -387,10 +387,9 @@ def main() -> None:
         device=args.device,
         init=args.init,
         architecture={
-            "cnn_channels": tuple(args.cnn_channels) if args.cnn_channels else None,
-            "cnn_strides": tuple(args.cnn_strides) if args.cnn_strides else None,
-            "text_dim": args.text_dim,
-            "hidden_dim": args.hidden_dim,
+            k: tuple(v) if isinstance(v, list) else v
+            for k in ARCHITECTURE_FIELDS
+            for v in [getattr(args, k)]
         },
     )
     print(json.dumps(meta, indent=2))
