@@ -35,15 +35,14 @@ RESULTS = Path(__file__).parent / "results" / "cluster.json"
 def _run(overrides: list[str]) -> tuple[float, int, set[str]]:
     """(seconds after the workers were ready, episodes stored, nodes they ran on)."""
     from pipeline.config import load_config
-    from pipeline.runner import plan_run
-    from pipeline.scheduler import Scheduler
+    from pipeline.runner import plan_run, run_episodes
     from pipeline.store import RunStore
 
     with tempfile.TemporaryDirectory() as d:
         cfg = load_config(ROOT / "conf" / "smoke.yaml", ["tracking.enabled=false", *overrides])
         plan = plan_run(cfg, Path(d) / "run")
         store = RunStore(plan.run_dir)
-        summary = Scheduler(plan.worker_spec, plan.specs, store, cfg.executor).run()
+        summary = run_episodes(plan, store)
         nodes = set(store.episodes().column("node").to_pylist())
         return summary.wall_seconds - summary.startup_seconds, summary.stored, nodes
 
@@ -57,7 +56,7 @@ def _per_episode(overrides: list[str], n: int) -> tuple[float, set[str]]:
 def _connect(address: str | None, cpus: float | None = None) -> None:
     import ray
 
-    from pipeline.scheduler import init_ray
+    from pipeline.cluster import init_ray
 
     if ray.is_initialized():
         ray.shutdown()

@@ -23,11 +23,14 @@ import numpy as np
 import pyarrow as pa
 
 from pipeline import aggregate as agg
+from pipeline.cluster import init_ray
 from pipeline.config import load_config
-from pipeline.runner import plan_run
-from pipeline.scheduler import Scheduler, init_ray
+from pipeline.runner import plan_run, run_episodes
 from pipeline.store import RunStore
-from workers.episode import EpisodeResult
+from workers.envs.base import TaskSpec
+from workers.episode import EpisodeResult, EpisodeRow, EpisodeSpec, StepRow
+from workers.idr import IDRConfig
+from workers.interventions import InterventionConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).parent / "results" / "engine.json"
@@ -37,9 +40,7 @@ def _run(overrides: list[str]) -> tuple[float, int]:
     with tempfile.TemporaryDirectory() as d:
         cfg = load_config(ROOT / "conf" / "smoke.yaml", ["tracking.enabled=false", *overrides])
         plan = plan_run(cfg, Path(d) / "run")
-        summary = Scheduler(
-            plan.worker_spec, plan.specs, RunStore(plan.run_dir), cfg.executor
-        ).run()
+        summary = run_episodes(plan)
         return summary.wall_seconds - summary.startup_seconds, summary.stored
 
 
@@ -84,34 +85,31 @@ def scaling(n: int, busy_s: float) -> dict[str, Any]:
 
 def store_rate(episodes: int, steps_per_episode: int, batch: int) -> dict[str, Any]:
     rng = np.random.default_rng(0)
+    task = TaskSpec("t", "t", max_steps=500, suite="s")
     results = []
     for i in range(episodes):
-        ep = {
-            "run_id": "r",
-            "cell_id": f"c{i % 4}",
-            "task_id": "t",
-            "episode_index": i,
-            "success": True,
-            "error": None,
-        }
+        spec = EpisodeSpec(
+            "r", f"c{i % 4}", IDRConfig(), InterventionConfig(), task, i, 0, "fake_marker"
+        )
+        ep = EpisodeRow.from_spec(spec, success=True)
         steps = [
-            {
-                "run_id": "r",
-                "cell_id": f"c{i % 4}",
-                "task_id": "t",
-                "episode_index": i,
-                "inference_index": k,
-                "step": 5 * k,
-                "e_img": float(rng.random()),
-                "e_prop": 1.0,
-                "r_img": 0.5,
-                "gate": 1.0,
-                "w_prop": 0.05,
-                "action_base": [0.1] * 7,
-                "action_final": [0.2] * 7,
-                "gripper": 1.0,
-                "inference_ms": 3.0,
-            }
+            StepRow(
+                run_id="r",
+                cell_id=spec.cell_id,
+                task_id="t",
+                episode_index=i,
+                inference_index=k,
+                step=5 * k,
+                e_img=float(rng.random()),
+                e_prop=1.0,
+                r_img=0.5,
+                gate=1.0,
+                w_prop=0.05,
+                action_base=[0.1] * 7,
+                action_final=[0.2] * 7,
+                gripper=1.0,
+                inference_ms=3.0,
+            )
             for k in range(steps_per_episode)
         ]
         results.append(EpisodeResult(ep, steps))

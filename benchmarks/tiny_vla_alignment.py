@@ -30,8 +30,8 @@ BINS_CM = (0.0, 1.0, 2.0, 4.0, 8.0, np.inf)  # xy distance of the held cube to i
 def rollout(env: Any, backbone: Any, episode: int, seed: int, replan: int) -> dict[str, Any]:
     """One stack_color episode driven by the policy; per inference while the top cube is held
     and lifted: (distance to the goal in cm, policy xy action, expert xy action)."""
-    from workers.envs.tabletop_experts import CARRY_Z, expert_action
     from workers.envs.tabletop_layout import TABLE_TOP_Z
+    from workers.experts.tabletop import CARRY_Z, expert_action
     from workers.observation import to_policy_observation
 
     obs = env.reset("stack_color", episode, seed)

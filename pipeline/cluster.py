@@ -21,6 +21,7 @@ import socket
 from collections.abc import Iterable
 from typing import Any
 
+from pipeline import signals
 from pipeline.config import ConfigError, ExecutorConfig
 
 log = logging.getLogger("idr_eval.cluster")
@@ -84,8 +85,6 @@ def probe_address(address: str, timeout_s: float = PROBE_TIMEOUT_S) -> str:
 
 def connect(ex: ExecutorConfig) -> None:
     """Start or join Ray for ``ex`` and check the cluster can hold its actors (ConfigError)."""
-    from pipeline.scheduler import init_ray
-
     if ex.address:
         probe_address(ex.address)
         init_ray(ex.address, None)
@@ -103,6 +102,34 @@ def connect(ex: ExecutorConfig) -> None:
         log.info("executor.autoscaling: not checking the actors against the nodes up now")
         return
     check_capacity(ex, alive_nodes())
+
+
+def init_ray(
+    address: str | None,
+    num_cpus: float | None,
+    num_gpus: float | None = None,
+    resources: dict[str, float] | None = None,
+) -> None:
+    """Connect to a cluster (``address``) or start a local one with ``num_cpus`` (and custom
+    ``resources``). :func:`connect` probes the address and checks capacity first."""
+    import ray
+
+    if ray.is_initialized():
+        return
+    env = {"RAY_DEDUP_LOGS": "1"}
+    for k, v in env.items():
+        os.environ.setdefault(k, v)
+    if address:
+        ray.init(address=address, log_to_driver=True)
+    else:
+        ray.init(
+            num_cpus=num_cpus,
+            num_gpus=num_gpus,
+            resources=resources,
+            include_dashboard=False,
+            log_to_driver=True,
+        )
+    signals.reinstall()  # ray.init replaced our SIGTERM handler with one that aborts
 
 
 def alive_nodes() -> list[dict[str, float]]:

@@ -12,21 +12,29 @@ import logging
 import os
 import subprocess
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from pipeline.calibration import CALIBRATION_FILE, calibrate
 from pipeline.config import ConfigError, RunConfig, dump_config
 from pipeline.errors import DiskFullError
+from pipeline.executors import Executor, make_executor
 from pipeline.paths import check_run_dir
+from pipeline.progress import Progress
 from pipeline.report import FIGURES_DIR, write_report
 from pipeline.scheduler import RunSummary, Scheduler
 from pipeline.signals import critical_section
 from pipeline.store import RunStore
+from pipeline.writer import BatchWriter
 from workers.backbones.factory import check_backbone
 from workers.envs.base import TaskSpec
 from workers.envs.factory import check_suite, suite_tasks
-from workers.episode import EpisodeSpec, WorkerSpec
+from workers.episode import EpisodeResult, EpisodeSpec, WorkerSpec
+
+if TYPE_CHECKING:
+    from pipeline.tracking import Tracker
 
 log = logging.getLogger("idr_eval.runner")
 RUN_META = "run.json"
@@ -132,10 +140,18 @@ def plan_run(cfg: RunConfig, run_dir: str | Path, yes: bool = False) -> RunPlan:
     check_cell_budget(cfg, len(tasks), yes=yes)
     _check_executor(cfg)
     run_id = _resume_or_claim(cfg, run_dir)
-    meta = {"code_version": code_version()}
+    version = code_version()
     specs = [
         EpisodeSpec(
-            run_id, cell.cell_id, cell.idr, cell.intervention, task.task_id, i, cfg.seed, 1, meta
+            run_id=run_id,
+            cell_id=cell.cell_id,
+            idr=cell.idr,
+            intervention=cell.intervention,
+            task=task,
+            episode_index=i,
+            seed=cfg.seed,
+            backbone=cfg.backbone.kind,
+            code_version=version,
         )
         for cell in cfg.cells()
         for task in tasks
@@ -193,9 +209,7 @@ def run_params(plan: RunPlan) -> dict[str, object]:
         "executor": cfg.executor.kind,
         "workers": cfg.executor.workers,
         "fingerprint": cfg.fingerprint(),
-        "code_version": plan.all_specs()[0].meta["code_version"]
-        if plan.all_specs()
-        else code_version(),
+        "code_version": plan.all_specs()[0].code_version if plan.all_specs() else code_version(),
     }
 
 
@@ -233,44 +247,9 @@ def execute(plan: RunPlan) -> RunSummary:
     total = len(plan.all_specs())
     on_flush = (lambda batch: tracker.progress(len(batch), total)) if tracker else None
 
-    suite_of = {t.task_id: t.suite or cfg.env.suite for t in plan.tasks}
-
-    def calibrated_specs() -> list[EpisodeSpec]:
-        result = calibrate(store, cfg.cells())
-        for cell_id, c in result["cells"].items():
-            log.info(
-                "tau of %s (%s of %s in %s): %s",
-                cell_id,
-                c["spec"],
-                c["effect"],
-                c["source_cell"],
-                ", ".join(f"{suite} {tau:.4g}" for suite, tau in c["tau"].items()),
-            )
-        if tracker is not None:
-            tracker.log_calibration(result)
-        out = []
-        for s in plan.calibrated:
-            taus = result["cells"][s.cell_id]["tau"]
-            suite = suite_of[s.task_id]
-            if suite not in taus:
-                raise RuntimeError(
-                    f"tau calibration: {s.cell_id!r} has no tau for suite {suite!r} (its "
-                    "diagnose cell stored no inferences there; see the errors in the report)"
-                )
-            out.append(replace(s, idr=replace(s.idr, tau=float(taus[suite]))))
-        return out
-
     status, disk_full = "FAILED", False
     try:
-        summary = Scheduler(
-            plan.worker_spec,
-            plan.specs,
-            store,
-            cfg.executor,
-            on_flush=on_flush,
-            deferred=calibrated_specs if plan.calibrated else None,
-            deferred_total=len(plan.calibrated),
-        ).run()
+        summary = run_episodes(plan, store, on_flush=on_flush, tracker=tracker)
         status = "FINISHED"
     except KeyboardInterrupt:  # SIGINT, or SIGTERM through pipeline.signals
         status = "KILLED"
@@ -297,6 +276,68 @@ def execute(plan: RunPlan) -> RunSummary:
                 except Exception as e:
                     _after_stop(status, f"marking the MLflow runs {status}", e)
     return summary
+
+
+def calibrated_specs(
+    plan: RunPlan, store: RunStore, tracker: Tracker | None = None
+) -> list[EpisodeSpec]:
+    """The specs of the cells with ``tau: calibrated``, their tau set from the stored
+    diagnose cell (the paper's rule); logged, and recorded in MLflow when tracked."""
+    result = calibrate(store, plan.cfg.cells())
+    for cell_id, c in result["cells"].items():
+        log.info(
+            "tau of %s (%s of %s in %s): %s",
+            cell_id,
+            c["spec"],
+            c["effect"],
+            c["source_cell"],
+            ", ".join(f"{suite} {tau:.4g}" for suite, tau in c["tau"].items()),
+        )
+    if tracker is not None:
+        tracker.log_calibration(result)
+    out = []
+    for s in plan.calibrated:
+        taus = result["cells"][s.cell_id]["tau"]
+        suite = s.task.suite
+        if suite not in taus:
+            raise RuntimeError(
+                f"tau calibration: {s.cell_id!r} has no tau for suite {suite!r} (its "
+                "diagnose cell stored no inferences there; see the errors in the report)"
+            )
+        out.append(replace(s, idr=replace(s.idr, tau=float(taus[suite]))))
+    return out
+
+
+def run_episodes(
+    plan: RunPlan,
+    store: RunStore | None = None,
+    *,
+    on_flush: Callable[[list[EpisodeResult]], None] | None = None,
+    tracker: Tracker | None = None,
+    executor: Executor | None = None,
+) -> RunSummary:
+    """The run's stages on one executor: the plan's episodes, then, once they are stored,
+    tau calibration and the calibrated cells. Episodes already stored are skipped (resume).
+    ``executor``: one made by the caller (tests watch its workers); closed here either way."""
+    ex = plan.cfg.executor
+    store = store if store is not None else RunStore(plan.run_dir)
+    executor = executor if executor is not None else make_executor(plan.worker_spec, ex)
+    progress = Progress(len(plan.all_specs()))
+    sched = Scheduler(
+        executor,
+        BatchWriter(store, ex.flush_every, on_flush),
+        ex.max_attempts,
+        total=len(plan.all_specs()),
+        progress=progress,
+    )
+    try:
+        sched.run_stage(plan.specs)
+        if plan.calibrated:
+            sched.run_stage(calibrated_specs(plan, store, tracker))
+    finally:
+        executor.close()
+        progress.close()
+    return sched.summary
 
 
 def _after_stop(status: str, what: str, exc: Exception) -> None:

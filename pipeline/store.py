@@ -15,67 +15,49 @@ of what is done, and resume skips its keys.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 import uuid
 from collections import defaultdict
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Any
+from types import UnionType
+from typing import Annotated, Any, Union, get_args, get_origin, get_type_hints
 
 import pyarrow as pa
 import pyarrow.parquet as pq
 
 from pipeline.errors import DiskFullError, is_disk_full
-from workers.episode import EpisodeResult
+from workers.episode import EpisodeResult, EpisodeRow, StepRow
 
-EPISODE_SCHEMA = pa.schema(
-    [
-        ("run_id", pa.string()),
-        ("cell_id", pa.string()),
-        ("mode", pa.string()),
-        ("guidance", pa.string()),
-        ("strategy", pa.string()),
-        ("alpha", pa.float64()),
-        ("beta", pa.float64()),
-        ("lam", pa.float64()),
-        ("tau", pa.float64()),
-        ("backbone", pa.string()),
-        ("suite", pa.string()),
-        ("task_id", pa.string()),
-        ("task_name", pa.string()),
-        ("instruction", pa.string()),
-        ("episode_index", pa.int64()),
-        ("seed", pa.int64()),
-        ("init_state_id", pa.string()),
-        ("success", pa.bool_()),
-        ("steps", pa.int64()),
-        ("success_step", pa.int64()),
-        ("max_steps", pa.int64()),
-        ("subtasks_done", pa.int64()),
-        ("subtasks_total", pa.int64()),
-        # failed episodes (error rows excluded): a code (timeout, or the env's own, e.g. the
-        # tabletop chain's wrong_order / subtask_budget) and the env's words for it
-        ("failure", pa.string()),
-        ("failure_detail", pa.string()),
-        ("sim_seconds", pa.float64()),
-        ("wall_seconds", pa.float64()),
-        ("inference_ms_mean", pa.float64()),
-        ("gate_rate", pa.float64()),
-        ("e_img_mean", pa.float64()),
-        ("e_prop_mean", pa.float64()),
-        ("r_img_mean", pa.float64()),
-        ("error", pa.string()),
-        ("attempt", pa.int64()),
-        ("worker", pa.string()),
-        ("node", pa.string()),  # HOSTNAME/RAY_NODE_ID of the actor (inline: the hostname)
-        ("render_backend", pa.string()),
-        ("crn", pa.bool_()),
-        ("started_at", pa.string()),
-        ("finished_at", pa.string()),
-        ("code_version", pa.string()),
-    ]
-)
+
+def _arrow_type(hint: Any) -> pa.DataType:
+    """A row field's type hint -> its Arrow type (``X | None`` is nullable, as every column)."""
+    if get_origin(hint) is Annotated:
+        base, *marks = get_args(hint)
+        if base is float and "float32" in marks:
+            return pa.float32()
+        return _arrow_type(base)
+    if get_origin(hint) in (UnionType, Union):
+        (inner,) = [a for a in get_args(hint) if a is not type(None)]
+        return _arrow_type(inner)
+    if get_origin(hint) is list:
+        return pa.list_(_arrow_type(get_args(hint)[0]))
+    simple = {str: pa.string(), int: pa.int64(), float: pa.float64(), bool: pa.bool_()}
+    if hint in simple:
+        return simple[hint]
+    raise TypeError(f"no Arrow type for the row field type {hint!r}")
+
+
+def schema_of(row_type: type) -> pa.Schema:
+    """The Parquet schema of a row dataclass: its fields, in order, with their Arrow types."""
+    hints = get_type_hints(row_type, include_extras=True)
+    return pa.schema([(f.name, _arrow_type(hints[f.name])) for f in dataclasses.fields(row_type)])
+
+
+EPISODE_SCHEMA = schema_of(EpisodeRow)
+STEP_SCHEMA = schema_of(StepRow)
 
 # Episode columns that differ between two runs of the same config (timing, placement, run id);
 # every other column is fixed by the config, the code and the (task, episode, seed) key.
@@ -89,26 +71,6 @@ VOLATILE_COLUMNS = (
     "run_id",
 )
 
-STEP_SCHEMA = pa.schema(
-    [
-        ("run_id", pa.string()),
-        ("cell_id", pa.string()),
-        ("task_id", pa.string()),
-        ("episode_index", pa.int64()),
-        ("inference_index", pa.int64()),
-        ("step", pa.int64()),
-        ("e_img", pa.float32()),
-        ("e_prop", pa.float32()),
-        ("r_img", pa.float32()),
-        ("gate", pa.float32()),
-        ("w_prop", pa.float32()),
-        ("action_base", pa.list_(pa.float32())),
-        ("action_final", pa.list_(pa.float32())),
-        ("gripper", pa.float32()),
-        ("inference_ms", pa.float32()),
-    ]
-)
-
 KEY = ("cell_id", "task_id", "episode_index")
 _BATCH_RE = re.compile(r"batch-(\d+)-([0-9a-f]+)\.parquet$")
 
@@ -117,15 +79,14 @@ def _safe(cell_id: str) -> str:
     return re.sub(r"[^A-Za-z0-9._=+-]", "_", cell_id)
 
 
-def rows_to_table(rows: list[dict[str, Any]], schema: pa.Schema) -> pa.Table:
-    """Rows -> table with exactly ``schema``; a row with a column the schema lacks is refused."""
-    names = set(schema.names)
-    for row in rows:
-        extra = set(row) - names
-        if extra:
-            raise ValueError(f"row has columns not in the schema: {sorted(extra)}")
-    return pa.Table.from_pylist(
-        [{n: row.get(n) for n in schema.names} for row in rows], schema=schema
+def rows_to_table(rows: Sequence[Any], schema: pa.Schema) -> pa.Table:
+    """Typed rows (EpisodeRow / StepRow) -> a table with exactly ``schema``, column by column."""
+    return pa.table(
+        {
+            n: pa.array([getattr(r, n) for r in rows], type=schema.field(n).type)
+            for n in schema.names
+        },
+        schema=schema,
     )
 
 
@@ -187,7 +148,7 @@ class RunStore:
             raise RuntimeError(f"RunStore({self.run_dir}) was opened read-only")
         by_cell: dict[str, list[EpisodeResult]] = defaultdict(list)
         for r in results:
-            by_cell[r.episode["cell_id"]].append(r)
+            by_cell[r.episode.cell_id].append(r)
         n = 0
         for cell_id, items in by_cell.items():
             self._seq += 1

@@ -19,7 +19,11 @@ from typing import Any
 
 import numpy as np
 
-from workers.episode import EpisodeResult, EpisodeSpec, WorkerSpec
+from workers.backbones.base import backbone_member
+from workers.envs.base import env_member
+from workers.episode import EpisodeResult, EpisodeRow, EpisodeSpec, StepRow, WorkerSpec
+
+DIAGNOSTICS = ("e_img", "e_prop", "r_img", "gate", "w_prop")  # per-inference, from the refiner
 
 
 class NonFiniteActionError(RuntimeError):
@@ -73,50 +77,25 @@ class EpisodeWorker:
 
     def run_episode(self, spec: EpisodeSpec) -> EpisodeResult:
         started, t0 = _now(), time.perf_counter()
-        row: dict[str, Any] = self._episode_row_head(spec)
+        where = {"worker": self.worker_id, "node": self.node, "render_backend": self.render_backend}
         try:
             steps, outcome = self._rollout(spec)
-            row.update(outcome)
-            row["error"] = None
+            row = EpisodeRow.from_spec(spec, **outcome, **where)
+            unhealthy = False
         except Exception as exc:
             steps = []
             tb = traceback.format_exception(exc)
-            row["error"] = f"{type(exc).__name__}: {exc}\n{''.join(tb[-3:])}"[:4000]
+            reason = f"{type(exc).__name__}: {exc}\n{''.join(tb[-3:])}"[:4000]
+            row = EpisodeRow.error_row(spec, reason, **where)
             # out of memory: this process may be left broken; the scheduler replaces the worker
             unhealthy = isinstance(exc, MemoryError)
-        else:
-            unhealthy = False
-        row.update(started_at=started, finished_at=_now(), wall_seconds=time.perf_counter() - t0)
+        row.started_at, row.finished_at = started, _now()
+        row.wall_seconds = time.perf_counter() - t0
         return EpisodeResult(row, steps, unhealthy=unhealthy)
 
-    def _episode_row_head(self, spec: EpisodeSpec) -> dict[str, Any]:
-        task = self.tasks.get(spec.task_id)
-        suite = task.suite if task and task.suite else self.spec.env_suite
-        return {
-            **spec.row_head(self.spec.backbone_kind, suite),
-            "task_name": task.name if task else None,
-            "instruction": None,
-            "init_state_id": None,
-            "steps": 0,
-            "success_step": None,
-            "max_steps": task.max_steps if task else None,
-            "subtasks_done": 0,
-            "subtasks_total": task.subtasks_total if task else None,
-            "failure": None,
-            "failure_detail": None,
-            "sim_seconds": 0.0,
-            "inference_ms_mean": None,
-            "gate_rate": None,
-            "e_img_mean": None,
-            "e_prop_mean": None,
-            "r_img_mean": None,
-            "worker": self.worker_id,
-            "node": self.node,
-            "render_backend": self.render_backend,
-            "crn": None,
-        }
-
-    def _rollout(self, spec: EpisodeSpec) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    def _rollout(self, spec: EpisodeSpec) -> tuple[list[StepRow], dict[str, Any]]:
+        """Run one episode: infer a chunk, execute ``replan_steps`` of it, until the env is
+        done. Returns the step rows and the episode's outcome columns."""
         from workers.observation import to_policy_observation
 
         env, policy = self.env, self.policy
@@ -126,9 +105,9 @@ class EpisodeWorker:
         policy.reset()
         obs = env.reset(spec.task_id, spec.episode_index, spec.seed)
         instruction = env.instruction
-        gripper_index = getattr(env, "gripper_index", None)
-        cameras = getattr(self.backbone, "cameras", None)  # None: every camera the env has
-        steps: list[dict[str, Any]] = []
+        gripper_index = env_member(env, "gripper_index")
+        cameras = backbone_member(self.backbone, "cameras")  # None: every camera the env has
+        steps: list[StepRow] = []
         success_step = None
         k = 0
         crn = None
@@ -140,27 +119,21 @@ class EpisodeWorker:
             crn = out.crn
             chunk = _to_numpy(out.action)[0]
             base = _to_numpy(out.a_base)[0]
-            d = out.diag.to_numpy() if out.diag is not None else None
+            d = out.diag.to_numpy() if out.diag is not None else {}
             steps.append(
-                {
-                    "run_id": spec.run_id,
-                    "cell_id": spec.cell_id,
-                    "task_id": spec.task_id,
-                    "episode_index": spec.episode_index,
-                    "inference_index": k,
-                    "step": env.steps,
-                    "e_img": float(d["e_img"][0]) if d else None,
-                    "e_prop": float(d["e_prop"][0]) if d else None,
-                    "r_img": float(d["r_img"][0]) if d else None,
-                    "gate": float(d["gate"][0]) if d else None,
-                    "w_prop": float(d["w_prop"][0]) if d else None,
-                    "action_base": base[0].tolist(),
-                    "action_final": chunk[0].tolist(),
-                    "gripper": float(chunk[0][gripper_index])
-                    if gripper_index is not None
-                    else None,
-                    "inference_ms": out.inference_ms,
-                }
+                StepRow(
+                    run_id=spec.run_id,
+                    cell_id=spec.cell_id,
+                    task_id=spec.task_id,
+                    episode_index=spec.episode_index,
+                    inference_index=k,
+                    step=env.steps,
+                    **{name: float(d[name][0]) for name in DIAGNOSTICS if name in d},
+                    action_base=base[0].tolist(),
+                    action_final=chunk[0].tolist(),
+                    gripper=None if gripper_index is None else float(chunk[0][gripper_index]),
+                    inference_ms=out.inference_ms,
+                )
             )
             k += 1
             for action in chunk[: self.spec.replan_steps]:
@@ -178,17 +151,15 @@ class EpisodeWorker:
                     success_step = env.steps
                 if env.done:
                     break
-        gates = [s["gate"] for s in steps if s["gate"] is not None]
 
-        def mean(key: str) -> float | None:
-            vals = [s[key] for s in steps if s[key] is not None]
+        def mean(name: str) -> float | None:
+            vals = [v for s in steps if (v := getattr(s, name)) is not None]
             return float(np.mean(vals)) if vals else None
 
+        init_state_id = env_member(env, "init_state_id") or f"{spec.seed}/{spec.episode_index}"
         outcome = {
             "instruction": instruction,
-            "init_state_id": str(
-                getattr(env, "init_state_id", f"{spec.seed}/{spec.episode_index}")
-            ),
+            "init_state_id": str(init_state_id),
             "success": bool(env.success),
             "steps": env.steps,
             "success_step": success_step,
@@ -197,7 +168,7 @@ class EpisodeWorker:
             "sim_seconds": env.steps / env.control_hz,
             "inference_ms_mean": mean("inference_ms"),
             # in diagnose mode: the rate of the gate the full method would have applied
-            "gate_rate": float(np.mean(gates)) if gates else None,
+            "gate_rate": mean("gate"),
             "e_img_mean": mean("e_img"),
             "e_prop_mean": mean("e_prop"),
             "r_img_mean": mean("r_img"),
@@ -218,9 +189,9 @@ def episode_failure(env: Any, max_steps: int) -> dict[str, str | None]:
     ``timeout`` (the step budget ran out). Both None for a success."""
     if env.success:
         return {"failure": None, "failure_detail": None}
-    cause = getattr(env, "failure_cause", None)
+    cause = env_member(env, "failure_cause")
     if cause:
-        return {"failure": str(cause), "failure_detail": getattr(env, "failure_reason", None)}
+        return {"failure": str(cause), "failure_detail": env_member(env, "failure_reason")}
     if env.steps >= max_steps:
         return {"failure": "timeout", "failure_detail": f"no success within {max_steps} steps"}
     return {"failure": "ended", "failure_detail": f"the env ended the episode at step {env.steps}"}

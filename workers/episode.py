@@ -1,22 +1,32 @@
-"""What the driver sends to an actor (EpisodeSpec, WorkerSpec) and what comes back (rows).
+"""What the driver sends to an actor (EpisodeSpec, WorkerSpec) and what comes back (typed rows).
 
-Only plain, picklable data crosses the driver/actor boundary. The actor returns one episode
-row and its step rows as dicts whose keys are the Parquet schemas' columns
-(``pipeline.store``); it never writes files.
+This module owns the row format. ``EpisodeRow`` and ``StepRow`` are the columns of the
+episodes and steps tables, in order; ``pipeline.store`` derives the Parquet schemas from them
+(field types map to Arrow types; ``F32`` marks a float stored as float32). Every row of an
+episode, the actor's own or the error row the scheduler stores for an actor that died under
+it, starts from :meth:`EpisodeRow.from_spec`, so the columns a spec determines agree wherever
+a row is made. Only plain, picklable data crosses the driver/actor boundary; actors never
+write files.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Annotated, Any
 
+from workers.envs.base import TaskSpec
 from workers.idr import IDRConfig
 from workers.interventions import InterventionConfig
+
+F32 = Annotated[float, "float32"]  # a float stored as float32 (step tables are large)
 
 
 @dataclass(frozen=True)
 class WorkerSpec:
-    """What an actor loads once: the backbone and the env (bundled, not passed as kwargs)."""
+    """What an actor loads once: the backbone and the env (bundled, not passed as kwargs).
+
+    ``backbone_kind`` / ``env_suite`` are registered names or ``"package.module:Class"``."""
 
     backbone_kind: str
     backbone_params: dict[str, Any]
@@ -28,70 +38,181 @@ class WorkerSpec:
 
 @dataclass(frozen=True)
 class EpisodeSpec:
-    """One episode of one cell; (cell_id, task_id, episode_index) is its key."""
+    """One episode of one cell; (cell_id, task_id, episode_index) is its key.
+
+    It carries the whole ``TaskSpec`` (suite, name, step budget) and the backbone's name, so
+    that any row of this episode can be made from the spec alone (see EpisodeRow.from_spec)."""
 
     run_id: str
     cell_id: str
     idr: IDRConfig
     intervention: InterventionConfig
-    task_id: str
+    task: TaskSpec  # its ``suite`` is set (the env's suite name where the task names none)
     episode_index: int
     seed: int
+    backbone: str  # the backbone as named in the config (backbone.kind)
     attempt: int = 1
-    meta: dict[str, Any] = field(default_factory=dict)  # copied into the episode row
+    code_version: str | None = None
+
+    @property
+    def task_id(self) -> str:
+        return self.task.task_id
 
     @property
     def key(self) -> tuple[str, str, int]:
         return (self.cell_id, self.task_id, self.episode_index)
 
-    def row_head(self, backbone: str, suite: str) -> dict[str, Any]:
-        """The episode-row columns this spec determines (the actor adds the outcome)."""
-        return {
-            "run_id": self.run_id,
-            "cell_id": self.cell_id,
-            "mode": self.idr.mode,
-            "guidance": self.idr.guidance,
-            "strategy": self.intervention.strategy,
-            "alpha": self.idr.alpha,
-            "beta": self.idr.beta,
-            "lam": self.idr.lam,
-            "tau": self.idr.tau,
-            "backbone": backbone,
-            "suite": suite,
-            "task_id": self.task_id,
-            "episode_index": self.episode_index,
-            "seed": self.seed,
-            "success": False,
-            "attempt": self.attempt,
-            **self.meta,
-        }
-
     def retry(self) -> EpisodeSpec:
-        return EpisodeSpec(
-            self.run_id,
-            self.cell_id,
-            self.idr,
-            self.intervention,
-            self.task_id,
-            self.episode_index,
-            self.seed,
-            self.attempt + 1,
-            self.meta,
+        return dataclasses.replace(self, attempt=self.attempt + 1)
+
+
+@dataclass(slots=True, kw_only=True)
+class EpisodeRow:
+    """One row of the episodes table (field order = column order)."""
+
+    run_id: str
+    cell_id: str
+    mode: str
+    guidance: str
+    strategy: str
+    alpha: float
+    beta: float
+    lam: float
+    tau: float
+    backbone: str
+    suite: str
+    task_id: str
+    task_name: str
+    instruction: str | None = None
+    episode_index: int
+    seed: int
+    init_state_id: str | None = None
+    success: bool = False
+    steps: int = 0
+    success_step: int | None = None
+    max_steps: int
+    subtasks_done: int = 0
+    subtasks_total: int
+    # failed episodes (error rows excluded): a code (timeout, or the env's own, e.g. the
+    # tabletop chain's wrong_order / subtask_budget) and the env's words for it
+    failure: str | None = None
+    failure_detail: str | None = None
+    sim_seconds: float = 0.0
+    wall_seconds: float | None = None
+    inference_ms_mean: float | None = None
+    gate_rate: float | None = None
+    e_img_mean: float | None = None
+    e_prop_mean: float | None = None
+    r_img_mean: float | None = None
+    error: str | None = None  # set: the episode did not finish (never a task failure)
+    attempt: int = 1
+    worker: str | None = None
+    node: str | None = None  # HOSTNAME/RAY_NODE_ID of the actor (inline: the hostname)
+    render_backend: str | None = None
+    crn: bool | None = None
+    started_at: str | None = None
+    finished_at: str | None = None
+    code_version: str | None = None
+
+    @classmethod
+    def from_spec(cls, spec: EpisodeSpec, **values: Any) -> EpisodeRow:
+        """The row of ``spec`` with every column the spec determines (SPEC_COLUMNS) filled in;
+        ``values`` sets the others (the outcome, the worker, timing)."""
+        task = spec.task
+        return cls(
+            run_id=spec.run_id,
+            cell_id=spec.cell_id,
+            mode=spec.idr.mode,
+            guidance=spec.idr.guidance,
+            strategy=spec.intervention.strategy,
+            alpha=spec.idr.alpha,
+            beta=spec.idr.beta,
+            lam=spec.idr.lam,
+            tau=spec.idr.tau,
+            backbone=spec.backbone,
+            suite=task.suite or "",
+            task_id=task.task_id,
+            task_name=task.name,
+            episode_index=spec.episode_index,
+            seed=spec.seed,
+            max_steps=task.max_steps,
+            subtasks_total=task.subtasks_total,
+            attempt=spec.attempt,
+            code_version=spec.code_version,
+            **values,
         )
+
+    @classmethod
+    def error_row(cls, spec: EpisodeSpec, reason: str, **values: Any) -> EpisodeRow:
+        """The row stored for an episode that did not finish: an exception inside it, or an
+        actor that died or timed out under it. Never counted as a task failure."""
+        return cls.from_spec(spec, error=reason, **values)
+
+    @property
+    def key(self) -> tuple[str, str, int]:
+        return (self.cell_id, self.task_id, self.episode_index)
+
+
+# Episode columns fixed by the EpisodeSpec alone (the same in an actor's row and an error row).
+SPEC_COLUMNS = (
+    "run_id",
+    "cell_id",
+    "mode",
+    "guidance",
+    "strategy",
+    "alpha",
+    "beta",
+    "lam",
+    "tau",
+    "backbone",
+    "suite",
+    "task_id",
+    "task_name",
+    "episode_index",
+    "seed",
+    "max_steps",
+    "subtasks_total",
+    "attempt",
+    "code_version",
+)
+
+
+@dataclass(slots=True, kw_only=True)
+class StepRow:
+    """One row of the steps table: one inference (field order = column order)."""
+
+    run_id: str
+    cell_id: str
+    task_id: str
+    episode_index: int
+    inference_index: int
+    step: int  # env step at which the chunk was predicted
+    e_img: F32 | None = None
+    e_prop: F32 | None = None
+    r_img: F32 | None = None
+    gate: F32 | None = None
+    w_prop: F32 | None = None
+    action_base: list[F32] = field(default_factory=list)  # first action of the base chunk
+    action_final: list[F32] = field(default_factory=list)  # first action executed
+    gripper: F32 | None = None
+    inference_ms: F32 | None = None
+
+
+def row_columns(row_type: type) -> tuple[str, ...]:
+    return tuple(f.name for f in dataclasses.fields(row_type))
 
 
 @dataclass
 class EpisodeResult:
-    episode: dict[str, Any]  # one row of the episodes table
-    steps: list[dict[str, Any]]  # rows of the steps table (one per inference)
+    episode: EpisodeRow  # one row of the episodes table
+    steps: list[StepRow]  # rows of the steps table (one per inference)
     # the worker may be broken after this episode (it ran out of memory): replace it
     unhealthy: bool = False
 
     @property
     def key(self) -> tuple[str, str, int]:
-        e = self.episode
-        return (e["cell_id"], e["task_id"], e["episode_index"])
+        return self.episode.key
 
     @property
     def is_error(self) -> bool:
-        return self.episode.get("error") is not None
+        return self.episode.error is not None

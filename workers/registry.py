@@ -1,4 +1,5 @@
-"""Classes by name from a registry of "module:Class" strings, imported only when chosen.
+"""Classes by name from a registry of "module:Class" strings, imported only when chosen, or
+by an entry point "package.module:Class" given in the config itself.
 
 Heavy modules (simulators, model code) are imported when their entry is picked, not when the
 registry is read (lerobot's factory does the same); a wrong name gets a did-you-mean error
@@ -15,12 +16,38 @@ from typing import Any
 
 
 def load_class(registry: dict[str, str], name: str, field: str) -> Any:
+    """The class registered as ``name``, or named by an entry point ``"package.module:Class"``
+    (Gymnasium style: a class of one's own, a test double, without registering it)."""
+    if ":" in name:
+        return _entry_point(name, field)
     if name not in registry:
         close = difflib.get_close_matches(name, list(registry), n=1)
         hint = f"did you mean {close[0]!r}?" if close else f"known: {sorted(registry)}"
-        raise ValueError(f"{field}={name!r} is unknown; {hint}")
-    module, cls = registry[name].split(":")
-    return getattr(importlib.import_module(module), cls)
+        raise ValueError(
+            f"{field}={name!r} is unknown; {hint} (or give a class as 'package.module:Class')"
+        )
+    return _entry_point(registry[name], field)
+
+
+def _entry_point(spec: str, field: str) -> Any:
+    module, _, attr = spec.partition(":")
+    if not module or not attr or ":" in attr:
+        raise ValueError(f"{field}={spec!r}: an entry point is written 'package.module:Class'")
+    try:
+        mod = importlib.import_module(module)
+    except Exception as e:  # ImportError, or a name Python cannot import (ValueError, ...)
+        raise ValueError(
+            f"{field}={spec!r}: cannot import module {module!r} ({e}); is it installed or on "
+            "PYTHONPATH?"
+        ) from None
+    obj = mod
+    for part in attr.split("."):
+        if not hasattr(obj, part):
+            raise ValueError(f"{field}={spec!r}: module {module!r} has no {attr!r}")
+        obj = getattr(obj, part)
+    if not inspect.isclass(obj):
+        raise ValueError(f"{field}={spec!r} is not a class")
+    return obj
 
 
 def check_params_bind(where: str, cls: Any, params: dict[str, Any]) -> None:

@@ -13,7 +13,7 @@ from pipeline.config import ConfigError, load_config
 from pipeline.grid import expand_grid
 from pipeline.runner import execute, plan_run
 from pipeline.store import KEY, RunStore
-from workers.episode import EpisodeResult
+from tests.doubles.rows import result as hand_made
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 
@@ -77,7 +77,7 @@ def _hand_store(tmp_path: Path) -> tuple[RunStore, dict[str, list[tuple[float, f
             | {"e_img": e_img, "e_prop": e_prop}
             for k, (e_img, e_prop) in enumerate(rows)
         ]
-        results.append(EpisodeResult(episode, steps))
+        results.append(hand_made(episode, steps))
     store = RunStore(tmp_path / "run")
     store.write(results)
     return store, effects

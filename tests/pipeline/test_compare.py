@@ -13,7 +13,7 @@ from pipeline.compare import RunEpisodes, compare, compare_table, paired_avg_dif
 from pipeline.config import ConfigError, load_config
 from pipeline.runner import execute, plan_run
 from pipeline.store import RunStore
-from workers.episode import EpisodeResult
+from tests.doubles.rows import result as hand_made
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 
@@ -97,7 +97,7 @@ def test_different_task_sets_are_refused_naming_them() -> None:
 
 
 def _store(run_dir: Path, df: pd.DataFrame) -> None:
-    RunStore(run_dir).write(EpisodeResult(r, []) for r in df.to_dict("records"))
+    RunStore(run_dir).write(hand_made(r) for r in df.to_dict("records"))
 
 
 def test_cli_compare_refuses_before_work_and_writes_on_success(tmp_path, capsys) -> None:

@@ -18,9 +18,18 @@ def _base() -> dict:
 @pytest.mark.parametrize(
     "name", ["smoke.yaml", "default.yaml", "experts.yaml", "tiny_vla.yaml", "libero_smoke.yaml"]
 )
-def test_presets_validate(name) -> None:
+def test_presets_validate(name, tmp_path) -> None:
+    """Each preset passes the whole pre-flight (suite, tasks, backbone and its params, the
+    executor) and plans cells x tasks x episodes, each task in a named suite."""
+    from pipeline.runner import plan_run
+
     cfg = load_config(CONF / name)
-    assert cfg.cells()
+    plan = plan_run(cfg, tmp_path / "run")
+    assert plan.tasks and cfg.cells()
+    expected = len(cfg.cells()) * len(plan.tasks) * cfg.episodes_per_task
+    assert len(plan.all_specs()) == expected
+    assert all(s.task.suite for s in plan.all_specs())
+    assert {s.cell_id for s in plan.all_specs()} == {c.cell_id for c in cfg.cells()}
 
 
 def test_smoke_preset_shape() -> None:

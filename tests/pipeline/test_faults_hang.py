@@ -11,11 +11,10 @@ import pytest
 from fault_audit import assert_clean, audit
 
 from pipeline.config import load_config
-from pipeline.runner import plan_run
-from pipeline.scheduler import Scheduler
+from pipeline.runner import plan_run, run_episodes
 from pipeline.store import RunStore
 from pipeline.timeouts import EpisodeTimeout, alarm
-from workers.backbones.fakes import FakeMarkerBackbone
+from tests.doubles.backbones import FaultyMarkerBackbone
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 GUARANTEE = (
@@ -28,12 +27,12 @@ def _run(tmp_path: Path, *overrides: str):
     cfg = load_config(CONF / "smoke.yaml", ["tracking.enabled=false", *overrides])
     plan = plan_run(cfg, tmp_path / "run")
     t0 = time.monotonic()
-    summary = Scheduler(plan.worker_spec, plan.specs, RunStore(plan.run_dir), cfg.executor).run()
+    summary = run_episodes(plan)
     return plan, summary, time.monotonic() - t0
 
 
 def test_alarm_interrupts_a_hung_backbone_call() -> None:
-    backbone = FakeMarkerBackbone(hang_from_call=0)
+    backbone = FaultyMarkerBackbone(hang_from_call=0)
     t0 = time.monotonic()
     with pytest.raises(EpisodeTimeout), alarm(0.3):
         backbone.predict_chunk(SimpleNamespace(batch_size=1))  # never returns
@@ -44,7 +43,15 @@ def test_alarm_interrupts_a_hung_backbone_call() -> None:
     ("where", "overrides", "timeouts"),
     [
         # the env's reset of episode 2 never returns, in every attempt: 2 keys x 2 attempts
-        ("env", ["env.tasks=[reach]", "env.params.hang_on=[2]"], 4),
+        (
+            "env",
+            [
+                "env.tasks=[reach]",
+                "env.suite=tests.doubles.envs:FaultyMarkerEnv",
+                "env.params.hang_on=[2]",
+            ],
+            4,
+        ),
         # the backbone's first call never returns: the one episode of the run
         (
             "backbone",
@@ -52,6 +59,7 @@ def test_alarm_interrupts_a_hung_backbone_call() -> None:
                 "env.tasks=[reach]",
                 "episodes_per_task=1",
                 "grid=[{mode: [baseline]}]",
+                "backbone.kind=tests.doubles.backbones:FaultyMarkerBackbone",
                 "backbone.params.hang_from_call=0",
             ],
             2,
@@ -91,6 +99,7 @@ def test_ray_hang_is_cut_off_and_retried(tmp_path, ray_local, fault_log) -> None
         "executor.episode_timeout_s=4",
         "executor.max_attempts=2",
         "env.tasks=[reach]",
+        "env.suite=tests.doubles.envs:FaultyMarkerEnv",
         f"env.params={{hang_on: [1], once_dir: {tmp_path / 'once'}}}",
     )
     outcome = audit(plan.run_dir, {s.key for s in plan.all_specs()})

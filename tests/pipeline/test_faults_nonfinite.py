@@ -13,8 +13,7 @@ import pytest
 from fault_audit import assert_clean, audit
 
 from pipeline.config import config_from_dict, load_config
-from pipeline.runner import plan_run
-from pipeline.scheduler import Scheduler
+from pipeline.runner import plan_run, run_episodes
 from pipeline.store import VOLATILE_COLUMNS, RunStore
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
@@ -30,7 +29,7 @@ def _run(run_dir: Path, *overrides: str) -> tuple[pd.DataFrame, object]:
         ["tracking.enabled=false", "executor.kind=inline", "executor.max_attempts=1", *overrides],
     )
     plan = plan_run(cfg, run_dir)
-    Scheduler(plan.worker_spec, plan.specs, RunStore(run_dir), cfg.executor).run()
+    run_episodes(plan)
     eps = RunStore(run_dir).episodes().to_pandas().drop(columns=list(VOLATILE_COLUMNS))
     return eps.set_index(["cell_id", "task_id", "episode_index"]).sort_index(), plan
 
@@ -44,6 +43,8 @@ def clean(tmp_path_factory) -> pd.DataFrame:
 def test_fake_nonfinite_action_and_state(tmp_path, clean, fault_log, value) -> None:
     eps, plan = _run(
         tmp_path / "run",
+        "backbone.kind=tests.doubles.backbones:FaultyMarkerBackbone",
+        "env.suite=tests.doubles.envs:FaultyMarkerEnv",
         "backbone.params.nonfinite_calls=[0]",  # the first inference of the run
         f"backbone.params.nonfinite_value={value}",
         "env.params.nan_state_on=[1]",  # episode 1 of every cell and task diverges at step 2
@@ -60,8 +61,14 @@ def test_fake_nonfinite_action_and_state(tmp_path, clean, fault_log, value) -> N
     ).all()
     ok = eps[eps.error.isna()]
     assert len(ok) == 12 - 1 - 4
-    # the rest: as in a clean run (dtypes differ where the faulty run has nulls)
-    pd.testing.assert_frame_equal(ok, clean.loc[ok.index], check_dtype=False)
+    # the rest: as in a clean run (dtypes differ where the faulty run has nulls), but for the
+    # backbone's name (the faulty double's entry point)
+    assert set(ok.backbone) == {"tests.doubles.backbones:FaultyMarkerBackbone"}
+    pd.testing.assert_frame_equal(
+        ok.drop(columns="backbone"),
+        clean.loc[ok.index].drop(columns="backbone"),
+        check_dtype=False,
+    )
     fault_log.record(
         f"non-finite action ({value.replace('.', '')}) / NaN state (fake env)",
         f"fake backbone returns {value} at the first inference; fake env state NaN at step 2",
@@ -85,7 +92,7 @@ def test_mujoco_instability_and_nan_action_on_the_tabletop(tmp_path, monkeypatch
             "name": "unstable",
             "backbone": {"kind": "noop", "params": {"chunk_len": 4}, "replan_steps": 4},
             "env": {
-                "suite": "tabletop",
+                "suite": "tests.doubles.tabletop:UnstableTabletopEnv",
                 "tasks": ["pick_color"],
                 "params": {
                     "cameras": ["agentview"],
@@ -104,7 +111,7 @@ def test_mujoco_instability_and_nan_action_on_the_tabletop(tmp_path, monkeypatch
     worker = actor.EpisodeWorker(plan.worker_spec)  # one simulator for the whole test
     monkeypatch.setattr(actor, "EpisodeWorker", lambda spec: worker)
     monkeypatch.setattr(worker, "close", lambda: None)
-    Scheduler(plan.worker_spec, plan.specs, RunStore(plan.run_dir), cfg.executor).run()
+    run_episodes(plan)
 
     outcome = audit(plan.run_dir, {s.key for s in plan.all_specs()})
     assert_clean(outcome)
@@ -115,11 +122,11 @@ def test_mujoco_instability_and_nan_action_on_the_tabletop(tmp_path, monkeypatch
     assert pd.isna(eps.loc[1, "error"]) and eps.loc[1, "steps"] == 12
     # episode 1 ran after the unstable one on the same simulator: identical to a rerun
     again = worker.run_episode(plan.specs[1])
-    assert again.episode["error"] is None
+    assert again.episode.error is None
     stored_steps = store.steps().to_pandas()
-    assert [list(a) for a in stored_steps.action_final] == [s["action_final"] for s in again.steps]
+    assert [list(a) for a in stored_steps.action_final] == [s.action_final for s in again.steps]
     for col in ("success", "steps", "init_state_id", "instruction"):
-        assert again.episode[col] == eps.loc[1, col]
+        assert getattr(again.episode, col) == eps.loc[1, col]
 
     # a NaN action: refused before MuJoCo steps
     scene = worker.env._scene("pick_color")
@@ -131,7 +138,7 @@ def test_mujoco_instability_and_nan_action_on_the_tabletop(tmp_path, monkeypatch
         lambda obs, noise=None, intervention=None: torch.full((obs.batch_size, 4, 7), np.nan),
     )
     nan_result = worker.run_episode(plan.specs[1])
-    assert nan_result.episode["error"].startswith("NonFiniteActionError")
+    assert nan_result.episode.error.startswith("NonFiniteActionError")
     assert sent == [] and worker.env.steps == 0
     worker.env.close()
     fault_log.record(

@@ -10,10 +10,9 @@ import pytest
 from fault_audit import assert_clean, audit
 
 from pipeline.config import load_config
-from pipeline.runner import plan_run
-from pipeline.scheduler import Scheduler
+from pipeline.runner import plan_run, run_episodes
 from pipeline.store import RunStore
-from workers.fault_injection import exhaust_memory
+from tests.doubles.faults import exhaust_memory
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 GUARANTEE = "the actor is replaced, the episode retried on a fresh one; the run completes"
@@ -24,7 +23,7 @@ def _run(tmp_path: Path, *overrides: str):
         CONF / "smoke.yaml", ["tracking.enabled=false", "env.tasks=[reach]", *overrides]
     )
     plan = plan_run(cfg, tmp_path / "run")
-    summary = Scheduler(plan.worker_spec, plan.specs, RunStore(plan.run_dir), cfg.executor).run()
+    summary = run_episodes(plan)
     eps = RunStore(plan.run_dir).episodes().to_pandas()
     return plan, summary, eps
 
@@ -43,6 +42,7 @@ def test_inline_out_of_memory_replaces_the_worker(tmp_path, fault_log) -> None:
     plan, summary, eps = _run(
         tmp_path,
         "executor.kind=inline",
+        "env.suite=tests.doubles.envs:FaultyMarkerEnv",
         f"env.params={{oom_on: [0], once_dir: {tmp_path / 'once'}}}",
     )
     outcome = audit(plan.run_dir, {s.key for s in plan.all_specs()})
@@ -62,6 +62,7 @@ def test_ray_actor_out_of_memory_is_replaced(tmp_path, ray_local, fault_log) -> 
         tmp_path,
         "executor.kind=ray",
         "executor.max_attempts=2",
+        "env.suite=tests.doubles.envs:FaultyMarkerEnv",
         f"env.params={{oom_on: [0], oom_kill_on: [1], once_dir: {tmp_path / 'once'}}}",
     )
     outcome = audit(plan.run_dir, {s.key for s in plan.all_specs()})

@@ -33,6 +33,7 @@ def _overrides(once: Path) -> list[str]:
         "env.tasks=[reach]",
         "executor.flush_every=100",  # nothing is written before the stop: the stop flushes
         # episode 2 (the third, in order) hangs the first time: the signal lands there
+        "env.suite=tests.doubles.envs:FaultyMarkerEnv",
         f"env.params={{hang_on: [2], once_dir: {once}}}",
     ]
 

@@ -124,7 +124,7 @@ def test_inline_episodes_record_the_hostname(tmp_path) -> None:
         row = worker.run_episode(plan.specs[0]).episode
     finally:
         worker.close()
-    assert row["node"] == current_node() == socket.gethostname()
+    assert row.node == current_node() == socket.gethostname()
 
 
 def test_ray_address_without_executor_address_is_explained(monkeypatch) -> None:
@@ -143,34 +143,35 @@ def test_replacement_waiting_for_a_lost_node_hands_its_episode_on(tmp_path, monk
     the started actor; with no started actor it waits, up to STARTUP_TIMEOUT_S."""
     import ray
 
-    from pipeline import scheduler
+    from pipeline.executors import ray_pool
     from pipeline.runner import plan_run
-    from pipeline.store import RunStore
 
     cfg = load_config(CONF / "smoke.yaml", ["tracking.enabled=false"])
     plan = plan_run(cfg, tmp_path / "run")
-    sched = scheduler.Scheduler(plan.worker_spec, [], RunStore(tmp_path / "run"), cfg.executor)
     spec = plan.specs[0]
     cancelled: list[str] = []
     monkeypatch.setattr(ray, "wait", lambda refs, num_returns, timeout: ([], refs))
     monkeypatch.setattr(ray, "cancel", cancelled.append)
     now = time.monotonic()
 
-    def state(waited: float) -> tuple[dict, dict, dict]:
-        return {2: ("ping", now - waited)}, {"ref": (2, spec)}, {"ref": None}
+    def pool(waited: float, started_actor: bool = True) -> ray_pool.RayActorPool:
+        """Actor 2 (a replacement) holds the episode and has waited ``waited`` s to start;
+        actor 1, when there, has started and is idle."""
+        p = ray_pool.RayActorPool(plan.worker_spec, cfg.executor)
+        p._busy = {1: 0, 2: 1} if started_actor else {2: 1}
+        p._starting = {2: ("ping", now - waited)}
+        p._calls = {"ref": ray_pool._Call(2, spec, None)}
+        return p
 
-    starting, in_flight, clock = state(5.0)  # not long yet: it keeps its episode
-    sched._watch_starting(starting, in_flight, clock, {1: 0, 2: 1})
-    assert in_flight and not sched.pending
-    starting, in_flight, clock = state(scheduler.REQUEUE_AFTER_S + 1)
-    load = {1: 0, 2: 1}  # actor 1 started, actor 2 still waiting for resources
-    sched._watch_starting(starting, in_flight, clock, load)
-    assert not in_flight and list(sched.pending) == [spec] and spec.attempt == 1
-    assert load[2] == 0 and cancelled == ["ref"]
-    sched.pending.clear()
-    starting, in_flight, clock = state(scheduler.REQUEUE_AFTER_S + 1)
-    sched._watch_starting(starting, in_flight, clock, {2: 1})  # no started actor: it waits
-    assert in_flight and not sched.pending
-    starting, in_flight, clock = state(scheduler.STARTUP_TIMEOUT_S + 1)
+    p = pool(5.0)  # not long yet: it keeps its episode
+    assert p._watch_starting() == [] and p.in_flight() == 1
+    p = pool(ray_pool.REQUEUE_AFTER_S + 1)  # actor 1 started, actor 2 still waiting
+    (outcome,) = p._watch_starting()
+    assert outcome.requeue and outcome.spec == spec and spec.attempt == 1
+    assert p.in_flight() == 0 and p._busy[2] == 0 and cancelled == ["ref"]
+    assert p.free_slots() == 1  # actor 1 takes it; the waiting replacement gets nothing
+    p = pool(ray_pool.REQUEUE_AFTER_S + 1, started_actor=False)  # no started actor: it waits
+    assert p._watch_starting() == [] and p.in_flight() == 1
+    p = pool(ray_pool.STARTUP_TIMEOUT_S + 1, started_actor=False)
     with pytest.raises(RuntimeError, match="did not start within"):
-        sched._watch_starting(starting, in_flight, clock, {2: 1})
+        p._watch_starting()

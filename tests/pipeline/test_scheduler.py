@@ -16,8 +16,8 @@ import pytest
 from fault_audit import assert_clean, audit
 
 from pipeline.config import load_config
-from pipeline.runner import plan_run
-from pipeline.scheduler import Scheduler
+from pipeline.executors.ray_pool import RayActorPool
+from pipeline.runner import plan_run, run_episodes
 from pipeline.store import RunStore
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -38,12 +38,11 @@ def test_episode_exception_becomes_error_row_and_is_retried(tmp_path) -> None:
     plan = _plan(
         tmp_path,
         "executor.kind=inline",
+        "env.suite=tests.doubles.envs:FaultyMarkerEnv",
         "env.params={fail_once: [1], fail_always: [2]}",
         "executor.max_attempts=3",
     )
-    summary = Scheduler(
-        plan.worker_spec, plan.specs, RunStore(plan.run_dir), plan.cfg.executor
-    ).run()
+    summary = run_episodes(plan)
     eps = RunStore(plan.run_dir).episodes().to_pandas()
     assert len(eps) == 12 and set(_keys(plan.run_dir).values()) == {1}
     failed_always = eps[eps.episode_index == 2]
@@ -61,22 +60,23 @@ def test_ray_kill_mid_run_loses_and_duplicates_nothing(tmp_path, ray_local, faul
     plan = _plan(
         tmp_path, "executor.kind=ray", "backbone.params.delay_s=0.01", "executor.flush_every=1"
     )
-    sched = Scheduler(plan.worker_spec, plan.specs, RunStore(plan.run_dir), plan.cfg.executor)
+    pool = RayActorPool(plan.worker_spec, plan.cfg.executor)
+    stored = RunStore(plan.run_dir, read_only=True).stored_count
     killed: list[int] = []
 
     def killer() -> None:
         deadline = time.monotonic() + 300
-        while time.monotonic() < deadline and sched.summary.stored < 2:
+        while time.monotonic() < deadline and stored() < 2:
             time.sleep(0.05)
-        if sched.summary.stored < 2:
+        if stored() < 2:
             return  # the run never got going: the assertion below says so
-        aid, actor = next(iter(sched.actors.items()))
+        aid, actor = next(iter(pool.actors.items()))
         ray_local.kill(actor, no_restart=True)
         killed.append(aid)
 
     t = threading.Thread(target=killer, daemon=True)
     t.start()
-    summary = sched.run()
+    summary = run_episodes(plan, executor=pool)
     t.join(5)
     assert killed and summary.actors_replaced >= 1
     keys = _keys(plan.run_dir)
@@ -97,13 +97,12 @@ def test_crashing_process_is_retried_then_recorded(tmp_path, ray_local, fault_lo
     plan = _plan(
         tmp_path,
         "executor.kind=ray",
+        "env.suite=tests.doubles.envs:FaultyMarkerEnv",
         "env.params={exit_on: [0]}",
         "env.tasks=[reach]",
         "executor.max_attempts=2",
     )
-    summary = Scheduler(
-        plan.worker_spec, plan.specs, RunStore(plan.run_dir), plan.cfg.executor
-    ).run()
+    summary = run_episodes(plan)
     eps = RunStore(plan.run_dir).episodes().to_pandas()
     assert len(eps) == 6 and set(_keys(plan.run_dir).values()) == {1}
     dead = eps[eps.episode_index == 0]

@@ -6,7 +6,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from pipeline.store import EPISODE_SCHEMA, STEP_SCHEMA, RunStore
-from workers.episode import EpisodeResult
+from tests.doubles import rows
+from workers.episode import EpisodeResult, EpisodeRow
 
 
 def _result(
@@ -36,7 +37,7 @@ def _result(
         }
         for k in range(n_steps)
     ]
-    return EpisodeResult(ep, steps)
+    return rows.result(ep, steps)
 
 
 def test_roundtrip_with_fixed_schemas(tmp_path) -> None:
@@ -54,12 +55,28 @@ def test_roundtrip_with_fixed_schemas(tmp_path) -> None:
         pq.read_metadata(f)
 
 
-def test_unknown_column_is_refused(tmp_path) -> None:
+def test_unknown_column_is_refused() -> None:
+    """A misspelt column cannot reach the store: rows are typed, with slots."""
+    with pytest.raises(TypeError, match="sucess"):
+        rows.episode_row(sucess=True)
     r = _result("E", "t", 0)
-    r.episode["sucess"] = True
-    with pytest.raises(ValueError, match=r"not in the schema: \['sucess'\]"):
-        RunStore(tmp_path).write([r])
-    assert not list(tmp_path.rglob("*.parquet"))
+    with pytest.raises(AttributeError, match="sucess"):
+        r.episode.sucess = True  # type: ignore[attr-defined]
+
+
+def test_schemas_are_derived_from_the_row_types() -> None:
+    """One owner of the format: every field of EpisodeRow / StepRow is a column, in order,
+    with the Arrow type its hint names (F32 -> float32, X | None -> nullable X)."""
+    from dataclasses import fields
+
+    from workers.episode import StepRow
+
+    assert EPISODE_SCHEMA.names == [f.name for f in fields(EpisodeRow)]
+    assert STEP_SCHEMA.names == [f.name for f in fields(StepRow)]
+    assert str(EPISODE_SCHEMA.field("alpha").type) == "double"
+    assert str(EPISODE_SCHEMA.field("crn").type) == "bool"
+    assert str(STEP_SCHEMA.field("e_img").type) == "float"
+    assert str(STEP_SCHEMA.field("action_base").type) == "list<item: float>"
 
 
 def test_recovery_removes_orphans_and_temp_files(tmp_path) -> None:
@@ -107,7 +124,7 @@ def test_batches_written_before_a_column_was_added_read_as_nulls(tmp_path) -> No
     table = pq.read_table(old)
     pq.write_table(table.drop_columns(["failure", "failure_detail"]), old)
     r = _result("E", "t", 1)
-    r.episode.update(failure="timeout", failure_detail="no success within 10 steps")
+    r.episode.failure, r.episode.failure_detail = "timeout", "no success within 10 steps"
     RunStore(tmp_path).write([r])
     eps = RunStore(tmp_path).episodes()
     assert eps.schema == EPISODE_SCHEMA

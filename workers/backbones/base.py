@@ -85,9 +85,31 @@ def concat_observations(parts: list[Observation]) -> Observation:
     )
 
 
+# Members a backbone may have beyond the Backbone protocol, with the default the pipeline
+# assumes when it has not (read them with backbone_member()).
+OPTIONAL_BACKBONE_MEMBERS: dict[str, tuple[Any, str]] = {
+    "cameras": (
+        None,
+        "tuple[str, ...]: the env cameras it reads (only those are rendered); None: all",
+    ),
+    "check_params": (
+        None,
+        "classmethod(params) raising ValueError: checks of its own before any actor starts "
+        "(a checkpoint that does not exist or cannot fit the env); None: none",
+    ),
+}
+
+
+def backbone_member(backbone: Any, name: str) -> Any:
+    """An optional member of ``backbone`` (see OPTIONAL_BACKBONE_MEMBERS), or its default."""
+    default, _ = OPTIONAL_BACKBONE_MEMBERS[name]
+    return getattr(backbone, name, default)
+
+
 @runtime_checkable
 class Backbone(Protocol):
-    """The interface every backbone implements (lerobot adapter, tiny VLA, fakes)."""
+    """The interface every backbone implements (lerobot adapter, tiny VLA, fakes); it may
+    also have the members of OPTIONAL_BACKBONE_MEMBERS."""
 
     name: str
     chunk_len: int  # T of the predicted (B, T, D) chunk

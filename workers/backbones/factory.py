@@ -12,7 +12,7 @@ BACKBONES: dict[str, str] = {
     "noop": "workers.backbones.noop:NoopBackbone",
     "lerobot": "workers.backbones.lerobot.adapter:LerobotBackbone",
     # env-side: reads the tabletop env's privileged state
-    "tabletop_expert": "workers.envs.tabletop_experts:TabletopExpertBackbone",
+    "tabletop_expert": "workers.experts.tabletop:TabletopExpertBackbone",
 }
 
 

@@ -57,13 +57,7 @@ class FakeMarkerBackbone:
         fresh_noise_seed: int = 1234,
         delay_s: float = 0.0,
         busy_s: float = 0.0,
-        nonfinite_calls: tuple[int, ...] = (),
-        nonfinite_value: float = float("nan"),
-        hang_from_call: int | None = None,
     ) -> None:
-        """Fault injection for tests, by call number (0-based, counted over this object's
-        life): ``nonfinite_calls`` return ``nonfinite_value`` (NaN or inf) in every action,
-        calls from ``hang_from_call`` on never return."""
         self.name = "fake_marker"
         self.chunk_len = chunk_len
         self.action_dim = 2
@@ -74,10 +68,6 @@ class FakeMarkerBackbone:
         self.delay_s = delay_s  # simulated inference time, sleeping (tests of scheduling, faults)
         self.busy_s = busy_s  # simulated inference time, burning CPU (throughput benchmarks)
         self.calls: list[int] = []  # batch size of every predict_chunk call, for tests
-        self.nonfinite_calls = frozenset(nonfinite_calls)
-        self.nonfinite_value = float(nonfinite_value)
-        self.hang_from_call = hang_from_call
-        self._n_calls = 0  # not cleared by reset(): faults are placed by call number
         # Used when the caller passes no noise: independent draws per call.
         self._fresh = torch.Generator().manual_seed(fresh_noise_seed)
 
@@ -96,11 +86,6 @@ class FakeMarkerBackbone:
         if intervention is not None:
             raise ValueError(f"{self.name} applies no interventions itself (raw space only)")
         self.calls.append(obs.batch_size)
-        call, self._n_calls = self._n_calls, self._n_calls + 1
-        if self.hang_from_call is not None and call >= self.hang_from_call:
-            from workers.fault_injection import hang_forever
-
-            hang_forever()
         if self.delay_s:
             time.sleep(self.delay_s)
         if self.busy_s:
@@ -115,6 +100,4 @@ class FakeMarkerBackbone:
             if noise is None:
                 noise = torch.randn(a.shape, generator=self._fresh)
             a = a + self.noise_std * _as_tensor(noise)
-        if call in self.nonfinite_calls:
-            a = torch.full_like(a, self.nonfinite_value)
         return a.contiguous()

@@ -113,8 +113,44 @@ class EnvObservation:
     privileged: Mapping[str, Any] | None = None  # simulator state for scripted experts only
 
 
+# Members an env may have beyond the Env protocol, with the default the pipeline assumes when
+# it has not: read them with env_member(), never with a getattr of one's own, so that every
+# reader agrees and check_env() checks them.
+OPTIONAL_ENV_MEMBERS: dict[str, tuple[Any, str]] = {
+    "gripper_index": (
+        None,
+        "int: the action dim that commands the gripper (gripper events in the report); "
+        "None: the env has no gripper",
+    ),
+    "init_state_id": (
+        None,
+        "str, after reset: which initial state the episode started from (LIBERO's fixed "
+        "init states, the tabletop's seeded layout); None: '<seed>/<episode_index>'",
+    ),
+    "failure_cause": (
+        None,
+        "str | None, once done: a code for why the env ended a failed episode early "
+        "(e.g. 'wrong_order'); None: it did not (the step budget ran out: 'timeout')",
+    ),
+    "failure_reason": (None, "str | None: the env's words for failure_cause"),
+    "suite_tasks": (
+        None,
+        "classmethod(**params) -> list[TaskSpec]: the tasks without starting a simulator "
+        "(pre-flight before any actor); None: the env is built once to call tasks()",
+    ),
+}
+
+
+def env_member(env: Any, name: str) -> Any:
+    """An optional member of ``env`` (see OPTIONAL_ENV_MEMBERS), or its documented default."""
+    default, _ = OPTIONAL_ENV_MEMBERS[name]
+    return getattr(env, name, default)
+
+
 @runtime_checkable
 class Env(Protocol):
+    """The members every env has. It may also have those of OPTIONAL_ENV_MEMBERS."""
+
     suite: str
     control_hz: float  # control steps per simulated second
     action_dim: int
@@ -190,6 +226,26 @@ def _same(a: EnvObservation, b: EnvObservation) -> bool:
     )
 
 
+def _check_optional_members(env: Env) -> None:
+    """The members of OPTIONAL_ENV_MEMBERS an env has, just after a reset."""
+    g = env_member(env, "gripper_index")
+    _require(
+        g is None or (isinstance(g, int) and 0 <= g < env.action_dim),
+        f"gripper_index must be None or an int in [0, action_dim={env.action_dim}), got {g!r}",
+    )
+    init = env_member(env, "init_state_id")
+    _require(
+        init is None or (isinstance(init, str) and init != ""),
+        f"init_state_id must be None or a non-empty str after reset, got {init!r}",
+    )
+    _require(
+        env_member(env, "failure_cause") is None,
+        "after reset: failure_cause must be None (no episode has failed yet)",
+    )
+    listing = env_member(type(env), "suite_tasks")
+    _require(listing is None or callable(listing), "suite_tasks must be a classmethod")
+
+
 def check_env(
     env: Env,
     *,
@@ -224,6 +280,8 @@ def check_env(
     _require(env.steps == 0 and not env.done, "after reset: steps must be 0 and done False")
     _require(not env.success and env.subtasks_done == 0, "after reset: no success, no subtask done")
 
+    _check_optional_members(env)
+
     again = env.reset(task_id, 0, seed)
     _require(_same(obs0, again), "reset(task, episode 0, seed) twice gave different observations")
     other = env.reset(task_id, 1, seed)
@@ -254,6 +312,10 @@ def check_env(
             total = env.task.subtasks_total
             _require(0 <= env.subtasks_done <= total, f"subtasks_done out of [0, {total}]")
             _require(isinstance(env.success, bool | np.bool_), "success must be a bool")
+            _require(
+                not (env.success and env_member(env, "failure_cause")),
+                "failure_cause is set on a successful episode",
+            )
             traj.append(obs.state.copy())
         trajectories.append(traj)
     _require(
@@ -273,3 +335,13 @@ def check_env(
             pass
         else:
             raise EnvContractError("step() after done must raise RuntimeError")
+        cause, reason = env_member(env, "failure_cause"), env_member(env, "failure_reason")
+        _require(
+            cause is None or isinstance(cause, str),
+            f"failure_cause must be a str or None: {cause!r}",
+        )
+        _require(
+            reason is None or isinstance(reason, str),
+            f"failure_reason must be a str or None: {reason!r}",
+        )
+        _require(not (env.success and cause), "failure_cause is set on a successful episode")

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
-from workers.envs.base import Env, TaskSpec
+from workers.envs.base import Env, TaskSpec, env_member
 from workers.registry import check_params_bind, load_class
 
 ENVS: dict[str, str] = {
@@ -25,15 +26,20 @@ def check_suite(suite: str, params: dict[str, Any] | None = None) -> None:
 
 
 def suite_tasks(suite: str, params: dict[str, Any]) -> list[TaskSpec]:
-    """The suite's tasks, without starting a simulator where the env class can say so."""
+    """The suite's tasks, without starting a simulator where the env class can say so; each
+    with its ``suite`` set (the env's own suite name where the task names none)."""
     cls = _cls(suite)
-    if hasattr(cls, "suite_tasks"):
-        return list(cls.suite_tasks(**params))
-    env = cls(**params)
-    try:
-        return env.tasks()
-    finally:
-        env.close()
+    listing = env_member(cls, "suite_tasks")
+    if listing is not None:
+        tasks = list(listing(**params))
+    else:
+        env = cls(**params)
+        try:
+            tasks = env.tasks()
+        finally:
+            env.close()
+    default = getattr(cls, "suite", None) or suite
+    return [t if t.suite else replace(t, suite=default) for t in tasks]
 
 
 def make_env(suite: str, params: dict[str, Any]) -> Env:

@@ -49,40 +49,8 @@ class FakeMarkerEnv:
         "reach_chain": "move to each red marker in turn",
     }
 
-    def __init__(
-        self,
-        image_size: int = IMAGE_SIZE,
-        fail_once: tuple[int, ...] = (),
-        fail_always: tuple[int, ...] = (),
-        exit_on: tuple[int, ...] = (),
-        hang_on: tuple[int, ...] = (),
-        oom_on: tuple[int, ...] = (),
-        oom_kill_on: tuple[int, ...] = (),
-        memory_limit_mb: int = 64,
-        nan_state_on: tuple[int, ...] = (),
-        once_dir: str | None = None,
-    ) -> None:
-        """Fault injection for tests, by episode index: ``fail_once`` raises in the first reset
-        of that episode in this process, ``fail_always`` in every reset, ``exit_on`` kills the
-        process (like a segfaulting simulator). In reset: ``hang_on`` never returns,
-        ``oom_on`` allocates past an RLIMIT_AS ``memory_limit_mb`` above the process's size
-        (MemoryError), ``oom_kill_on`` then SIGKILLs the process (as the OOM killer would);
-        ``nan_state_on`` makes the state NaN from step 2 (an unstable simulation). These four
-        fire in every reset, or once per run with ``once_dir`` (see workers.fault_injection)."""
+    def __init__(self, image_size: int = IMAGE_SIZE) -> None:
         self.image_size = image_size
-        self.fail_once, self.fail_always, self.exit_on = (
-            set(fail_once),
-            set(fail_always),
-            set(exit_on),
-        )
-        self.hang_on, self.oom_on, self.oom_kill_on = set(hang_on), set(oom_on), set(oom_kill_on)
-        self.nan_state_on, self.memory_limit_mb, self.once_dir = (
-            set(nan_state_on),
-            memory_limit_mb,
-            once_dir,
-        )
-        self._nan_state = False
-        self._failed: set[int] = set()
         self._task: TaskSpec | None = None
         self._pos = np.zeros(2)
         self._targets: list[np.ndarray] = []
@@ -106,16 +74,6 @@ class FakeMarkerEnv:
 
     def reset(self, task_id: str, episode_index: int, seed: int) -> EnvObservation:
         spec = self._spec(task_id)
-        if episode_index in self.exit_on:
-            import os
-
-            os._exit(17)
-        if episode_index in self.fail_always or (
-            episode_index in self.fail_once and episode_index not in self._failed
-        ):
-            self._failed.add(episode_index)
-            raise RuntimeError(f"injected failure in reset of episode {episode_index}")
-        self._inject_faults(episode_index)
         task_index = self._TASKS.index(spec)
         rng = np.random.default_rng([seed, episode_index, task_index])
         self._task = spec
@@ -125,19 +83,6 @@ class FakeMarkerEnv:
         self._steps = 0
         return self._observe()
 
-    def _inject_faults(self, episode_index: int) -> None:
-        from workers import fault_injection as fi
-
-        if fi.should_fire("hang", episode_index, self.hang_on, self.once_dir):
-            fi.hang_forever()
-        if fi.should_fire("oom", episode_index, self.oom_on, self.once_dir):
-            fi.exhaust_memory(self.memory_limit_mb)
-        if fi.should_fire("oom_kill", episode_index, self.oom_kill_on, self.once_dir):
-            fi.exhaust_memory(self.memory_limit_mb, kill=True)
-        self._nan_state = fi.should_fire(
-            "nan_state", episode_index, self.nan_state_on, self.once_dir
-        )
-
     def _observe(self) -> EnvObservation:
         img = np.zeros((self.image_size, self.image_size, 3), dtype=np.uint8)
         if self._done_count < len(self._targets):
@@ -145,10 +90,7 @@ class FakeMarkerEnv:
             img[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2, 0] = 255
         r, c = plane_to_pixel(self._pos, self.image_size)
         img[r, c, 1] = 255
-        state = self._pos.astype(np.float32)
-        if self._nan_state and self._steps >= 2:
-            state = np.full_like(state, np.nan)
-        return EnvObservation(images={"agentview": img}, state=state)
+        return EnvObservation(images={"agentview": img}, state=self._pos.astype(np.float32))
 
     def step(self, action: np.ndarray) -> EnvObservation:
         action = np.asarray(action, dtype=np.float64)

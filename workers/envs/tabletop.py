@@ -96,10 +96,7 @@ class TabletopEnv:
         max_steps: dict[str, int] | None = None,
         subtask_budget: int = DEFAULT_SUBTASK_BUDGET,
         fast_render: bool = True,
-        inject_instability: tuple[int, int] | None = None,
     ) -> None:
-        """``inject_instability``: a test hook, (episode_index, step): at that control step the
-        joint velocities are set to NaN before physics runs, as a diverging simulation would."""
         if image_size <= 0:
             raise ValueError(f"env.params.image_size={image_size} must be > 0")
         unknown = [c for c in cameras if c not in CAMERAS]
@@ -117,8 +114,6 @@ class TabletopEnv:
         self._scenes: dict[str, Any] = {}
         self._renderers: dict[str, Any] = {}
         self._ep: _Episode | None = None
-        self._inject = tuple(inject_instability) if inject_instability is not None else None
-        self._episode_index = -1
 
     @staticmethod
     def _check_max_steps(max_steps: dict[str, int] | None) -> dict[str, int]:
@@ -193,7 +188,7 @@ class TabletopEnv:
         scene.place_cubes(ep.cube_xy)
         self._last_obs = scene.reset()
         mujoco_instability(scene.sim.data._data)  # clear what earlier episodes left
-        self._ep, self._episode_index = ep, episode_index
+        self._ep = ep
         return self._observe()
 
     def step(self, action: np.ndarray) -> EnvObservation:
@@ -208,8 +203,6 @@ class TabletopEnv:
             raise ValueError(f"non-finite action {action.tolist()}")
         scene = self._scenes[self._ep.task_id]
         data = scene.sim.data._data
-        if self._inject == (self._episode_index, self._ep.steps):
-            data.qvel[:] = np.nan
         self._last_obs, _, _, _ = scene.step(np.clip(action, -1.0, 1.0))
         self._ep.steps += 1
         raise_if_unstable(data, f"at step {self._ep.steps} of {self._ep.init_state_id}")

@@ -45,9 +45,35 @@ class _NeverDoneEnv(FakeMarkerEnv):
         return False
 
 
+class _GripperOutOfRangeEnv(FakeMarkerEnv):
+    gripper_index = 2  # the action has 2 dims
+
+
+class _EmptyInitStateEnv(FakeMarkerEnv):
+    init_state_id = ""
+
+
+class _StaleFailureCauseEnv(FakeMarkerEnv):
+    failure_cause = "wrong_order"  # set before any episode failed
+
+
+class _FailureOnSuccessEnv(FakeMarkerEnv):
+    @property
+    def success(self) -> bool:
+        return self._steps >= 1
+
+    @property
+    def failure_cause(self) -> str | None:
+        return "wrong_order" if self.success else None
+
+
 @pytest.mark.parametrize(
     ("env_cls", "rule"),
     [
+        (_GripperOutOfRangeEnv, "gripper_index must be None or an int in"),
+        (_EmptyInitStateEnv, "init_state_id must be None or a non-empty str"),
+        (_StaleFailureCauseEnv, "after reset: failure_cause must be None"),
+        (_FailureOnSuccessEnv, "failure_cause is set on a successful episode"),
         (_SameInitEnv, "init states must vary"),
         (_NondeterministicEnv, "stepping must be deterministic"),
         (_LaxShapeEnv, "wrong action shape must raise ValueError"),
@@ -80,3 +106,18 @@ def test_success_requires_reaching_the_marker() -> None:
         env.step(np.clip((target - env._pos) / 0.1, -1, 1))
     assert env.success and env.subtasks_done == 1 and env.steps < env.task.max_steps
     assert np.linalg.norm(pos - target) > 0.08
+
+
+def test_optional_members_have_one_documented_default() -> None:
+    """What the pipeline assumes for an env or backbone that lacks an optional member."""
+    from workers.backbones.base import OPTIONAL_BACKBONE_MEMBERS, backbone_member
+    from workers.envs.base import OPTIONAL_ENV_MEMBERS, env_member
+
+    bare = object()
+    for name, (default, doc) in OPTIONAL_ENV_MEMBERS.items():
+        assert env_member(bare, name) is default and doc
+    for name, (default, doc) in OPTIONAL_BACKBONE_MEMBERS.items():
+        assert backbone_member(bare, name) is default and doc
+    assert env_member(_GripperOutOfRangeEnv(), "gripper_index") == 2
+    with pytest.raises(KeyError):
+        env_member(bare, "gripper")  # not a declared member: a typo, not a silent default

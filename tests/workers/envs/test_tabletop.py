@@ -21,7 +21,7 @@ def env():
 
 
 def _run(env, task, episode, policy, seed=0):
-    from workers.envs.tabletop_experts import expert_action  # noqa: F401
+    from workers.experts.tabletop import expert_action  # noqa: F401
 
     obs = env.reset(task, episode, seed)
     while not env.done:
@@ -40,7 +40,7 @@ def test_contract(env, task) -> None:
     ("task", "episodes"), [("pick_color", 3), ("stack_color", 3), ("organize", 1)]
 )
 def test_expert_succeeds(env, task, episodes) -> None:
-    from workers.envs.tabletop_experts import expert_action
+    from workers.experts.tabletop import expert_action
 
     for i in range(episodes):
         success, done, steps = _run(env, task, 100 + i, expert_action)
@@ -52,7 +52,7 @@ def test_expert_succeeds(env, task, episodes) -> None:
 
 def test_expert_with_a_wider_place_tolerance_still_succeeds(env) -> None:
     """place_tol 2 cm (lower the held cube while still correcting xy): still a perfect expert."""
-    from workers.envs.tabletop_experts import TabletopExpertBackbone, expert_action
+    from workers.experts.tabletop import TabletopExpertBackbone, expert_action
 
     for task, i in (("stack_color", 110), ("stack_color", 111), ("organize", 110)):
         success, _, steps = _run(env, task, i, lambda p: expert_action(p, place_tol=0.02))
@@ -63,7 +63,7 @@ def test_expert_with_a_wider_place_tolerance_still_succeeds(env) -> None:
 
 def test_chain_stops_at_first_failure(env) -> None:
     """An expert told a wrong order puts two cubes right, then a wrong one: chain ends at 2/5."""
-    from workers.envs.tabletop_experts import expert_action
+    from workers.experts.tabletop import expert_action
 
     def swapped(priv):
         order = list(priv["targets"])
@@ -98,7 +98,7 @@ def test_wrong_actions_fail_and_episode_ends_at_max_steps(env) -> None:
 def test_blind_policy_fails_pick_color_most_of_the_time(env) -> None:
     """A policy that ignores the image (so the cube positions) goes to the middle of the
     placement area and tries to pick there: it should rarely succeed."""
-    from workers.envs.tabletop_experts import expert_action
+    from workers.experts.tabletop import expert_action
 
     def blind(priv):
         fake = dict(priv)

@@ -10,7 +10,7 @@ pytestmark = [pytest.mark.sim, pytest.mark.slow]
 def test_recorded_demos_load_as_lerobot_dataset(tmp_path) -> None:
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from workers.envs.tabletop_demos import record
+    from training.tabletop_demos import record
 
     stats = record(tmp_path / "demos", ["pick_color"], episodes=1, image_size=32, first_episode=5)
     assert stats["pick_color"]["episodes"] == 1
@@ -31,8 +31,8 @@ def test_dart_noise_and_dagger_driver_keep_expert_labels(tmp_path) -> None:
     import numpy as np
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from workers.backbones.tiny_vla.train import train
-    from workers.envs.tabletop_demos import record
+    from training.tabletop_demos import record
+    from training.train_tiny_vla import train
 
     record(tmp_path / "clean", ["pick_color"], episodes=1, image_size=32, first_episode=7)
     noisy = record(
@@ -70,7 +70,7 @@ def test_sigint_stops_after_the_episode_and_leaves_a_readable_dataset(tmp_path) 
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     root = tmp_path / "demos"
-    cmd = [sys.executable, "-m", "workers.envs.tabletop_demos", "--root", str(root)]
+    cmd = [sys.executable, "-m", "training.tabletop_demos", "--root", str(root)]
     proc = subprocess.Popen(
         [*cmd, "--episodes", "50", "--tasks", "pick_color", "--image-size", "32"],
         stdout=subprocess.PIPE,

@@ -8,7 +8,7 @@ fast; images get a random shift of a few pixels as augmentation.
 
 Reproduce the shipped checkpoint (see README):
 
-    python -m workers.backbones.tiny_vla.train --data data/tabletop_demos_po data/tabletop_demos_org \
+    python -m training.train_tiny_vla --data data/tabletop_demos_po data/tabletop_demos_org \
         --out checkpoints/tiny_vla --steps 4000 --batch-size 64 --seed 0
 """
 
@@ -283,7 +283,7 @@ def train(
     pre.save_pretrained(out)
     post.save_pretrained(out)
     meta = {
-        "command": " ".join(["python -m workers.backbones.tiny_vla.train", *sys.argv[1:]]),
+        "command": " ".join(["python -m training.train_tiny_vla", *sys.argv[1:]]),
         "frames": n,
         "episodes": demos.n_episodes,
         "steps": steps,

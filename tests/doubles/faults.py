@@ -1,4 +1,4 @@
-"""Faults the fake env and backbone can inject for real, for the fault tests (never in a real run).
+"""Faults the test doubles inject for real, for the fault tests (never in a real run).
 
 - :func:`should_fire`: whether a fault set on some episodes fires now; with ``once_dir`` it
   fires once per run (an exclusive marker file shared by every process, so a retried episode

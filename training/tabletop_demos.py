@@ -16,7 +16,7 @@ can label any state):
   ``replan_steps``) while the expert labels every visited state; episodes are kept whatever
   their outcome, since the labels are what matter.
 
-    python -m workers.envs.tabletop_demos --root data/tabletop_demos --episodes 40 \
+    python -m training.tabletop_demos --root data/tabletop_demos --episodes 40 \
         --tasks pick_color stack_color organize --image-size 96
 """
 
@@ -70,7 +70,7 @@ def record(
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     from workers.envs.tabletop import TabletopEnv
-    from workers.envs.tabletop_experts import PLACE_TOL, expert_action
+    from workers.experts.tabletop import PLACE_TOL, expert_action
     from workers.observation import to_policy_observation
 
     if root.exists():

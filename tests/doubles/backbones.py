@@ -1,0 +1,41 @@
+"""Fault-injecting backbone doubles: the fake marker backbone with faults placed by call."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from tests.doubles import faults
+from workers.backbones.base import Observation
+from workers.backbones.fakes import FakeMarkerBackbone
+
+
+class FaultyMarkerBackbone(FakeMarkerBackbone):
+    """FakeMarkerBackbone whose calls fail on purpose, by call number (0-based, counted over
+    this object's life, not cleared by reset): ``nonfinite_calls`` return ``nonfinite_value``
+    (NaN or inf) in every action; calls from ``hang_from_call`` on never return."""
+
+    def __init__(
+        self,
+        nonfinite_calls: tuple[int, ...] = (),
+        nonfinite_value: float = float("nan"),
+        hang_from_call: int | None = None,
+        **params: Any,
+    ) -> None:
+        super().__init__(**params)
+        self.nonfinite_calls = frozenset(nonfinite_calls)
+        self.nonfinite_value = float(nonfinite_value)
+        self.hang_from_call = hang_from_call
+        self._n_calls = 0
+
+    def predict_chunk(
+        self, obs: Observation, noise: Any | None = None, intervention: Any | None = None
+    ) -> torch.Tensor:
+        call, self._n_calls = self._n_calls, self._n_calls + 1
+        if self.hang_from_call is not None and call >= self.hang_from_call:
+            faults.hang_forever()
+        a = super().predict_chunk(obs, noise, intervention)
+        if call in self.nonfinite_calls:
+            a = torch.full_like(a, self.nonfinite_value)
+        return a

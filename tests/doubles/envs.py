@@ -1,0 +1,83 @@
+"""Fault-injecting env doubles: the fake marker env with faults placed by episode index."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import replace
+
+from tests.doubles import faults
+from workers.envs.base import EnvObservation, TaskSpec
+from workers.envs.fakes import FakeMarkerEnv
+
+
+class FaultyMarkerEnv(FakeMarkerEnv):
+    """FakeMarkerEnv (suite ``fake_marker``) that fails on purpose, by episode index.
+
+    In reset: ``fail_once`` raises the first time in this process, ``fail_always`` every
+    time, ``exit_on`` kills the process (a segfaulting simulator), ``hang_on`` never returns,
+    ``oom_on`` allocates past an RLIMIT_AS ``memory_limit_mb`` above the process's size
+    (MemoryError), ``oom_kill_on`` then SIGKILLs the process (as the OOM killer would);
+    ``nan_state_on`` makes the state NaN from step 2 (an unstable simulation). The last four
+    fire in every reset, or once per run with ``once_dir`` (see tests.doubles.faults)."""
+
+    def __init__(
+        self,
+        image_size: int = 32,
+        fail_once: tuple[int, ...] = (),
+        fail_always: tuple[int, ...] = (),
+        exit_on: tuple[int, ...] = (),
+        hang_on: tuple[int, ...] = (),
+        oom_on: tuple[int, ...] = (),
+        oom_kill_on: tuple[int, ...] = (),
+        memory_limit_mb: int = 64,
+        nan_state_on: tuple[int, ...] = (),
+        once_dir: str | None = None,
+    ) -> None:
+        super().__init__(image_size=image_size)
+        self.fail_once, self.fail_always = set(fail_once), set(fail_always)
+        self.exit_on, self.hang_on = set(exit_on), set(hang_on)
+        self.oom_on, self.oom_kill_on = set(oom_on), set(oom_kill_on)
+        self.nan_state_on, self.memory_limit_mb = set(nan_state_on), memory_limit_mb
+        self.once_dir = once_dir
+        self._nan_state = False
+        self._failed: set[int] = set()
+
+    def reset(self, task_id: str, episode_index: int, seed: int) -> EnvObservation:
+        self._spec(task_id)
+        if episode_index in self.exit_on:
+            os._exit(17)
+        if episode_index in self.fail_always or (
+            episode_index in self.fail_once and episode_index not in self._failed
+        ):
+            self._failed.add(episode_index)
+            raise RuntimeError(f"injected failure in reset of episode {episode_index}")
+        fire = faults.should_fire
+        if fire("hang", episode_index, self.hang_on, self.once_dir):
+            faults.hang_forever()
+        if fire("oom", episode_index, self.oom_on, self.once_dir):
+            faults.exhaust_memory(self.memory_limit_mb)
+        if fire("oom_kill", episode_index, self.oom_kill_on, self.once_dir):
+            faults.exhaust_memory(self.memory_limit_mb, kill=True)
+        self._nan_state = fire("nan_state", episode_index, self.nan_state_on, self.once_dir)
+        return super().reset(task_id, episode_index, seed)
+
+    def _observe(self) -> EnvObservation:
+        obs = super()._observe()
+        if self._nan_state and self.steps >= 2:
+            obs.state[:] = float("nan")
+        return obs
+
+
+class TwoSuiteMarkerEnv(FakeMarkerEnv):
+    """FakeMarkerEnv whose two tasks belong to suites of their own (``marker_a``,
+    ``marker_b``), as LIBERO's tasks belong to libero_spatial, libero_10, ... under one env."""
+
+    @classmethod
+    def suite_tasks(cls, **_: object) -> list[TaskSpec]:
+        return [
+            replace(t, suite=f"marker_{s}", name=f"{t.name} ({s})")
+            for t, s in zip(FakeMarkerEnv.suite_tasks(), "ab", strict=True)
+        ]
+
+    def tasks(self) -> list[TaskSpec]:
+        return self.suite_tasks()
