@@ -20,7 +20,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config, args.overrides)
     run_dir = Path(args.out) if args.out else Path(cfg.output_root) / cfg.name
-    plan = plan_run(cfg, run_dir, yes=args.yes)
+    plan = plan_run(cfg, run_dir, yes=args.yes, adopt=args.adopt)
     n_cells = len({s.cell_id for s in plan.all_specs()})
     print(
         f"run {plan.run_id}: {len(plan.all_specs())} episodes ({n_cells} cells x {len(plan.tasks)} tasks "
@@ -135,7 +135,14 @@ def build_parser() -> argparse.ArgumentParser:
         "overrides", nargs="*", help="dotted key=value overrides, e.g. executor.workers=1"
     )
     run.add_argument(
-        "--yes", action="store_true", help="run a grid of more than max_cells cells (16 by default)"
+        "--yes",
+        action="store_true",
+        help="run a grid of more than max_cells cells (16) or max_episodes episodes (100000)",
+    )
+    run.add_argument(
+        "--adopt",
+        action="store_true",
+        help="resume a run dir whose run.json was lost, once its config.yaml matches the config",
     )
     run.set_defaults(func=_cmd_run)
     rep = sub.add_parser("report", help="rebuild RUN_DIR/report.md from the Parquet files")

@@ -169,6 +169,12 @@ class RunConfig(_Model):
         ge=1,
         description="a grid with more cells is refused unless confirmed (`idr-eval run --yes`)",
     )
+    max_episodes: int = Field(
+        default=100_000,
+        ge=1,
+        description="a plan of more episodes (cells x tasks x episodes_per_task) is refused "
+        "before it is built, unless confirmed (`idr-eval run --yes`)",
+    )
 
     @field_validator("name")
     @classmethod
@@ -219,7 +225,9 @@ class RunConfig(_Model):
 
     def fingerprint(self) -> str:
         """Hash of what determines results; a run dir may be resumed only with the same one."""
-        keep = self.model_dump(exclude={"executor", "tracking", "output_root", "name", "max_cells"})
+        keep = self.model_dump(
+            exclude={"executor", "tracking", "output_root", "name", "max_cells", "max_episodes"}
+        )
         return hashlib.sha256(json.dumps(keep, sort_keys=True, default=str).encode()).hexdigest()[
             :16
         ]
@@ -255,6 +263,27 @@ def _format_errors(err: ValidationError, source: str) -> str:
     return f"invalid config {source}:\n" + "\n".join(lines)
 
 
+class _NoAliasLoader(yaml.SafeLoader):
+    """YAML without aliases: a 1 KB file of nested aliases ("billion laughs") expands to
+    gigabytes once copied or validated; a config has no need for them. Refused while parsing,
+    before anything is copied."""
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise ConfigError(
+                f"YAML alias *{event.anchor} at line {event.start_mark.line + 1}: aliases (and "
+                "anchors used through them) are not accepted in configs, since nested ones "
+                "expand exponentially; write the values out"
+            )
+        return super().compose_node(parent, index)
+
+
+def safe_load_yaml(text: str) -> Any:
+    """``yaml.safe_load`` without aliases (ConfigError on one)."""
+    return yaml.load(text, Loader=_NoAliasLoader)
+
+
 def parse_override(text: str) -> tuple[list[str], Any]:
     if "=" not in text:
         raise ConfigError(
@@ -265,7 +294,7 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     if not all(path):
         raise ConfigError(f"override {text!r} has an empty key part")
     try:
-        value = yaml.safe_load(raw)
+        value = safe_load_yaml(raw)
     except yaml.YAMLError as e:
         why = getattr(e, "problem", None) or str(e).splitlines()[0]  # ReaderError: no .problem
         raise ConfigError(f"override {text!r}: value is not valid YAML ({why})") from None
@@ -303,7 +332,7 @@ def load_config(path: str | Path, overrides: list[str] | None = None) -> RunConf
         )
         raise ConfigError(f"config file {str(path)!r} not found{hint}")
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = safe_load_yaml(path.read_text()) or {}
     except yaml.YAMLError as e:
         raise ConfigError(f"config {path} is not valid YAML: {e}") from None
     if not isinstance(data, dict):
@@ -318,5 +347,10 @@ def config_from_dict(data: dict[str, Any], source: str = "<dict>") -> RunConfig:
         raise ConfigError(_format_errors(e, source)) from None
 
 
+class _NoAliasDumper(yaml.SafeDumper):
+    def ignore_aliases(self, data: Any) -> bool:
+        return True  # a value used twice is written twice: the file loads without aliases
+
+
 def dump_config(cfg: RunConfig) -> str:
-    return yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False)
+    return yaml.dump(cfg.model_dump(mode="json"), Dumper=_NoAliasDumper, sort_keys=False)

@@ -20,6 +20,10 @@ class DiskFullError(RunError):
     """No space left where the run writes; what was stored before is intact."""
 
 
+class RunDirLostError(RunError):
+    """The run directory lost its files while the run wrote to it (deleted, unmounted)."""
+
+
 def is_disk_full(exc: BaseException) -> bool:
     """ENOSPC / EDQUOT, also when it comes from pyarrow (which may not set errno)."""
     if not isinstance(exc, OSError):

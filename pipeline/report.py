@@ -99,19 +99,38 @@ def figures_section(figures: tuple[dict[str, Path], dict[str, str]] | str | None
     return parts
 
 
+def _file_health(store: RunStore) -> list[str]:
+    """Lines on unreadable Parquet files: quarantined by a driver, or skipped by this reader."""
+    lines = []
+    if q := store.quarantined_files():
+        lines.append(
+            f"{len(q)} unreadable Parquet files are in `quarantine/` (moved aside with their "
+            "partner batches: their episodes count as not stored, and a resume runs them again)."
+        )
+    if bad := sorted({*store.unreadable, *store.unreadable_files()}):
+        lines.append(
+            f"{len(bad)} unreadable Parquet files skipped here: {', '.join(bad[:5])}; "
+            "`idr-eval run` on this run dir quarantines them and runs their episodes again."
+        )
+    return lines
+
+
 def build_report(
     run_dir: str | Path, figures: tuple[dict[str, Path], dict[str, str]] | str | None = None
 ) -> str:
     """The report text; ``figures``: what ``write_figures`` returned (or why it failed)."""
     run_dir = Path(run_dir)
-    episodes = RunStore(run_dir, read_only=True).episodes().to_pandas()
+    store = RunStore(run_dir, read_only=True)
+    episodes = store.episodes().to_pandas()
     parts = [f"# IDR evaluation report: `{run_dir.name}`", ""]
+    files = _file_health(store)
     if episodes.empty:
-        return "\n".join([*parts, "No episodes stored yet."]) + "\n"
+        return "\n".join([*parts, "No episodes stored yet.", *files]) + "\n"
     n_err = int(episodes["error"].notna().sum())
     parts += [
         f"{len(episodes)} episodes, {episodes['cell_id'].nunique()} cells, "
         f"{episodes['task_id'].nunique()} tasks; {n_err} error rows (excluded from rates).",
+        *files,
         "",
         "## Success rate (%) by suite, with the paired difference against baseline",
         "",

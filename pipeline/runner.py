@@ -19,8 +19,9 @@ from typing import TYPE_CHECKING
 
 from pipeline.calibration import CALIBRATION_FILE, calibrate
 from pipeline.config import ConfigError, RunConfig, dump_config
-from pipeline.errors import DiskFullError
+from pipeline.errors import DiskFullError, RunDirLostError
 from pipeline.executors import Executor, make_executor
+from pipeline.lock import LOCK_FILE, RunDirLock
 from pipeline.paths import check_run_dir
 from pipeline.progress import Progress
 from pipeline.report import FIGURES_DIR, write_report
@@ -102,8 +103,9 @@ def _check_executor(cfg: RunConfig) -> None:
             )
 
 
-def _resume_or_claim(cfg: RunConfig, run_dir: Path) -> str:
-    """Return the run id; refuse a RUN_DIR that holds another config's results."""
+def _resume_or_claim(cfg: RunConfig, run_dir: Path, adopt: bool = False) -> str:
+    """Return the run id; refuse a RUN_DIR that holds another config's results. ``adopt``:
+    take over a run dir whose run.json was lost but whose config.yaml and data are intact."""
     meta_path = run_dir / RUN_META
     fingerprint = cfg.fingerprint()
     if meta_path.is_file():
@@ -115,31 +117,86 @@ def _resume_or_claim(cfg: RunConfig, run_dir: Path) -> str:
                 f"delete {run_dir} to start fresh"
             )
         return str(meta["run_id"])
-    if run_dir.exists() and any(run_dir.iterdir()):
+    if not (run_dir.exists() and any(p.name != LOCK_FILE for p in run_dir.iterdir())):
+        return uuid.uuid4().hex[:12]
+    stored = RunStore(run_dir, read_only=True)
+    if not (run_dir / "episodes").is_dir():
         raise ConfigError(f"{run_dir} exists and is not an idr-eval run dir; choose an empty --out")
-    return uuid.uuid4().hex[:12]
+    if not adopt:
+        raise ConfigError(
+            f"{run_dir} has no {RUN_META} but holds {stored.stored_count()} stored episodes (its "
+            f"{RUN_META} was lost?); pass --adopt to check its config.yaml against this config "
+            "and resume it, or choose another --out"
+        )
+    return _adopt(cfg, run_dir, stored)
+
+
+def _adopt(cfg: RunConfig, run_dir: Path, stored: RunStore) -> str:
+    """The run id of a run dir without run.json, once its config.yaml is this config."""
+    from pipeline.config import config_from_dict, safe_load_yaml
+
+    saved = run_dir / "config.yaml"
+    if not saved.is_file():
+        raise ConfigError(
+            f"--adopt: {run_dir} has no config.yaml, so its episodes cannot be checked against "
+            "this config; choose another --out"
+        )
+    theirs = config_from_dict(safe_load_yaml(saved.read_text()) or {}, source=str(saved))
+    if theirs.fingerprint() != cfg.fingerprint():
+        raise ConfigError(
+            f"--adopt: {saved} is a different config (fingerprint {theirs.fingerprint()} vs "
+            f"{cfg.fingerprint()}); results of two configs are never mixed"
+        )
+    ids = set(stored.episodes().column("run_id").to_pylist())
+    if len(ids) > 1:
+        raise ConfigError(f"--adopt: {run_dir} holds episodes of several runs: {sorted(ids)}")
+    run_id = ids.pop() if ids else uuid.uuid4().hex[:12]
+    log.warning("adopting %s (run %s): its %s was missing", run_dir, run_id, RUN_META)
+    return str(run_id)
+
+
+def check_run_dir_intact(run_dir: Path) -> None:
+    """Raise RunDirLostError when the run dir lost what this run wrote (deleted mid-run)."""
+    missing = [n for n in (RUN_META, "episodes", "steps") if not (run_dir / n).exists()]
+    if missing:
+        raise RunDirLostError(
+            f"{run_dir} lost {', '.join(missing)} while this run was writing to it (deleted or "
+            "unmounted?): stopping, so that nothing is written into a directory that no longer "
+            "holds the run. Episodes stored there may be lost; restore the directory and run "
+            "the same command again, or run again with a new --out"
+        )
 
 
 def check_cell_budget(cfg: RunConfig, n_tasks: int | None = None, yes: bool = False) -> None:
-    """Refuse, before any work, a grid of more than ``max_cells`` cells unless confirmed."""
+    """Refuse, before any work and before the plan is built, a grid of more than ``max_cells``
+    cells or a plan of more than ``max_episodes`` episodes, unless confirmed."""
     n = len(cfg.cells())
-    if n <= cfg.max_cells or yes:
-        return
-    episodes = f" ({n * n_tasks * cfg.episodes_per_task} episodes)" if n_tasks else ""
-    raise ConfigError(
-        f"max_cells: the grid gives {n} cells{episodes}, more than max_cells={cfg.max_cells}; "
-        f"pass --yes to run them all, or set max_cells={n} (or higher) in the config or as an "
-        "override, or shrink the grid"
-    )
+    episodes = n * n_tasks * cfg.episodes_per_task if n_tasks else None
+    if n > cfg.max_cells and not yes:
+        shown = f" ({episodes} episodes)" if episodes else ""
+        raise ConfigError(
+            f"max_cells: the grid gives {n} cells{shown}, more than max_cells={cfg.max_cells}; "
+            f"pass --yes to run them all, or set max_cells={n} (or higher) in the config or as "
+            "an override, or shrink the grid"
+        )
+    if episodes is not None and episodes > cfg.max_episodes and not yes:
+        raise ConfigError(
+            f"max_episodes: the plan has {episodes} episodes ({n} cells x {n_tasks} tasks x "
+            f"episodes_per_task={cfg.episodes_per_task}), more than max_episodes="
+            f"{cfg.max_episodes}; pass --yes to run them all, or set max_episodes={episodes} "
+            "(or higher), or lower episodes_per_task"
+        )
 
 
-def plan_run(cfg: RunConfig, run_dir: str | Path, yes: bool = False) -> RunPlan:
+def plan_run(
+    cfg: RunConfig, run_dir: str | Path, yes: bool = False, adopt: bool = False
+) -> RunPlan:
     """Everything checked, nothing started; ``yes`` confirms a grid larger than max_cells."""
     run_dir = check_run_dir(run_dir, cfg.output_root)
     tasks = _select_tasks(cfg)
     check_cell_budget(cfg, len(tasks), yes=yes)
     _check_executor(cfg)
-    run_id = _resume_or_claim(cfg, run_dir)
+    run_id = _resume_or_claim(cfg, run_dir, adopt)
     version = code_version()
     specs = [
         EpisodeSpec(
@@ -190,6 +247,11 @@ def _write_meta(plan: RunPlan) -> None:
     plan.run_dir.mkdir(parents=True, exist_ok=True)
     _write_text_atomic(plan.run_dir / "config.yaml", dump_config(plan.cfg))
     meta = {"run_id": plan.run_id, "fingerprint": plan.cfg.fingerprint(), "name": plan.cfg.name}
+    old = plan.run_dir / RUN_META
+    if old.is_file():  # what earlier drivers recorded (quarantined files) is kept
+        kept = json.loads(old.read_text()).get("quarantined")
+        if kept:
+            meta["quarantined"] = kept
     _write_text_atomic(plan.run_dir / RUN_META, json.dumps(meta, indent=2))
 
 
@@ -214,7 +276,32 @@ def run_params(plan: RunPlan) -> dict[str, object]:
 
 
 def execute(plan: RunPlan) -> RunSummary:
-    """Run the plan: schedule the episodes not yet stored, write the report, track in MLflow."""
+    """Run the plan: schedule the episodes not yet stored, write the report, track in MLflow.
+
+    The run directory is locked for the whole run (pipeline.lock) before anything else: a
+    second driver on it is refused before it starts Ray or touches a file."""
+    with RunDirLock(plan.run_dir):
+        return _execute(_after_lock(plan))
+
+
+def _after_lock(plan: RunPlan) -> RunPlan:
+    """The plan, with the run id of a driver that claimed the directory between planning and
+    locking (it held the lock then; its run is resumed, under its id)."""
+    if not (plan.run_dir / RUN_META).is_file():
+        return plan
+    run_id = _resume_or_claim(plan.cfg, plan.run_dir)
+    if run_id == plan.run_id:
+        return plan
+    log.info("%s was claimed by run %s meanwhile: resuming it", plan.run_dir, run_id)
+    return replace(
+        plan,
+        run_id=run_id,
+        specs=[replace(s, run_id=run_id) for s in plan.specs],
+        calibrated=[replace(s, run_id=run_id) for s in plan.calibrated],
+    )
+
+
+def _execute(plan: RunPlan) -> RunSummary:
     from pipeline.tracking import Tracker, resolve_uri
 
     cfg = plan.cfg
@@ -226,6 +313,11 @@ def execute(plan: RunPlan) -> RunSummary:
         connect(cfg.executor)
     _write_meta(plan)
     store = RunStore(plan.run_dir)
+    if store.quarantined:  # unreadable batches moved aside on open: said in run.json too
+        meta_path = plan.run_dir / RUN_META
+        meta = json.loads(meta_path.read_text())
+        meta["quarantined"] = sorted({*meta.get("quarantined", []), *store.quarantined})
+        _write_text_atomic(meta_path, json.dumps(meta, indent=2))
     tracker = None
     if cfg.tracking.enabled:  # opened before any actor starts: a bad store is refused up front
         uri = resolve_uri(cfg.tracking.uri, plan.run_dir)
@@ -247,7 +339,7 @@ def execute(plan: RunPlan) -> RunSummary:
     total = len(plan.all_specs())
     on_flush = (lambda batch: tracker.progress(len(batch), total)) if tracker else None
 
-    status, disk_full = "FAILED", False
+    status, no_report = "FAILED", ""
     try:
         summary = run_episodes(plan, store, on_flush=on_flush, tracker=tracker)
         status = "FINISHED"
@@ -255,14 +347,17 @@ def execute(plan: RunPlan) -> RunSummary:
         status = "KILLED"
         raise
     except DiskFullError:
-        disk_full = True
+        no_report = "the disk is full"
+        raise
+    except RunDirLostError:
+        no_report = "the run dir lost its files"
         raise
     finally:
         with critical_section():  # a signal now waits until the report and MLflow are done
             report = plan.run_dir / "report.md"
             try:
-                if disk_full:  # it would fail too: `idr-eval report RUN_DIR` rebuilds it later
-                    log.error("report not written: the disk is full")
+                if no_report:  # it would fail too: `idr-eval report RUN_DIR` rebuilds it later
+                    log.error("report not written: %s", no_report)
                 else:
                     report = write_report(plan.run_dir)
             except Exception as e:
@@ -325,7 +420,9 @@ def run_episodes(
     progress = Progress(len(plan.all_specs()))
     sched = Scheduler(
         executor,
-        BatchWriter(store, ex.flush_every, on_flush),
+        BatchWriter(
+            store, ex.flush_every, on_flush, check_dir=lambda: check_run_dir_intact(plan.run_dir)
+        ),
         ex.max_attempts,
         total=len(plan.all_specs()),
         progress=progress,

@@ -11,11 +11,17 @@ crash between the two renames) is removed when the store is opened. So a crash l
 the episodes in flight and never leaves an unreadable file, and a key
 (cell_id, task_id, episode_index) is stored at most once: the episodes table is the record
 of what is done, and resume skips its keys.
+
+A batch that is unreadable anyway (a bad disk, a copy cut short by hand) is quarantined by the
+next writer that opens the store: moved with its partner batch to ``RUN_DIR/quarantine/``, so
+its keys count as not stored and resume re-runs them. Read-only openers skip such a file and
+list it in ``unreadable``; they never move files.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
 import re
 import uuid
@@ -72,6 +78,8 @@ VOLATILE_COLUMNS = (
 )
 
 KEY = ("cell_id", "task_id", "episode_index")
+QUARANTINE_DIR = "quarantine"
+log = logging.getLogger("idr_eval.store")
 _BATCH_RE = re.compile(r"batch-(\d+)-([0-9a-f]+)\.parquet$")
 
 
@@ -103,6 +111,9 @@ class RunStore:
         self.read_only = read_only
         self._seq = 0
         self.rows_written = 0
+        # unreadable batches: moved to RUN_DIR/quarantine/ (writer) or skipped (read-only)
+        self.quarantined: list[str] = []
+        self.unreadable: list[str] = []
         if read_only:
             return
         for d in (self.episodes_dir, self.steps_dir):
@@ -113,6 +124,13 @@ class RunStore:
     def _recover(self) -> None:
         for tmp in self.run_dir.glob("*/cell=*/.*.tmp"):
             tmp.unlink()  # a write that never finished
+        for p in sorted(self.run_dir.glob("*/cell=*/batch-*.parquet")):
+            try:
+                pq.read_metadata(p)
+            except FileNotFoundError:
+                continue  # quarantined just now with its partner
+            except (OSError, pa.ArrowException):
+                self._quarantine(p)
         done = {
             p.relative_to(self.episodes_dir)
             for p in self.episodes_dir.glob("cell=*/batch-*.parquet")
@@ -122,6 +140,24 @@ class RunStore:
                 p.unlink()  # steps of a batch whose episodes never landed
         seqs = [int(m.group(1)) for p in done if (m := _BATCH_RE.search(p.name))]
         self._seq = max(seqs, default=0)
+
+    def _quarantine(self, bad: Path) -> None:
+        """Move an unreadable batch and its partner (the same batch of the other table) to
+        RUN_DIR/quarantine/, so that its keys count as not stored and resume re-runs them."""
+        rel = bad.relative_to(self.run_dir)
+        part = Path(*rel.parts[1:])  # cell=<id>/batch-....parquet
+        for root in (self.episodes_dir, self.steps_dir):
+            src = root / part
+            if src.exists():
+                dst = self.run_dir / QUARANTINE_DIR / root.name / part
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(src, dst)
+                self.quarantined.append(str(dst.relative_to(self.run_dir)))
+        log.warning(
+            "%s is unreadable: moved with its partner batch to %s/; its episodes run again",
+            rel,
+            QUARANTINE_DIR,
+        )
 
     # -- writing -------------------------------------------------------------------------------
     @staticmethod
@@ -179,9 +215,36 @@ class RunStore:
         files = sorted(root.glob("cell=*/batch-*.parquet"))
         if self.read_only and root == self.steps_dir:  # a batch counts once its episodes landed
             files = [f for f in files if (self.episodes_dir / f.relative_to(root)).is_file()]
-        if not files:
+        tables = []
+        for f in files:
+            try:
+                tables.append(pq.read_table(f, schema=schema))
+            except FileNotFoundError:
+                continue  # quarantined meanwhile with its partner
+            except (OSError, pa.ArrowException) as e:
+                if self.read_only:  # a reader never moves files: skipped, and said
+                    log.warning("%s is unreadable (%s): skipped", f.relative_to(self.run_dir), e)
+                    self.unreadable.append(str(f.relative_to(self.run_dir)))
+                else:
+                    self._quarantine(f)
+        if not tables:
             return schema.empty_table()
-        return pa.concat_tables([pq.read_table(f, schema=schema) for f in files])
+        return pa.concat_tables(tables)
+
+    def unreadable_files(self) -> list[str]:
+        """Batches whose Parquet footer cannot be read (scans every file: for reports)."""
+        bad = []
+        for p in sorted(self.run_dir.glob("*/cell=*/batch-*.parquet")):
+            try:
+                pq.read_metadata(p)
+            except (OSError, pa.ArrowException):
+                bad.append(str(p.relative_to(self.run_dir)))
+        return bad
+
+    def quarantined_files(self) -> list[str]:
+        """Every file in RUN_DIR/quarantine/ (moved there by this or an earlier driver)."""
+        q = self.run_dir / QUARANTINE_DIR
+        return sorted(str(p.relative_to(self.run_dir)) for p in q.rglob("*.parquet"))
 
     def episodes(self) -> pa.Table:
         return self._read(self.episodes_dir, EPISODE_SCHEMA)
@@ -190,8 +253,13 @@ class RunStore:
         return self._read(self.steps_dir, STEP_SCHEMA)
 
     def stored_count(self) -> int:
-        files = self.episodes_dir.glob("cell=*/batch-*.parquet")
-        return sum(pq.ParquetFile(f).metadata.num_rows for f in files)
+        n = 0
+        for f in self.episodes_dir.glob("cell=*/batch-*.parquet"):
+            try:
+                n += pq.read_metadata(f).num_rows
+            except (OSError, pa.ArrowException):
+                continue  # unreadable: not stored (quarantined by the next writer)
+        return n
 
     def stored_keys(self) -> set[tuple[str, str, int]]:
         t = self.episodes().select(list(KEY)).to_pydict()

@@ -21,8 +21,12 @@ class BatchWriter:
         store: RunStore,
         flush_every: int,
         on_flush: Callable[[list[EpisodeResult]], None] | None = None,
+        check_dir: Callable[[], None] | None = None,
     ) -> None:
+        """``check_dir``: raises when the run directory is no longer the one this run writes
+        (checked before each batch, so a deleted directory is never silently recreated)."""
         self.store = store
+        self.check_dir = check_dir
         self.flush_every = flush_every
         self.on_flush = on_flush
         self.stored_keys = store.stored_keys()
@@ -51,6 +55,8 @@ class BatchWriter:
             # taken out first: a batch that fails to write (a full disk) is not tried again
             # by the flush at the end of the run; its episodes run again on resume
             batch, self._buffer, self._buffered = self._buffer, [], set()
+            if self.check_dir is not None:
+                self.check_dir()
             self.store.write(batch)
             self.stored_keys.update(r.key for r in batch)
             self.stored += len(batch)

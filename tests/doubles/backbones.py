@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -39,3 +41,19 @@ class FaultyMarkerBackbone(FakeMarkerBackbone):
         if call in self.nonfinite_calls:
             a = torch.full_like(a, self.nonfinite_value)
         return a
+
+
+class GatedMarkerBackbone(FakeMarkerBackbone):
+    """FakeMarkerBackbone whose calls wait until the file ``gate`` exists: a test holds a run
+    in flight for as long as it needs, then lets it finish."""
+
+    def __init__(self, gate: str, **params: Any) -> None:
+        super().__init__(**params)
+        self.gate = Path(gate)
+
+    def predict_chunk(
+        self, obs: Observation, noise: Any | None = None, intervention: Any | None = None
+    ) -> torch.Tensor:
+        while not self.gate.exists():
+            time.sleep(0.02)
+        return super().predict_chunk(obs, noise, intervention)
