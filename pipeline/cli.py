@@ -20,7 +20,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config, args.overrides)
     run_dir = Path(args.out) if args.out else Path(cfg.output_root) / cfg.name
-    plan = plan_run(cfg, run_dir, yes=args.yes, adopt=args.adopt)
+    plan = plan_run(
+        cfg, run_dir, yes=args.yes, adopt=args.adopt, allow_code_change=args.allow_code_change
+    )
     n_cells = len({s.cell_id for s in plan.all_specs()})
     print(
         f"run {plan.run_id}: {len(plan.all_specs())} episodes ({n_cells} cells x {len(plan.tasks)} tasks "
@@ -42,6 +44,20 @@ def _cmd_run(args: argparse.Namespace) -> int:
         f"{summary.actors_replaced} actors replaced, {summary.timeouts} timeouts"
     )
     print((run_dir / "report.md").read_text())
+    return 0
+
+
+def _cmd_compact(args: argparse.Namespace) -> int:
+    from pipeline.lock import RunDirLock
+    from pipeline.runner import compact_run_dir
+    from pipeline.store import RunStore
+
+    run_dir = Path(args.run_dir)
+    if not (run_dir / "episodes").is_dir():
+        raise ConfigError(f"{run_dir} is not a run dir (no episodes/ folder)")
+    with RunDirLock(run_dir):  # never alongside a driver of this run dir
+        merged = compact_run_dir(RunStore(run_dir))
+    print(f"{run_dir}: merged {sum(merged.values())} files of {len(merged)} cells")
     return 0
 
 
@@ -144,10 +160,20 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="resume a run dir whose run.json was lost, once its config.yaml matches the config",
     )
+    run.add_argument(
+        "--allow-code-change",
+        action="store_true",
+        help="resume a run dir made by another code version (git describe) of idr-eval",
+    )
     run.set_defaults(func=_cmd_run)
     rep = sub.add_parser("report", help="rebuild RUN_DIR/report.md from the Parquet files")
     rep.add_argument("run_dir")
     rep.set_defaults(func=_cmd_report)
+    cpt = sub.add_parser(
+        "compact", help="merge RUN_DIR's batches into one Parquet file per cell and table"
+    )
+    cpt.add_argument("run_dir")
+    cpt.set_defaults(func=_cmd_compact)
     cmp = sub.add_parser(
         "compare", help="one table across runs: success per suite, Avg, Δ vs baseline, p"
     )

@@ -23,6 +23,7 @@ from typing import Any
 
 from pipeline import signals
 from pipeline.config import ConfigError, ExecutorConfig
+from pipeline.errors import RunError
 
 log = logging.getLogger("idr_eval.cluster")
 PROBE_TIMEOUT_S = 5.0
@@ -119,16 +120,24 @@ def init_ray(
     env = {"RAY_DEDUP_LOGS": "1"}
     for k, v in env.items():
         os.environ.setdefault(k, v)
-    if address:
-        ray.init(address=address, log_to_driver=True)
-    else:
-        ray.init(
-            num_cpus=num_cpus,
-            num_gpus=num_gpus,
-            resources=resources,
-            include_dashboard=False,
-            log_to_driver=True,
-        )
+    try:
+        if address:
+            ray.init(address=address, log_to_driver=True)
+        else:
+            ray.init(
+                num_cpus=num_cpus,
+                num_gpus=num_gpus,
+                resources=resources,
+                include_dashboard=False,
+                log_to_driver=True,
+            )
+    except (RuntimeError, ConnectionError, TimeoutError) as e:
+        where = f"join the Ray cluster at {address}" if address else "start a local Ray"
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise RunError(
+            f"could not {where}: {first}. Nothing was written; on a loaded machine try again "
+            "(Ray's node start-up timed out), or use executor.kind=inline"
+        ) from None
     signals.reinstall()  # ray.init replaced our SIGTERM handler with one that aborts
 
 

@@ -281,7 +281,11 @@ class _NoAliasLoader(yaml.SafeLoader):
 
 def safe_load_yaml(text: str) -> Any:
     """``yaml.safe_load`` without aliases (ConfigError on one)."""
-    return yaml.load(text, Loader=_NoAliasLoader)
+    loader = _NoAliasLoader(text)  # a SafeLoader: no Python objects are ever constructed
+    try:
+        return loader.get_single_data()
+    finally:
+        loader.dispose()
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:

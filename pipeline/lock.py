@@ -50,6 +50,7 @@ class RunDirLock:
         self.run_dir = Path(run_dir)
         self.path = self.run_dir / LOCK_FILE
         self._fd: int | None = None
+        self._created = False  # the run dir did not exist: removed again if the run wrote nothing
 
     def holder(self) -> dict[str, Any]:
         try:
@@ -72,6 +73,7 @@ class RunDirLock:
     def acquire(self) -> None:
         import fcntl
 
+        self._created = not self.run_dir.exists()
         self.run_dir.mkdir(parents=True, exist_ok=True)
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
@@ -115,6 +117,9 @@ class RunDirLock:
             return
         try:
             os.ftruncate(fd, 0)
+            if self._created and [p.name for p in self.run_dir.iterdir()] == [LOCK_FILE]:
+                self.path.unlink()  # a run refused before writing anything leaves no dir
+                self.run_dir.rmdir()
         finally:
             os.close(fd)  # drops the flock
 

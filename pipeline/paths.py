@@ -31,10 +31,33 @@ def _symlinks(path: Path) -> list[Path]:
     return found
 
 
+def check_writable_dir(run_dir: Path) -> None:
+    """A RUN_DIR must be a directory (or not exist yet) whose nearest existing ancestor this
+    process can create folders in: refused otherwise, before anything is written."""
+    if run_dir.exists() and not run_dir.is_dir():
+        raise ConfigError(
+            f"RUN_DIR {str(run_dir)!r} is an existing file, not a directory; choose another --out"
+        )
+    probe = run_dir
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir():
+        raise ConfigError(f"RUN_DIR {str(run_dir)!r}: {probe} is a file, not a directory")
+    target = run_dir if run_dir.exists() else probe
+    if not os.access(target, os.W_OK | os.X_OK) or str(target.resolve()).startswith(
+        ("/proc", "/sys")
+    ):
+        raise ConfigError(
+            f"RUN_DIR {str(run_dir)!r}: {target} is not writable by this user; choose an --out "
+            "you can write to"
+        )
+
+
 def check_run_dir(run_dir: str | Path, output_root: str | Path) -> Path:
     """Return ``run_dir``, or raise ConfigError if ``..`` or a symlink takes it outside
-    ``output_root``."""
+    ``output_root``, or it cannot be written (a file, a read-only or virtual filesystem)."""
     given = Path(run_dir).expanduser()
+    check_writable_dir(given)
     root = Path(output_root).expanduser().resolve()
     resolved = given.resolve()
     if _inside(resolved, root):

@@ -24,6 +24,7 @@ from pipeline.executors import Executor, make_executor
 from pipeline.lock import LOCK_FILE, RunDirLock
 from pipeline.paths import check_run_dir
 from pipeline.progress import Progress
+from pipeline.provenance import check_resume, checkpoint_path, checkpoint_record
 from pipeline.report import FIGURES_DIR, write_report
 from pipeline.scheduler import RunSummary, Scheduler
 from pipeline.signals import critical_section
@@ -67,6 +68,8 @@ class RunPlan:
     specs: list[EpisodeSpec]
     worker_spec: WorkerSpec
     calibrated: list[EpisodeSpec]  # scheduled after tau calibration, with tau filled in
+    code_version: str = ""
+    checkpoint: dict[str, object] | None = None  # pipeline.provenance.checkpoint_record
 
     def all_specs(self) -> list[EpisodeSpec]:
         return [*self.specs, *self.calibrated]
@@ -155,9 +158,12 @@ def _adopt(cfg: RunConfig, run_dir: Path, stored: RunStore) -> str:
     return str(run_id)
 
 
-def check_run_dir_intact(run_dir: Path) -> None:
-    """Raise RunDirLostError when the run dir lost what this run wrote (deleted mid-run)."""
-    missing = [n for n in (RUN_META, "episodes", "steps") if not (run_dir / n).exists()]
+RUN_DIR_MARKERS = (RUN_META, "episodes", "steps")
+
+
+def check_run_dir_intact(run_dir: Path, markers: tuple[str, ...] = RUN_DIR_MARKERS) -> None:
+    """Raise RunDirLostError when the run dir lost ``markers`` (deleted mid-run)."""
+    missing = [n for n in markers if not (run_dir / n).exists()]
     if missing:
         raise RunDirLostError(
             f"{run_dir} lost {', '.join(missing)} while this run was writing to it (deleted or "
@@ -189,7 +195,11 @@ def check_cell_budget(cfg: RunConfig, n_tasks: int | None = None, yes: bool = Fa
 
 
 def plan_run(
-    cfg: RunConfig, run_dir: str | Path, yes: bool = False, adopt: bool = False
+    cfg: RunConfig,
+    run_dir: str | Path,
+    yes: bool = False,
+    adopt: bool = False,
+    allow_code_change: bool = False,
 ) -> RunPlan:
     """Everything checked, nothing started; ``yes`` confirms a grid larger than max_cells."""
     run_dir = check_run_dir(run_dir, cfg.output_root)
@@ -198,6 +208,12 @@ def plan_run(
     _check_executor(cfg)
     run_id = _resume_or_claim(cfg, run_dir, adopt)
     version = code_version()
+    checkpoint = _checkpoint(cfg, run_dir)
+    meta_path = run_dir / RUN_META
+    if meta_path.is_file():
+        check_resume(
+            json.loads(meta_path.read_text()), checkpoint, version, run_dir, allow_code_change
+        )
     specs = [
         EpisodeSpec(
             run_id=run_id,
@@ -230,7 +246,7 @@ def plan_run(
         cfg.backbone.replan_steps,
         cfg.backbone.batched,
     )
-    return RunPlan(cfg, run_dir, run_id, tasks, specs, worker_spec, deferred)
+    return RunPlan(cfg, run_dir, run_id, tasks, specs, worker_spec, deferred, version, checkpoint)
 
 
 def _write_text_atomic(path: Path, text: str) -> None:
@@ -243,10 +259,27 @@ def _write_text_atomic(path: Path, text: str) -> None:
         tmp.unlink(missing_ok=True)
 
 
+def _checkpoint(cfg: RunConfig, run_dir: Path) -> dict[str, object] | None:
+    """The checkpoint's digest, reusing run.json's when its files did not change."""
+    root = checkpoint_path(cfg)
+    if root is None:
+        return None
+    meta_path = run_dir / RUN_META
+    previous = json.loads(meta_path.read_text()).get("checkpoint") if meta_path.is_file() else None
+    return checkpoint_record(root, previous)
+
+
 def _write_meta(plan: RunPlan) -> None:
     plan.run_dir.mkdir(parents=True, exist_ok=True)
     _write_text_atomic(plan.run_dir / "config.yaml", dump_config(plan.cfg))
-    meta = {"run_id": plan.run_id, "fingerprint": plan.cfg.fingerprint(), "name": plan.cfg.name}
+    meta: dict[str, object] = {
+        "run_id": plan.run_id,
+        "fingerprint": plan.cfg.fingerprint(),
+        "name": plan.cfg.name,
+        "code_version": plan.code_version,
+    }
+    if plan.checkpoint is not None:
+        meta["checkpoint"] = plan.checkpoint
     old = plan.run_dir / RUN_META
     if old.is_file():  # what earlier drivers recorded (quarantined files) is kept
         kept = json.loads(old.read_text()).get("quarantined")
@@ -342,6 +375,7 @@ def _execute(plan: RunPlan) -> RunSummary:
     status, no_report = "FAILED", ""
     try:
         summary = run_episodes(plan, store, on_flush=on_flush, tracker=tracker)
+        compact_run_dir(store)
         status = "FINISHED"
     except KeyboardInterrupt:  # SIGINT, or SIGTERM through pipeline.signals
         status = "KILLED"
@@ -418,10 +452,15 @@ def run_episodes(
     store = store if store is not None else RunStore(plan.run_dir)
     executor = executor if executor is not None else make_executor(plan.worker_spec, ex)
     progress = Progress(len(plan.all_specs()))
+    # what the run dir holds now must still be there at each flush
+    markers = tuple(n for n in RUN_DIR_MARKERS if (plan.run_dir / n).exists())
     sched = Scheduler(
         executor,
         BatchWriter(
-            store, ex.flush_every, on_flush, check_dir=lambda: check_run_dir_intact(plan.run_dir)
+            store,
+            ex.flush_every,
+            on_flush,
+            check_dir=lambda: check_run_dir_intact(plan.run_dir, markers),
         ),
         ex.max_attempts,
         total=len(plan.all_specs()),
@@ -435,6 +474,20 @@ def run_episodes(
         executor.close()
         progress.close()
     return sched.summary
+
+
+def compact_run_dir(store: RunStore) -> dict[str, int]:
+    """Merge each cell's batches into one file per table (pipeline.store: crash-safe), so that
+    readers of a large run open one file per cell and table, not one per batch."""
+    with critical_section():  # a signal waits: the compaction's removals are not interrupted
+        merged = store.compact()
+    if merged:
+        log.info(
+            "compacted %d files of %d cells into one per cell and table",
+            sum(merged.values()),
+            len(merged),
+        )
+    return merged
 
 
 def _after_stop(status: str, what: str, exc: Exception) -> None:

@@ -4,6 +4,7 @@ Layout of RUN_DIR::
 
     episodes/cell=<cell_id>/batch-<n>-<id>.parquet   one row per finished episode
     steps/cell=<cell_id>/batch-<n>-<id>.parquet      one row per inference of those episodes
+    {episodes,steps}/cell=<cell_id>/compact-<n>-<id>.parquet   a cell's batches, merged
 
 Each batch is written to a temporary name in the same directory and renamed into place
 (``os.replace``), steps first, then episodes; a steps batch without its episodes batch (a
@@ -11,6 +12,13 @@ crash between the two renames) is removed when the store is opened. So a crash l
 the episodes in flight and never leaves an unreadable file, and a key
 (cell_id, task_id, episode_index) is stored at most once: the episodes table is the record
 of what is done, and resume skips its keys.
+
+At the end of a run (and by ``idr-eval compact``) each cell's files are merged into one per
+table (:meth:`RunStore.compact`), so that readers of a large run open a file per cell, not per
+batch; a compacted episodes file lists in its Parquet metadata the files it merged, which
+readers skip and the next writer removes, so a crash at any step of a compaction leaves each
+key stored once. Readers scan the live files as one dataset, reading only the columns asked
+for (resume reads the key columns only).
 
 A batch that is unreadable anyway (a bad disk, a copy cut short by hand) is quarantined by the
 next writer that opens the store: moved with its partner batch to ``RUN_DIR/quarantine/``, so
@@ -21,6 +29,7 @@ list it in ``unreadable``; they never move files.
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import os
 import re
@@ -32,6 +41,7 @@ from types import UnionType
 from typing import Annotated, Any, Union, get_args, get_origin, get_type_hints
 
 import pyarrow as pa
+import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 
 from pipeline.errors import DiskFullError, is_disk_full
@@ -80,7 +90,11 @@ VOLATILE_COLUMNS = (
 KEY = ("cell_id", "task_id", "episode_index")
 QUARANTINE_DIR = "quarantine"
 log = logging.getLogger("idr_eval.store")
-_BATCH_RE = re.compile(r"batch-(\d+)-([0-9a-f]+)\.parquet$")
+_BATCH_RE = re.compile(r"(batch|compact)-(\d+)-([0-9a-f]+)\.parquet$")
+DATA_GLOB = "cell=*/*.parquet"  # batches and compacted files
+COMPACT_PREFIX = "compact-"
+SOURCES_KEY = b"idr_eval.sources"  # a compacted file's metadata: the files it merged
+STEP_ROW_GROUP = 262_144  # rows per row group of a compacted steps file
 
 
 def _safe(cell_id: str) -> str:
@@ -124,22 +138,47 @@ class RunStore:
     def _recover(self) -> None:
         for tmp in self.run_dir.glob("*/cell=*/.*.tmp"):
             tmp.unlink()  # a write that never finished
-        for p in sorted(self.run_dir.glob("*/cell=*/batch-*.parquet")):
+        for p in sorted(self.run_dir.glob(f"*/{DATA_GLOB}")):
             try:
                 pq.read_metadata(p)
             except FileNotFoundError:
                 continue  # quarantined just now with its partner
             except (OSError, pa.ArrowException):
                 self._quarantine(p)
-        done = {
-            p.relative_to(self.episodes_dir)
-            for p in self.episodes_dir.glob("cell=*/batch-*.parquet")
-        }
-        for p in self.steps_dir.glob("cell=*/batch-*.parquet"):
+        done = {p.relative_to(self.episodes_dir) for p in self.episodes_dir.glob(DATA_GLOB)}
+        for p in self.steps_dir.glob(DATA_GLOB):
             if p.relative_to(self.steps_dir) not in done:
-                p.unlink()  # steps of a batch whose episodes never landed
-        seqs = [int(m.group(1)) for p in done if (m := _BATCH_RE.search(p.name))]
+                p.unlink()  # steps of a batch (or compaction) whose episodes never landed
+                log.info("removed %s: its episodes file never landed", p.relative_to(self.run_dir))
+        stale = self._superseded()
+        for root in (self.steps_dir, self.episodes_dir):
+            for cell, name in sorted(stale):
+                f = root / cell / name
+                if f.exists():  # a compaction stopped before removing what it merged
+                    f.unlink()
+                    log.info(
+                        "removed %s: merged into a compacted file", f.relative_to(self.run_dir)
+                    )
+        seqs = [int(m.group(2)) for p in done if (m := _BATCH_RE.search(p.name))]
         self._seq = max(seqs, default=0)
+
+    def _superseded(self) -> set[tuple[str, str]]:
+        """(cell dir, file name) of the batches and older compacted files that a compacted
+        episodes file of the same cell holds (its Parquet metadata lists them)."""
+        out: set[tuple[str, str]] = set()
+        for c in self.episodes_dir.glob(f"cell=*/{COMPACT_PREFIX}*.parquet"):
+            try:
+                meta = pq.read_schema(c).metadata or {}
+            except (OSError, pa.ArrowException):
+                continue  # unreadable: quarantined by a writer, skipped by a reader
+            out.update((c.parent.name, n) for n in json.loads(meta.get(SOURCES_KEY, b"[]")))
+        return out
+
+    def _live(self, root: Path) -> list[Path]:
+        """The files of ``root`` that hold stored rows: batches and compacted files, less what
+        a compacted file supersedes (a compaction that stopped before removing its sources)."""
+        stale = self._superseded()
+        return [f for f in sorted(root.glob(DATA_GLOB)) if (f.parent.name, f.name) not in stale]
 
     def _quarantine(self, bad: Path) -> None:
         """Move an unreadable batch and its partner (the same batch of the other table) to
@@ -161,11 +200,11 @@ class RunStore:
 
     # -- writing -------------------------------------------------------------------------------
     @staticmethod
-    def _write_atomic(table: pa.Table, path: Path) -> None:
+    def _write_atomic(table: pa.Table, path: Path, row_group_size: int | None = None) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.name}.tmp")
         try:
-            pq.write_table(table, tmp, compression="zstd")
+            pq.write_table(table, tmp, compression="zstd", row_group_size=row_group_size)
             with open(tmp, "rb") as f:
                 os.fsync(f.fileno())
             os.replace(tmp, path)
@@ -210,15 +249,67 @@ class RunStore:
             self.rows_written += episodes.num_rows + steps.num_rows
         return n
 
+    # -- compaction ----------------------------------------------------------------------------
+    def compact(self) -> dict[str, int]:
+        """Merge each cell's files into one per table; returns {cell dir: files merged}.
+
+        Order, so that a kill at any point leaves every key stored once and every file
+        readable: (1) the steps file is written (temporary name, fsync, rename): until its
+        episodes partner lands it is an orphan, removed on open and ignored by readers;
+        (2) the episodes file is written, naming in its metadata the files it merged: from
+        this rename on, readers skip those, and the next open removes any left; (3) the merged
+        files are removed. Only the run's driver (or ``idr-eval compact`` holding the lock)
+        compacts."""
+        if self.read_only:
+            raise RuntimeError(f"RunStore({self.run_dir}) was opened read-only")
+        done: dict[str, int] = {}
+        for cell_dir in sorted(p for p in self.episodes_dir.glob("cell=*") if p.is_dir()):
+            files = [f for f in self._live(self.episodes_dir) if f.parent == cell_dir]
+            if len(files) < 2:
+                continue
+            names = [f.name for f in files]
+            episodes = pa.concat_tables(pq.read_table(f, schema=EPISODE_SCHEMA) for f in files)
+            steps = pa.concat_tables(
+                pq.read_table(self.steps_dir / cell_dir.name / n, schema=STEP_SCHEMA)
+                for n in names
+                if (self.steps_dir / cell_dir.name / n).is_file()
+            )
+            self._seq += 1
+            name = f"{COMPACT_PREFIX}{self._seq:06d}-{uuid.uuid4().hex[:8]}.parquet"
+            meta = {SOURCES_KEY: json.dumps(names).encode()}
+            self._write_atomic(
+                steps.replace_schema_metadata(meta),
+                self.steps_dir / cell_dir.name / name,
+                row_group_size=STEP_ROW_GROUP,
+            )
+            self._write_atomic(
+                episodes.replace_schema_metadata(meta), cell_dir / name
+            )  # the commit point
+            for root in (self.steps_dir, self.episodes_dir):
+                for n in names:
+                    (root / cell_dir.name / n).unlink(missing_ok=True)
+            done[cell_dir.name] = len(names)
+        return done
+
     # -- reading -------------------------------------------------------------------------------
-    def _read(self, root: Path, schema: pa.Schema) -> pa.Table:
-        files = sorted(root.glob("cell=*/batch-*.parquet"))
+    def _read(
+        self, root: Path, schema: pa.Schema, columns: Sequence[str] | None = None
+    ) -> pa.Table:
+        files = self._live(root)
         if self.read_only and root == self.steps_dir:  # a batch counts once its episodes landed
             files = [f for f in files if (self.episodes_dir / f.relative_to(root)).is_file()]
+        out_schema = schema if columns is None else pa.schema([schema.field(c) for c in columns])
+        if not files:
+            return out_schema.empty_table()
+        try:  # one parallel scan, only the columns asked for
+            dataset = ds.dataset([str(f) for f in files], schema=schema, format="parquet")
+            return dataset.to_table(columns=list(out_schema.names))
+        except (OSError, pa.ArrowException):
+            pass  # an unreadable file among them: file by file, to set it aside
         tables = []
         for f in files:
             try:
-                tables.append(pq.read_table(f, schema=schema))
+                tables.append(pq.read_table(f, schema=schema, columns=list(out_schema.names)))
             except FileNotFoundError:
                 continue  # quarantined meanwhile with its partner
             except (OSError, pa.ArrowException) as e:
@@ -228,13 +319,13 @@ class RunStore:
                 else:
                     self._quarantine(f)
         if not tables:
-            return schema.empty_table()
+            return out_schema.empty_table()
         return pa.concat_tables(tables)
 
     def unreadable_files(self) -> list[str]:
         """Batches whose Parquet footer cannot be read (scans every file: for reports)."""
         bad = []
-        for p in sorted(self.run_dir.glob("*/cell=*/batch-*.parquet")):
+        for p in sorted(self.run_dir.glob(f"*/{DATA_GLOB}")):
             try:
                 pq.read_metadata(p)
             except (OSError, pa.ArrowException):
@@ -246,15 +337,15 @@ class RunStore:
         q = self.run_dir / QUARANTINE_DIR
         return sorted(str(p.relative_to(self.run_dir)) for p in q.rglob("*.parquet"))
 
-    def episodes(self) -> pa.Table:
-        return self._read(self.episodes_dir, EPISODE_SCHEMA)
+    def episodes(self, columns: Sequence[str] | None = None) -> pa.Table:
+        return self._read(self.episodes_dir, EPISODE_SCHEMA, columns)
 
-    def steps(self) -> pa.Table:
-        return self._read(self.steps_dir, STEP_SCHEMA)
+    def steps(self, columns: Sequence[str] | None = None) -> pa.Table:
+        return self._read(self.steps_dir, STEP_SCHEMA, columns)
 
     def stored_count(self) -> int:
         n = 0
-        for f in self.episodes_dir.glob("cell=*/batch-*.parquet"):
+        for f in self._live(self.episodes_dir):
             try:
                 n += pq.read_metadata(f).num_rows
             except (OSError, pa.ArrowException):
@@ -262,5 +353,5 @@ class RunStore:
         return n
 
     def stored_keys(self) -> set[tuple[str, str, int]]:
-        t = self.episodes().select(list(KEY)).to_pydict()
+        t = self.episodes(columns=KEY).to_pydict()
         return set(zip(t["cell_id"], t["task_id"], t["episode_index"], strict=True))

@@ -10,6 +10,7 @@ import logging
 import time
 from typing import Any
 
+from pipeline.errors import RunError
 from pipeline.executors import ExecutorStats, Outcome
 from pipeline.timeouts import EpisodeTimeout, alarm, alarm_supported, timeout_reason
 from workers.episode import EpisodeSpec, WorkerSpec
@@ -35,7 +36,13 @@ class InlineExecutor:
         if self.worker is not None or n_pending == 0:
             return
         t0 = time.monotonic()
-        self.worker = _new_worker(self.worker_spec)
+        try:
+            self.worker = _new_worker(self.worker_spec)
+        except Exception as exc:
+            raise RunError(
+                f"the worker cannot load: {type(exc).__name__}: {exc} (fix it and run the same "
+                "command again)"
+            ) from exc
         self.stats.workers = [self.worker.ping()]
         self.stats.startup_seconds = time.monotonic() - t0
         if self.limit and not alarm_supported():

@@ -13,11 +13,13 @@ episode clock starts once it has loaded; while it waits for capacity that may ne
 from __future__ import annotations
 
 import logging
+import re
 import time
 from dataclasses import dataclass
 from typing import Any
 
 from pipeline.config import ExecutorConfig
+from pipeline.errors import RunError
 from pipeline.executors import ExecutorStats, Outcome
 from pipeline.timeouts import timeout_reason
 from workers.episode import EpisodeSpec, WorkerSpec
@@ -27,6 +29,16 @@ STARTUP_TIMEOUT_S = 600  # an actor that has not loaded by then is taken as neve
 # a replacement that has not started by then (its node lost, no capacity left) hands its
 # queued episode to a started actor; it still gets work if it starts later
 REQUEUE_AFTER_S = 30.0
+
+
+def load_error(exc: BaseException) -> str | None:
+    """The error an actor's constructor raised (a checkpoint that cannot load, a simulator that
+    cannot start), as its last traceback line; None for a death of another kind (a kill)."""
+    if not getattr(exc, "actor_init_failed", False):
+        return None
+    lines = [ln.strip() for ln in re.sub(r"\x1b\[[0-9;]*m", "", str(exc)).splitlines()]
+    found = [ln for ln in lines if re.match(r"^[\w.]+(Error|Exception|Exit)\b.*:", ln)]
+    return found[-1] if found else lines[-1] if lines else type(exc).__name__
 
 
 @dataclass
@@ -92,6 +104,7 @@ class RayActorPool:
         if self.actors or n_pending == 0:
             return
         t0 = time.monotonic()
+        load_errors: set[str] = set()
         for _ in range(min(self.ex.workers, n_pending)):
             self._spawn()
         for aid in list(self.actors):
@@ -106,10 +119,22 @@ class RayActorPool:
                         f"the resources asked for ({self._demand()})"
                     ) from None
                 except (RayActorError, WorkerCrashedError) as exc:
+                    why = load_error(exc)
+                    if why is not None and why in load_errors:  # the same error twice: final
+                        raise RunError(
+                            f"the workers cannot load: {why} (raised twice in an actor's "
+                            "constructor; fix it and run the same command again)"
+                        ) from None
+                    load_errors.add(why or "")
                     if attempt == self.ex.max_attempts:
-                        raise RuntimeError(f"actors keep dying while starting: {exc}") from None
+                        raise RunError(
+                            f"actors keep dying while starting ({why or type(exc).__name__}); "
+                            f"last: {str(exc).splitlines()[0]}"
+                        ) from None
                     log.warning(
-                        "actor %d died while starting, replacing it: %s", aid, type(exc).__name__
+                        "actor %d died while starting, replacing it: %s",
+                        aid,
+                        why or type(exc).__name__,
                     )
                     self._kill(aid)
                     aid = self._spawn()

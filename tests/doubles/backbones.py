@@ -57,3 +57,12 @@ class GatedMarkerBackbone(FakeMarkerBackbone):
         while not self.gate.exists():
             time.sleep(0.02)
         return super().predict_chunk(obs, noise, intervention)
+
+
+class CheckpointedMarkerBackbone(FakeMarkerBackbone):
+    """FakeMarkerBackbone that names a checkpoint folder (``path``) as a real backbone does,
+    without reading it: for what a run records and checks of the checkpoint."""
+
+    def __init__(self, path: str, **params: Any) -> None:
+        super().__init__(**params)
+        self.path = path

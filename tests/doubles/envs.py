@@ -81,3 +81,11 @@ class TwoSuiteMarkerEnv(FakeMarkerEnv):
 
     def tasks(self) -> list[TaskSpec]:
         return self.suite_tasks()
+
+
+class UnloadableMarkerEnv(FakeMarkerEnv):
+    """Passes the pre-flight (its tasks are listed without building it) but cannot be built:
+    a simulator that fails to start inside every worker."""
+
+    def __init__(self, image_size: int = 32) -> None:
+        raise RuntimeError("simulator cannot start: no rendering backend (injected)")

@@ -34,7 +34,7 @@ def cluster():
 
 def _stored(run_dir: Path) -> list[dict]:
     rows = []
-    for f in sorted((run_dir / "episodes").glob("cell=*/batch-*.parquet")):
+    for f in sorted((run_dir / "episodes").glob("cell=*/*.parquet")):  # batches, compacted
         cols = ["cell_id", "task_id", "episode_index", "node", "error", "attempt"]
         rows += pq.read_table(f, columns=cols).to_pylist()
     return rows

@@ -139,7 +139,7 @@ def test_unreadable_batches_are_quarantined_and_rerun(tmp_path, fault_log, table
     out = tmp_path / "run"
     args = [sys.executable, "-m", "pipeline.cli", "run", str(SMOKE), "--out", str(out), *BASE]
     assert subprocess.run(args, cwd=ROOT, capture_output=True, timeout=300).returncode == 0
-    victim = sorted((out / table).rglob("batch-*.parquet"))[1]
+    victim = sorted((out / table).rglob("*.parquet"))[1]  # a compacted file: a whole cell
     victim.write_bytes(victim.read_bytes()[:200])  # a copy cut short
     report = subprocess.run(
         [sys.executable, "-m", "pipeline.cli", "report", str(out)],
@@ -173,4 +173,41 @@ def test_unreadable_batches_are_quarantined_and_rerun(tmp_path, fault_log, table
         "report skips it and says so; the next run moves it and its partner to quarantine/ "
         "(named in run.json) and re-runs their episodes",
         {**outcome, "quarantined_files": len(quarantined)},
+    )
+
+
+def test_resume_refuses_another_checkpoint_content_or_code_version(tmp_path, fault_log) -> None:
+    import json
+    import os
+
+    ckpt = tmp_path / "ckpt"
+    shutil.copytree(ROOT / "checkpoints" / "tiny_vla", ckpt)
+    cfg = load_config(
+        SMOKE,
+        [
+            *BASE,
+            "backbone.kind=tests.doubles.backbones:CheckpointedMarkerBackbone",
+            f"backbone.params.path={ckpt}",
+        ],
+    )
+    execute(plan_run(cfg, tmp_path / "run"))
+    meta = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert len(meta["checkpoint"]["sha256"]) == 64 and meta["code_version"]
+    os.utime(ckpt / "config.json")  # touched, same content: hashed again, same digest
+    assert plan_run(cfg, tmp_path / "run").checkpoint["sha256"] == meta["checkpoint"]["sha256"]
+    weights = ckpt / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[:-1] + b"\x01")  # another content, same size
+    with pytest.raises(ConfigError, match=r"another content of the checkpoint .* never mixed"):
+        plan_run(cfg, tmp_path / "run")
+    shutil.copy(ROOT / "checkpoints" / "tiny_vla" / "model.safetensors", weights)
+    meta["code_version"] = "0123abcd-dirty"
+    (tmp_path / "run" / "run.json").write_text(json.dumps(meta))
+    with pytest.raises(ConfigError, match=r"code version 0123abcd-dirty.*--allow-code-change"):
+        plan_run(cfg, tmp_path / "run")
+    assert plan_run(cfg, tmp_path / "run", allow_code_change=True).run_id == meta["run_id"]
+    fault_log.record(
+        "checkpoint or code changed under a run dir",
+        "weights rewritten at the same path; run.json of another code version; then resume",
+        "refused before any work, naming both digests / versions; --allow-code-change resumes",
+        {"refused": 2},
     )

@@ -183,6 +183,50 @@ def test_pickled_weights_are_refused(ckpts, tmp_path) -> None:
         check_checkpoint(str(bad))
 
 
+def _broken_copy(src: Path, dst: Path, how: str) -> Path:
+    import json
+    import pickle
+    import shutil
+
+    shutil.copytree(src, dst)
+    cfg, weights = dst / "config.json", dst / "model.safetensors"
+    if how == "unknown type":
+        cfg.write_text(json.dumps({**json.loads(cfg.read_text()), "type": "no_such_policy"}))
+    elif how == "config is a number":
+        cfg.write_text("5")
+    elif how == "truncated weights":
+        weights.write_bytes(weights.read_bytes()[: weights.stat().st_size // 2])
+    elif how == "pickle renamed":
+        weights.write_bytes(pickle.dumps({"weight": [1.0, 2.0]}))
+    return dst
+
+
+@pytest.mark.parametrize(
+    ("how", "pattern"),
+    [
+        ("unknown type", r"policy type 'no_such_policy' is not one lerobot knows; known: .*'act'"),
+        ("config is a number", r"config.json holds a int, not an object"),
+        ("truncated weights", r"model.safetensors is not a complete safetensors file"),
+        ("pickle renamed", r"model.safetensors is not a complete safetensors file"),
+    ],
+)
+def test_broken_checkpoints_are_refused_before_loading(ckpts, tmp_path, how, pattern) -> None:
+    """What the driver checks before any actor starts: the header, never the tensors."""
+    from workers.backbones.factory import check_backbone
+
+    bad = _broken_copy(Path(ckpts["act"]), tmp_path / "bad", how)
+    with pytest.raises(ValueError, match=pattern):
+        check_backbone("lerobot", {"path": str(bad)})
+
+
+def test_a_hub_id_is_refused_unless_downloads_are_allowed() -> None:
+    from workers.backbones.lerobot import check_checkpoint
+
+    with pytest.raises(ValueError, match=r"looks like a hub id: not downloadable here"):
+        check_checkpoint("lerobot/pi05_libero")
+    assert check_checkpoint("lerobot/pi05_libero", allow_download=True) is None
+
+
 def test_camera_and_shape_mismatch_name_both_sides(ckpts) -> None:
     from workers.backbones.lerobot import LerobotBackbone
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 import inspect
 import json
 import os
+import re
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -48,12 +49,20 @@ def _is_local(path: str) -> bool:
     return path.startswith((".", "/", "~")) or os.path.exists(path) or path.count("/") != 1
 
 
-def check_checkpoint(path: str) -> Path | None:
-    """Refuse a checkpoint that does not exist, is not a lerobot policy, or holds pickles.
+def check_checkpoint(path: str, allow_download: bool = False) -> Path | None:
+    """Refuse, on the driver and before any actor starts, a checkpoint that does not exist, is
+    not a lerobot policy of a known type, or whose weights are not a complete safetensors file
+    (header and sizes checked; no tensor is loaded, no pickle is ever opened).
 
-    Returns the local directory, or None for a hub id (checked when loading)."""
+    Returns the local directory, or None for a hub id (only with ``allow_download``)."""
     if not _is_local(path):
-        return None
+        if allow_download:
+            return None
+        raise ValueError(
+            f"backbone.params.path={path!r} looks like a hub id: not downloadable here (runs are "
+            "offline); download the checkpoint beforehand and give its local folder, or set "
+            "backbone.params.allow_download=true where the hub is reachable"
+        )
     p = Path(path).expanduser()
     if not p.is_dir():
         raise ValueError(
@@ -65,11 +74,23 @@ def check_checkpoint(path: str) -> Path | None:
         )
     try:
         cfg = json.loads((p / "config.json").read_text())
-    except json.JSONDecodeError as e:
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ValueError(f"backbone.params.path={path!r}: config.json is not JSON ({e})") from None
+    if not isinstance(cfg, dict):
+        raise ValueError(
+            f"backbone.params.path={path!r}: config.json holds a {type(cfg).__name__}, not an "
+            "object with the policy's config"
+        )
     if "type" not in cfg:
         raise ValueError(f"backbone.params.path={path!r}: config.json has no policy 'type'")
-    if not (p / "model.safetensors").is_file():
+    known = known_policy_types()
+    if known and cfg["type"] not in known:
+        raise ValueError(
+            f"backbone.params.path={path!r}: policy type {cfg['type']!r} is not one lerobot "
+            f"knows; known: {sorted(known)}"
+        )
+    weights = p / "model.safetensors"
+    if not weights.is_file():
         pickles = [f for f in PICKLE_WEIGHTS if (p / f).exists()]
         hint = (
             f" (found {pickles}: pickled weights are refused, convert them to safetensors)"
@@ -77,7 +98,47 @@ def check_checkpoint(path: str) -> Path | None:
             else ""
         )
         raise ValueError(f"backbone.params.path={path!r} has no model.safetensors{hint}")
+    _check_safetensors(path, weights)
     return p
+
+
+def _check_safetensors(path: str, weights: Path) -> None:
+    """The header parses and covers the file exactly (a truncated copy, or a pickle renamed
+    to model.safetensors, fails here); tensors are not read."""
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(str(weights), framework="numpy") as f:
+            n = len(list(f.keys()))
+    except (SafetensorError, OSError) as e:
+        raise ValueError(
+            f"backbone.params.path={path!r}: model.safetensors is not a complete safetensors "
+            f"file ({e}); a truncated copy or another format (pickles are never loaded)"
+        ) from None
+    if n == 0:
+        raise ValueError(f"backbone.params.path={path!r}: model.safetensors holds no tensors")
+
+
+_REGISTER = re.compile(r"@PreTrainedConfig\.register_subclass\(\s*[\"']([\w.-]+)[\"']")
+
+
+def known_policy_types() -> set[str]:
+    """Policy types lerobot's config registry holds, the project's own (tiny_vla) included,
+    read from the policy config modules' source without importing them: importing lerobot's
+    policies costs 20-35 s on a 2-core machine, too much for a pre-flight (the actors pay it
+    once). Empty when lerobot's layout is not the expected one (the check is then skipped)."""
+    import importlib.util
+
+    found: set[str] = set()
+    roots = []
+    for package in ("lerobot.policies", "workers.backbones.tiny_vla"):
+        spec = importlib.util.find_spec(package)
+        if spec is not None and spec.submodule_search_locations:
+            roots += [Path(p) for p in spec.submodule_search_locations]
+    for root in roots:
+        for f in root.glob("**/configuration_*.py"):
+            found.update(_REGISTER.findall(f.read_text(errors="replace")))
+    return found
 
 
 def register_project_policies() -> None:
@@ -96,7 +157,7 @@ class LerobotBackbone:
             raise ValueError(
                 "backbone.params.path is required: a lerobot checkpoint folder or hub id"
             )
-        check_checkpoint(str(params["path"]))
+        check_checkpoint(str(params["path"]), bool(params.get("allow_download", False)))
 
     def __init__(
         self,
@@ -104,13 +165,15 @@ class LerobotBackbone:
         device: str = "cpu",
         camera_map: dict[str, str] | None = None,
         chunk_len: int | None = None,
+        allow_download: bool = False,
     ) -> None:
-        """``camera_map``: env camera -> policy image key suffix (default: same names)."""
+        """``camera_map``: env camera -> policy image key suffix (default: same names);
+        ``allow_download``: a hub id may be fetched (off by default: runs are offline)."""
         from lerobot.configs.policies import PreTrainedConfig
         from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
         register_project_policies()
-        check_checkpoint(path)
+        check_checkpoint(path, allow_download)
         self.path = path
         self.device = torch.device(device)
         cfg = PreTrainedConfig.from_pretrained(path)

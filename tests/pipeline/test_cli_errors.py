@@ -1,0 +1,97 @@
+"""Every CLI failure is one message and a non-zero exit, never a traceback."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from pipeline import cli
+
+ROOT = Path(__file__).resolve().parents[2]
+SMOKE = str(ROOT / "conf" / "smoke.yaml")
+OFF = ["tracking.enabled=false", "executor.kind=inline"]
+
+
+def _bad_invocations(tmp: Path) -> list[tuple[list[str], int, str]]:
+    (tmp / "a_file").write_text("x")
+    (tmp / "not_a_run").mkdir()
+    return [
+        (["run", SMOKE, "--out", "/proc/x", *OFF], 2, "is not writable"),
+        (["run", SMOKE, "--out", str(tmp / "a_file"), *OFF], 2, "is an existing file"),
+        (["run", str(tmp / "missing.yaml"), "--out", str(tmp / "r")], 2, "not found"),
+        (["run", SMOKE, "--out", str(tmp / "r"), "executor.workers"], 2, "unrecognized arguments"),
+        (["run", SMOKE, "--out", str(tmp / "r"), "executor.workers==2"], 2, "executor.workers"),
+        (
+            ["run", SMOKE, "--out", str(tmp / "r"), "env.suite=no.such.module:Env"],
+            2,
+            "cannot import",
+        ),
+        (
+            [
+                "run",
+                SMOKE,
+                "--out",
+                str(tmp / "r"),
+                "backbone.kind=lerobot",
+                "backbone.params={path: lerobot/pi05_libero}",
+            ],
+            2,
+            "not downloadable here",
+        ),
+        (["report", str(tmp / "not_a_run")], 2, "is not a run dir"),
+        (
+            [
+                "run",
+                SMOKE,
+                "--out",
+                str(tmp / "r2"),
+                *OFF,
+                "env.suite=tests.doubles.envs:UnloadableMarkerEnv",
+            ],
+            1,
+            "the worker cannot load: RuntimeError: simulator cannot start",
+        ),
+    ]
+
+
+def test_bad_invocations_are_one_message_each(tmp_path, capsys) -> None:
+    for argv, code, message in _bad_invocations(tmp_path):
+        try:
+            got = cli.main(argv)
+        except SystemExit as e:  # argparse's own usage error: one line, exit 2
+            got = e.code
+        err = capsys.readouterr().err
+        assert got == code, (argv, got, err)
+        assert err.count("idr-eval: error:") == 1 and message in err, (argv, err)
+        assert "Traceback" not in err
+
+
+@pytest.mark.slow
+def test_a_worker_that_cannot_load_stops_a_ray_run(tmp_path) -> None:
+    """Ray: the same constructor error twice stops the run with that error (not after every
+    retry, not as a Ray traceback)."""
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pipeline.cli",
+            "run",
+            SMOKE,
+            "--out",
+            str(tmp_path / "r"),
+            "tracking.enabled=false",
+            "executor.kind=ray",
+            "executor.workers=1",
+            "env.suite=tests.doubles.envs:UnloadableMarkerEnv",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert r.returncode == 1, r.stderr
+    assert "Traceback" not in r.stderr
+    assert "the workers cannot load: RuntimeError: simulator cannot start" in r.stderr
