@@ -23,7 +23,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     plan = plan_run(
         cfg, run_dir, yes=args.yes, adopt=args.adopt, allow_code_change=args.allow_code_change
     )
-    n_cells = len({s.cell_id for s in plan.all_specs()})
+    n_cells = len(plan.specs.cells) + len(plan.calibrated.cells)
     print(
         f"run {plan.run_id}: {len(plan.all_specs())} episodes ({n_cells} cells x {len(plan.tasks)} tasks "
         f"x {cfg.episodes_per_task}) -> {run_dir}"

@@ -23,6 +23,7 @@ from pipeline.errors import DiskFullError, RunDirLostError
 from pipeline.executors import Executor, make_executor
 from pipeline.lock import LOCK_FILE, RunDirLock
 from pipeline.paths import check_run_dir
+from pipeline.plan import CellPlan, Chain, SpecGrid
 from pipeline.progress import Progress
 from pipeline.provenance import check_resume, checkpoint_path, checkpoint_record
 from pipeline.report import FIGURES_DIR, write_report
@@ -33,7 +34,7 @@ from pipeline.writer import BatchWriter
 from workers.backbones.factory import check_backbone
 from workers.envs.base import TaskSpec
 from workers.envs.factory import check_suite, suite_tasks
-from workers.episode import EpisodeResult, EpisodeSpec, WorkerSpec
+from workers.episode import EpisodeResult, WorkerSpec
 
 if TYPE_CHECKING:
     from pipeline.tracking import Tracker
@@ -65,14 +66,14 @@ class RunPlan:
     run_dir: Path
     run_id: str
     tasks: list[TaskSpec]
-    specs: list[EpisodeSpec]
+    specs: SpecGrid  # the first stage (lazy: made when the scheduler reaches them)
     worker_spec: WorkerSpec
-    calibrated: list[EpisodeSpec]  # scheduled after tau calibration, with tau filled in
+    calibrated: SpecGrid  # scheduled after tau calibration, with tau filled in then
     code_version: str = ""
     checkpoint: dict[str, object] | None = None  # pipeline.provenance.checkpoint_record
 
-    def all_specs(self) -> list[EpisodeSpec]:
-        return [*self.specs, *self.calibrated]
+    def all_specs(self) -> Chain:
+        return Chain((self.specs, self.calibrated))
 
 
 def _select_tasks(cfg: RunConfig) -> list[TaskSpec]:
@@ -214,26 +215,14 @@ def plan_run(
         check_resume(
             json.loads(meta_path.read_text()), checkpoint, version, run_dir, allow_code_change
         )
-    specs = [
-        EpisodeSpec(
-            run_id=run_id,
-            cell_id=cell.cell_id,
-            idr=cell.idr,
-            intervention=cell.intervention,
-            task=task,
-            episode_index=i,
-            seed=cfg.seed,
-            backbone=cfg.backbone.kind,
-            code_version=version,
-        )
-        for cell in cfg.cells()
-        for task in tasks
-        for i in range(cfg.episodes_per_task)
-    ]
     # cells with tau: calibrated run in a second stage, after the diagnose cell they calibrate on
+    cells = [CellPlan(c.cell_id, c.idr, c.intervention) for c in cfg.cells()]
     later = {c.cell_id for c in cfg.cells() if c.calibrated_tau}
-    deferred = [s for s in specs if s.cell_id in later]
-    specs = [s for s in specs if s.cell_id not in later]
+    grid = SpecGrid(
+        run_id, (), tuple(tasks), cfg.episodes_per_task, cfg.seed, cfg.backbone.kind, version
+    )
+    specs = grid.replace(cells=tuple(c for c in cells if c.cell_id not in later))
+    deferred = grid.replace(cells=tuple(c for c in cells if c.cell_id in later))
     backbone_params = dict(cfg.backbone.params)
     if isinstance(backbone_params.get("path"), str) and Path(backbone_params["path"]).exists():
         # actors may run in another working directory (or on another node with the same layout)
@@ -304,7 +293,7 @@ def run_params(plan: RunPlan) -> dict[str, object]:
         "executor": cfg.executor.kind,
         "workers": cfg.executor.workers,
         "fingerprint": cfg.fingerprint(),
-        "code_version": plan.all_specs()[0].code_version if plan.all_specs() else code_version(),
+        "code_version": plan.code_version or code_version(),
     }
 
 
@@ -329,8 +318,8 @@ def _after_lock(plan: RunPlan) -> RunPlan:
     return replace(
         plan,
         run_id=run_id,
-        specs=[replace(s, run_id=run_id) for s in plan.specs],
-        calibrated=[replace(s, run_id=run_id) for s in plan.calibrated],
+        specs=plan.specs.replace(run_id=run_id),
+        calibrated=plan.calibrated.replace(run_id=run_id),
     )
 
 
@@ -407,9 +396,7 @@ def _execute(plan: RunPlan) -> RunSummary:
     return summary
 
 
-def calibrated_specs(
-    plan: RunPlan, store: RunStore, tracker: Tracker | None = None
-) -> list[EpisodeSpec]:
+def calibrated_specs(plan: RunPlan, store: RunStore, tracker: Tracker | None = None) -> SpecGrid:
     """The specs of the cells with ``tau: calibrated``, their tau set from the stored
     diagnose cell (the paper's rule); logged, and recorded in MLflow when tracked."""
     result = calibrate(store, plan.cfg.cells())
@@ -424,17 +411,18 @@ def calibrated_specs(
         )
     if tracker is not None:
         tracker.log_calibration(result)
-    out = []
-    for s in plan.calibrated:
-        taus = result["cells"][s.cell_id]["tau"]
-        suite = s.task.suite
-        if suite not in taus:
+    suites = {t.suite for t in plan.calibrated.tasks}
+    cells = []
+    for cell in plan.calibrated.cells:
+        taus = result["cells"][cell.cell_id]["tau"]
+        missing = sorted(str(x) for x in suites - set(taus))
+        if missing:
             raise RuntimeError(
-                f"tau calibration: {s.cell_id!r} has no tau for suite {suite!r} (its "
+                f"tau calibration: {cell.cell_id!r} has no tau for suite {missing[0]!r} (its "
                 "diagnose cell stored no inferences there; see the errors in the report)"
             )
-        out.append(replace(s, idr=replace(s.idr, tau=float(taus[suite]))))
-    return out
+        cells.append(replace(cell, tau_by_suite={k: float(v) for k, v in taus.items()}))
+    return plan.calibrated.replace(cells=tuple(cells))
 
 
 def run_episodes(

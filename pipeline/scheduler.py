@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import deque
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 
 from pipeline.executors import Executor, Outcome
@@ -29,6 +30,7 @@ from workers.episode import EpisodeResult, EpisodeRow, EpisodeSpec
 
 log = logging.getLogger("idr_eval.scheduler")
 WAIT_S = 1.0  # how long one wait for outcomes lasts (timeouts are checked in between)
+LOOK_AHEAD = 256  # fresh specs read before starting the workers (at most this many start)
 
 
 @dataclass
@@ -62,20 +64,16 @@ class Scheduler:
         self.max_attempts = max_attempts
         self.progress = progress
         self.summary = RunSummary(total=total)
-        self.pending: deque[EpisodeSpec] = deque()
+        self.pending: deque[EpisodeSpec] = deque()  # retries and requeues, before fresh specs
         self._t0 = time.monotonic()
+        self._started = False  # the executor starts when the first episode needs running
 
-    def run_stage(self, specs: list[EpisodeSpec]) -> RunSummary:
-        """Run every spec not stored yet; return once each is stored (flushed)."""
-        fresh = [s for s in specs if not self.writer.holds(s.key)]
-        self.summary.skipped += len(specs) - len(fresh)
-        self.pending.extend(fresh)
+    def run_stage(self, specs: Iterable[EpisodeSpec]) -> RunSummary:
+        """Run every spec not stored yet; return once each is stored (flushed). ``specs`` is
+        walked once, as the executor has room (a lazy grid is never built whole)."""
+        source = iter(specs)
         try:
-            if self.pending:
-                self.executor.start(len(self.pending))
-            while self.pending or self.executor.in_flight():
-                while self.pending and self.executor.free_slots() > 0:
-                    self.executor.submit(self.pending.popleft())
+            while self._fill(source) or self.executor.in_flight():
                 for outcome in self.executor.wait(WAIT_S):
                     self._handle(outcome)
                 self._tick()
@@ -84,6 +82,38 @@ class Scheduler:
             self._sync_stats()
             self._tick()
         return self.summary
+
+    def _fill(self, source: Iterator[EpisodeSpec]) -> bool:
+        """Submit retries first, then fresh specs (stored keys skipped), while the executor
+        has room; False once nothing is left to submit."""
+        while True:
+            if not self.pending:
+                spec = next(source, None)
+                if spec is None:
+                    return False
+                if self.writer.holds(spec.key):
+                    self.summary.skipped += 1
+                    continue
+                self.pending.append(spec)
+            if not self._started:  # as many workers as there are episodes to run, at most
+                self._look_ahead(source)
+                self.executor.start(len(self.pending))
+                self._started = True
+            if self.executor.free_slots() <= 0:
+                return True
+            self.executor.submit(self.pending.popleft())
+
+    def _look_ahead(self, source: Iterator[EpisodeSpec]) -> None:
+        """Pull up to LOOK_AHEAD fresh specs into the queue: how many workers are worth
+        starting (a resume with one episode left starts one)."""
+        while len(self.pending) < LOOK_AHEAD:
+            spec = next(source, None)
+            if spec is None:
+                return
+            if self.writer.holds(spec.key):
+                self.summary.skipped += 1
+            else:
+                self.pending.append(spec)
 
     # -- policy --------------------------------------------------------------------------------
     def _handle(self, outcome: Outcome) -> None:
