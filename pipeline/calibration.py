@@ -30,7 +30,7 @@ CALIBRATION_FILE = "calibration.json"
 
 def mean_e_img(store: RunStore, cell_id: str) -> tuple[float, int]:
     """Mean E_img over all stored inferences of ``cell_id`` and how many there were."""
-    steps = store.steps().select(["cell_id", "e_img"])
+    steps = store.steps(columns=["cell_id", "e_img"])
     steps = steps.filter(pc.and_(pc.equal(steps["cell_id"], cell_id), pc.is_valid(steps["e_img"])))
     n = steps.num_rows
     if n == 0:
@@ -40,9 +40,9 @@ def mean_e_img(store: RunStore, cell_id: str) -> tuple[float, int]:
 
 def effects_by_suite(store: RunStore, cell_id: str) -> pd.DataFrame:
     """Per inference of ``cell_id``: backbone, suite, e_img, e_prop (suite from its episode)."""
-    steps = store.steps().select(["cell_id", "task_id", "episode_index", "e_img", "e_prop"])
+    steps = store.steps(columns=["cell_id", "task_id", "episode_index", "e_img", "e_prop"])
     steps = steps.filter(pc.equal(steps["cell_id"], cell_id)).to_pandas()
-    eps = store.episodes().select(["cell_id", "task_id", "episode_index", "backbone", "suite"])
+    eps = store.episodes(columns=["cell_id", "task_id", "episode_index", "backbone", "suite"])
     eps = eps.filter(pc.equal(eps["cell_id"], cell_id)).to_pandas()
     df = steps.merge(eps, on=["cell_id", "task_id", "episode_index"], how="inner")
     return df[["backbone", "suite", "e_img", "e_prop"]]

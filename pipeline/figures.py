@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import pyarrow.compute as pc
+import pyarrow as pa
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
@@ -71,16 +71,19 @@ def progress_frame(steps: pd.DataFrame, episodes: pd.DataFrame) -> pd.DataFrame:
     return df
 
 
-def _gripper_values(steps: pd.DataFrame) -> pd.Series:
-    """The gripper action per inference: the ``gripper`` column where the env names its gripper
-    dim, else the last dim of the executed action (LIBERO / robosuite convention)."""
-    grip = steps["gripper"].astype(float) if "gripper" in steps else pd.Series(np.nan, steps.index)
-    if "action_final" in steps and grip.isna().any():
-        last = steps["action_final"].map(
-            lambda a: float(a[-1]) if a is not None and len(a) else np.nan
-        )
-        grip = grip.fillna(last)
-    return grip
+def _last_elements(lists: pa.ChunkedArray) -> np.ndarray:
+    """The last element of each list (NaN for a null or empty one), without a Python loop:
+    the gripper dim of the executed action, read off the list column's flat values."""
+    arr = lists.combine_chunks()
+    if len(arr) == 0:
+        return np.zeros(0)
+    offsets = arr.offsets.to_numpy()
+    values = arr.values.to_numpy(zero_copy_only=False).astype(float)
+    ends = offsets[1:]
+    ok = (ends > offsets[:-1]) & ~arr.is_null().to_numpy(zero_copy_only=False)
+    out = np.full(len(arr), np.nan)
+    out[ok] = values[ends[ok] - 1]
+    return out
 
 
 def backbone_label(run_dir: str | Path) -> str | None:
@@ -117,14 +120,18 @@ def runs_effects(run_dirs: list[Path]) -> pd.DataFrame:
 def load_run(run_dir: str | Path) -> RunData:
     store = RunStore(run_dir, read_only=True)
     episodes = store.episodes().to_pandas()
-    cols = [*KEY, "step", "e_img", "e_prop", "r_img", "gate", "gripper", "action_final"]
-    table = store.steps().select(cols)
-    # the executed action is only needed where the env does not name its gripper dim
-    if table.num_rows and pc.all(pc.is_valid(table["gripper"])).as_py():
+    cols = [*KEY, "step", "e_img", "e_prop", "r_img", "gate", "gripper"]
+    table = store.steps(columns=cols)
+    # the executed action (a list column, the bulk of the table) is only read where the env
+    # does not name its gripper dim
+    grip = table["gripper"].to_numpy(zero_copy_only=False).astype(float)
+    if table.num_rows and np.isnan(grip).any():  # read again with it, the same rows in order
+        table = store.steps(columns=[*cols, "action_final"])
+        grip = table["gripper"].to_numpy(zero_copy_only=False).astype(float)
+        grip = np.where(np.isnan(grip), _last_elements(table["action_final"]), grip)
         table = table.drop_columns(["action_final"])
-    steps = table.to_pandas()
-    steps["grip"] = _gripper_values(steps)
-    steps = steps.drop(columns=[c for c in ("gripper", "action_final") if c in steps])
+    steps = table.drop_columns(["gripper"]).to_pandas()
+    steps["grip"] = grip
     calib = read_calibration(run_dir) or {}
     labels = {cid: c["spec"] for cid, c in calib.get("cells", {}).items()}
     prog = progress_frame(steps, episodes)

@@ -253,7 +253,7 @@ def write_report(run_dir: str | Path, figures: bool = True) -> Path:
     """Write RUN_DIR/report.md (and, with ``figures``, RUN_DIR/figures/*.png)."""
     run_dir = Path(run_dir)
     drawn: tuple[dict[str, Path], dict[str, str]] | str | None = None
-    if figures and RunStore(run_dir, read_only=True).episodes().num_rows:
+    if figures and RunStore(run_dir, read_only=True).stored_count():
         try:
             from pipeline.figures import write_figures
 

@@ -151,7 +151,7 @@ def _adopt(cfg: RunConfig, run_dir: Path, stored: RunStore) -> str:
             f"--adopt: {saved} is a different config (fingerprint {theirs.fingerprint()} vs "
             f"{cfg.fingerprint()}); results of two configs are never mixed"
         )
-    ids = set(stored.episodes().column("run_id").to_pylist())
+    ids = set(stored.episodes(columns=["run_id"]).column("run_id").to_pylist())
     if len(ids) > 1:
         raise ConfigError(f"--adopt: {run_dir} holds episodes of several runs: {sorted(ids)}")
     run_id = ids.pop() if ids else uuid.uuid4().hex[:12]
