@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -70,28 +68,23 @@ def test_bad_invocations_are_one_message_each(tmp_path, capsys) -> None:
 
 
 @pytest.mark.slow
-def test_a_worker_that_cannot_load_stops_a_ray_run(tmp_path) -> None:
+def test_a_worker_that_cannot_load_stops_a_ray_run(tmp_path, ray_local) -> None:
     """Ray: the same constructor error twice stops the run with that error (not after every
     retry, not as a Ray traceback)."""
-    r = subprocess.run(
+    from pipeline.config import load_config
+    from pipeline.errors import RunError
+    from pipeline.runner import plan_run, run_episodes
+
+    cfg = load_config(
+        SMOKE,
         [
-            sys.executable,
-            "-m",
-            "pipeline.cli",
-            "run",
-            SMOKE,
-            "--out",
-            str(tmp_path / "r"),
             "tracking.enabled=false",
             "executor.kind=ray",
             "executor.workers=1",
             "env.suite=tests.doubles.envs:UnloadableMarkerEnv",
         ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
     )
-    assert r.returncode == 1, r.stderr
-    assert "Traceback" not in r.stderr
-    assert "the workers cannot load: RuntimeError: simulator cannot start" in r.stderr
+    with pytest.raises(
+        RunError, match=r"the workers cannot load: RuntimeError: simulator cannot start"
+    ):
+        run_episodes(plan_run(cfg, tmp_path / "r"))

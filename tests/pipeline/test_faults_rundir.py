@@ -5,8 +5,6 @@ or a recovery, and nothing is lost or stored twice."""
 from __future__ import annotations
 
 import shutil
-import subprocess
-import sys
 import tracemalloc
 from pathlib import Path
 
@@ -136,22 +134,16 @@ def test_a_run_dir_without_run_json_is_adopted_on_request(tmp_path, fault_log) -
 
 @pytest.mark.parametrize("table", ["episodes", "steps"])
 def test_unreadable_batches_are_quarantined_and_rerun(tmp_path, fault_log, table) -> None:
+    from pipeline.report import build_report
+
     out = tmp_path / "run"
-    args = [sys.executable, "-m", "pipeline.cli", "run", str(SMOKE), "--out", str(out), *BASE]
-    assert subprocess.run(args, cwd=ROOT, capture_output=True, timeout=300).returncode == 0
+    cfg = load_config(SMOKE, BASE)
+    execute(plan_run(cfg, out))
     victim = sorted((out / table).rglob("*.parquet"))[1]  # a compacted file: a whole cell
     victim.write_bytes(victim.read_bytes()[:200])  # a copy cut short
-    report = subprocess.run(
-        [sys.executable, "-m", "pipeline.cli", "report", str(out)],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert report.returncode == 0 and "Traceback" not in report.stderr
-    assert "1 unreadable Parquet files skipped here" in report.stdout
-    r = subprocess.run(args, cwd=ROOT, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+    assert "1 unreadable Parquet files skipped here" in build_report(out)
+    summary = execute(plan_run(cfg, out))
+    assert summary.stored == 6 and summary.skipped == 6  # the quarantined cell ran again
     quarantined = sorted(
         p.relative_to(out).as_posix() for p in (out / "quarantine").rglob("*.parquet")
     )
@@ -169,7 +161,7 @@ def test_unreadable_batches_are_quarantined_and_rerun(tmp_path, fault_log, table
     assert len(per_key) == 12
     fault_log.record(
         f"unreadable {table} batch",
-        f"a {table} batch truncated to 200 bytes after the run; report, then run again",
+        f"a {table} file truncated to 200 bytes after the run; report, then run again",
         "report skips it and says so; the next run moves it and its partner to quarantine/ "
         "(named in run.json) and re-runs their episodes",
         {**outcome, "quarantined_files": len(quarantined)},
