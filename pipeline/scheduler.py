@@ -88,12 +88,9 @@ class Scheduler:
         has room; False once nothing is left to submit."""
         while True:
             if not self.pending:
-                spec = next(source, None)
+                spec = self._next_fresh(source)
                 if spec is None:
                     return False
-                if self.writer.holds(spec.key):
-                    self.summary.skipped += 1
-                    continue
                 self.pending.append(spec)
             if not self._started:  # as many workers as there are episodes to run, at most
                 self._look_ahead(source)
@@ -106,14 +103,16 @@ class Scheduler:
     def _look_ahead(self, source: Iterator[EpisodeSpec]) -> None:
         """Pull up to LOOK_AHEAD fresh specs into the queue: how many workers are worth
         starting (a resume with one episode left starts one)."""
-        while len(self.pending) < LOOK_AHEAD:
-            spec = next(source, None)
-            if spec is None:
-                return
-            if self.writer.holds(spec.key):
-                self.summary.skipped += 1
-            else:
-                self.pending.append(spec)
+        while len(self.pending) < LOOK_AHEAD and (spec := self._next_fresh(source)):
+            self.pending.append(spec)
+
+    def _next_fresh(self, source: Iterator[EpisodeSpec]) -> EpisodeSpec | None:
+        """The next spec of ``source`` not stored yet (stored ones counted as skipped)."""
+        for spec in source:
+            if not self.writer.holds(spec.key):
+                return spec
+            self.summary.skipped += 1
+        return None
 
     # -- policy --------------------------------------------------------------------------------
     def _handle(self, outcome: Outcome) -> None:

@@ -138,13 +138,9 @@ class RunStore:
     def _recover(self) -> None:
         for tmp in self.run_dir.glob("*/cell=*/.*.tmp"):
             tmp.unlink()  # a write that never finished
-        for p in sorted(self.run_dir.glob(f"*/{DATA_GLOB}")):
-            try:
-                pq.read_metadata(p)
-            except FileNotFoundError:
-                continue  # quarantined just now with its partner
-            except (OSError, pa.ArrowException):
-                self._quarantine(p)
+        for rel in self.unreadable_files():
+            if (self.run_dir / rel).exists():  # else quarantined just now with its partner
+                self._quarantine(self.run_dir / rel)
         done = {p.relative_to(self.episodes_dir) for p in self.episodes_dir.glob(DATA_GLOB)}
         for p in self.steps_dir.glob(DATA_GLOB):
             if p.relative_to(self.steps_dir) not in done:
