@@ -16,6 +16,7 @@ LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1")
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from pipeline.config import load_config
+    from pipeline.report import protocol_line
     from pipeline.runner import execute, plan_run
 
     cfg = load_config(args.config, args.overrides)
@@ -28,6 +29,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
         f"run {plan.run_id}: {len(plan.all_specs())} episodes ({n_cells} cells x {len(plan.tasks)} tasks "
         f"x {cfg.episodes_per_task}) -> {run_dir}"
     )
+    if plan.fit is not None:
+        if plan.fit.protocol:
+            print(f"protocol: {protocol_line(plan.fit.protocol)}")
+        for note in plan.fit.notes:
+            print(f"pre-flight: {note}")
     try:
         with stop_on_signals():  # SIGTERM / SIGINT: flush, mark MLflow KILLED, exit 143 / 130
             summary = execute(plan)

@@ -32,11 +32,26 @@ class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
+DEFAULT_REPLAN_STEPS = 4  # actions per inference where neither the config nor the env says
+
+
 class BackboneConfig(_Model):
     kind: str = Field(description="backbone type, e.g. fake_marker, lerobot")
     params: dict[str, Any] = Field(default_factory=dict, description="passed to the backbone")
-    replan_steps: int = Field(default=4, ge=1, description="actions executed per inference")
+    replan_steps: int | Literal["chunk"] | None = Field(
+        default=None,
+        description="actions executed per inference: a number, 'chunk' (the whole chunk the "
+        "backbone returns: a lerobot checkpoint's n_action_steps), or None: the env "
+        f"protocol's rule (LIBERO openpi 5, lerobot 'chunk'), else {DEFAULT_REPLAN_STEPS}",
+    )
     batched: bool | None = Field(default=None, description="one 3B forward (None: if it can)")
+
+    @field_validator("replan_steps")
+    @classmethod
+    def _replan_positive(cls, v: int | str | None) -> int | str | None:
+        if isinstance(v, int) and v < 1:
+            raise ValueError(f"must be >= 1, 'chunk' or null (got {v})")
+        return v
 
 
 class EnvConfig(_Model):

@@ -20,6 +20,10 @@ class DiskFullError(RunError):
     """No space left where the run writes; what was stored before is intact."""
 
 
+class AllEpisodesFailedError(RunError):
+    """Every episode of the run ended as an error row: the run measured nothing."""
+
+
 class RunDirLostError(RunError):
     """The run directory lost its files while the run wrote to it (deleted, unmounted)."""
 

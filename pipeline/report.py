@@ -6,6 +6,7 @@ that fails is reported in the text, never fails the report.
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 from pathlib import Path
@@ -115,6 +116,22 @@ def _file_health(store: RunStore) -> list[str]:
     return lines
 
 
+def protocol_line(protocol: dict[str, object]) -> str:
+    """An env protocol (run.json's ``protocol``) in one line."""
+    name = protocol.get("name", "(unnamed)")
+    rest = ", ".join(f"{k} {v}" for k, v in protocol.items() if k != "name")
+    return f"{name} ({rest})" if rest else str(name)
+
+
+def _protocol(run_dir: Path) -> list[str]:
+    meta = run_dir / "run.json"
+    try:
+        protocol = json.loads(meta.read_text()).get("protocol") if meta.is_file() else None
+    except (OSError, json.JSONDecodeError):
+        return []
+    return [f"Env protocol: {protocol_line(protocol)}.", ""] if protocol else []
+
+
 def build_report(
     run_dir: str | Path, figures: tuple[dict[str, Path], dict[str, str]] | str | None = None
 ) -> str:
@@ -122,7 +139,7 @@ def build_report(
     run_dir = Path(run_dir)
     store = RunStore(run_dir, read_only=True)
     episodes = store.episodes().to_pandas()
-    parts = [f"# IDR evaluation report: `{run_dir.name}`", ""]
+    parts = [f"# IDR evaluation report: `{run_dir.name}`", "", *_protocol(run_dir)]
     files = _file_health(store)
     if episodes.empty:
         return "\n".join([*parts, "No episodes stored yet.", *files]) + "\n"

@@ -18,8 +18,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from pipeline.calibration import CALIBRATION_FILE, calibrate
+from pipeline.compat import Fit, fit_config
 from pipeline.config import ConfigError, RunConfig, dump_config
-from pipeline.errors import DiskFullError, RunDirLostError
+from pipeline.errors import AllEpisodesFailedError, DiskFullError, RunDirLostError
 from pipeline.executors import Executor, make_executor
 from pipeline.lock import LOCK_FILE, RunDirLock
 from pipeline.paths import check_run_dir
@@ -71,6 +72,7 @@ class RunPlan:
     calibrated: SpecGrid  # scheduled after tau calibration, with tau filled in then
     code_version: str = ""
     checkpoint: dict[str, object] | None = None  # pipeline.provenance.checkpoint_record
+    fit: Fit | None = None  # what the pre-flight settled (pipeline.compat)
 
     def all_specs(self) -> Chain:
         return Chain((self.specs, self.calibrated))
@@ -205,6 +207,9 @@ def plan_run(
     """Everything checked, nothing started; ``yes`` confirms a grid larger than max_cells."""
     run_dir = check_run_dir(run_dir, cfg.output_root)
     tasks = _select_tasks(cfg)
+    # the checkpoint against the env (config.json only): cameras, sizes, dims; the config the
+    # run uses, saved and fingerprinted, has what this settled filled in
+    cfg, fit = fit_config(cfg)
     check_cell_budget(cfg, len(tasks), yes=yes)
     _check_executor(cfg)
     run_id = _resume_or_claim(cfg, run_dir, adopt)
@@ -232,10 +237,12 @@ def plan_run(
         backbone_params,
         cfg.env.suite,
         cfg.env.params,
-        cfg.backbone.replan_steps,
+        None if fit.replan_steps == "chunk" else int(fit.replan_steps),
         cfg.backbone.batched,
     )
-    return RunPlan(cfg, run_dir, run_id, tasks, specs, worker_spec, deferred, version, checkpoint)
+    return RunPlan(
+        cfg, run_dir, run_id, tasks, specs, worker_spec, deferred, version, checkpoint, fit
+    )
 
 
 def _write_text_atomic(path: Path, text: str) -> None:
@@ -269,6 +276,10 @@ def _write_meta(plan: RunPlan) -> None:
     }
     if plan.checkpoint is not None:
         meta["checkpoint"] = plan.checkpoint
+    if plan.fit is not None:
+        meta["fit"] = plan.fit.record()
+        if plan.fit.protocol:
+            meta["protocol"] = dict(plan.fit.protocol)
     old = plan.run_dir / RUN_META
     if old.is_file():  # what earlier drivers recorded (quarantined files) is kept
         kept = json.loads(old.read_text()).get("quarantined")
@@ -284,6 +295,7 @@ def run_params(plan: RunPlan) -> dict[str, object]:
         "backbone": cfg.backbone.kind,
         "backbone_params": json.dumps(cfg.backbone.params, sort_keys=True),
         "replan_steps": cfg.backbone.replan_steps,
+        "env_protocol": json.dumps(dict(plan.fit.protocol) if plan.fit else {}, sort_keys=True),
         "suite": cfg.env.suite,
         "env_params": json.dumps(cfg.env.params, sort_keys=True),
         "tasks": ",".join(t.task_id for t in plan.tasks),
@@ -361,11 +373,12 @@ def _execute(plan: RunPlan) -> RunSummary:
     total = len(plan.all_specs())
     on_flush = (lambda batch: tracker.progress(len(batch), total)) if tracker else None
 
-    status, no_report = "FAILED", ""
+    status, no_report, all_failed = "FAILED", "", None
     try:
         summary = run_episodes(plan, store, on_flush=on_flush, tracker=tracker)
         compact_run_dir(store)
-        status = "FINISHED"
+        all_failed = every_episode_failed(store, plan.run_dir)
+        status = "FAILED" if all_failed else "FINISHED"
     except KeyboardInterrupt:  # SIGINT, or SIGTERM through pipeline.signals
         status = "KILLED"
         raise
@@ -393,7 +406,28 @@ def _execute(plan: RunPlan) -> RunSummary:
                     tracker.finish(episodes, [report, *extra, *figures], status)
                 except Exception as e:
                     _after_stop(status, f"marking the MLflow runs {status}", e)
+    if all_failed:
+        raise AllEpisodesFailedError(all_failed)
     return summary
+
+
+def every_episode_failed(store: RunStore, run_dir: Path) -> str | None:
+    """What to tell the user when every stored episode of the run is an error row (a run that
+    measured nothing is a failed run); None when at least one episode ran to its end."""
+    errors = store.episodes(columns=["error"]).column("error").to_pylist()
+    if not errors or any(e is None for e in errors):
+        return None
+    causes: dict[str, int] = {}
+    for e in errors:
+        first = e.splitlines()[0] if e else "(no message)"
+        causes[first] = causes.get(first, 0) + 1
+    ranked = sorted(causes.items(), key=lambda kv: -kv[1])
+    shown = "; ".join(f"{n} x {cause}" for cause, n in ranked[:3])
+    return (
+        f"every one of the {len(errors)} episodes failed with an error, so this run measured "
+        f"nothing: {shown}. Error rows count as stored: fix the cause, then run again with a "
+        f"new --out (or delete {run_dir}). report.md lists the errors"
+    )
 
 
 def calibrated_specs(plan: RunPlan, store: RunStore, tracker: Tracker | None = None) -> SpecGrid:

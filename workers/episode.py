@@ -32,7 +32,7 @@ class WorkerSpec:
     backbone_params: dict[str, Any]
     env_suite: str
     env_params: dict[str, Any]
-    replan_steps: int = 4
+    replan_steps: int | None = 4  # actions executed per inference; None: the whole chunk
     batched: bool | None = None
 
 

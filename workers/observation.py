@@ -26,7 +26,7 @@ def to_policy_observation(
     if missing:
         raise ValueError(
             f"the backbone uses cameras {missing} that the env does not render; env cameras: "
-            f"{list(env_obs.images)} (set env.params.cameras)"
+            f"{list(env_obs.images)} (set env.params.cameras, or backbone.params.camera_map)"
         )
     images = {cam: image_to_tensor(env_obs.images[cam]) for cam in names}
     state = torch.from_numpy(np.asarray(env_obs.state, dtype=np.float32)).unsqueeze(0)

@@ -88,3 +88,31 @@ def test_a_worker_that_cannot_load_stops_a_ray_run(tmp_path, ray_local) -> None:
         RunError, match=r"the workers cannot load: RuntimeError: simulator cannot start"
     ):
         run_episodes(plan_run(cfg, tmp_path / "r"))
+
+
+def test_a_run_whose_every_episode_fails_exits_non_zero_and_says_so(tmp_path, capsys) -> None:
+    """12 episodes, each an error row (NaN from the backbone at every call): a run that measured nothing is a failed
+    run (exit 1, one message naming the common error), with its report and rows kept."""
+    out = tmp_path / "r"
+    calls = ",".join(map(str, range(400)))
+    argv = [
+        "run",
+        SMOKE,
+        "--out",
+        str(out),
+        *OFF,
+        "executor.max_attempts=1",
+        "backbone.kind=tests.doubles.backbones:FaultyMarkerBackbone",
+        f"backbone.params.nonfinite_calls=[{calls}]",
+    ]
+    assert cli.main(argv) == 1
+    err = capsys.readouterr().err
+    assert err.count("idr-eval: error:") == 1 and "Traceback" not in err
+    assert "every one of the 12 episodes failed" in err
+    # the baseline cell's and the E cell's, grouped by their first line
+    assert "6 x NonFiniteActionError: non-finite action at step 0" in err
+    assert "6 x ValueError: " in err
+    assert "12 error rows" in (out / "report.md").read_text()
+    # one episode that ends is enough for a run to count as done
+    argv[-1] = "backbone.params.nonfinite_calls=[0]"
+    assert cli.main([*argv[:3], str(tmp_path / "r2"), *argv[4:]]) == 0

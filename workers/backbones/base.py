@@ -97,6 +97,12 @@ OPTIONAL_BACKBONE_MEMBERS: dict[str, tuple[Any, str]] = {
         "classmethod(params) raising ValueError: checks of its own before any actor starts "
         "(a checkpoint that does not exist or cannot fit the env); None: none",
     ),
+    "describe": (
+        None,
+        "classmethod(params) -> workers.io_spec.PolicyIO | None: the cameras, image shapes, "
+        "state and action dims its checkpoint declares, read without loading weights (the "
+        "pre-flight matches them against the env); None: no check",
+    ),
 }
 
 

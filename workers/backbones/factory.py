@@ -16,7 +16,8 @@ BACKBONES: dict[str, str] = {
 }
 
 
-def _cls(kind: str) -> Any:
+def backbone_class(kind: str) -> Any:
+    """The backbone class of ``kind`` (its module imported; no weights loaded)."""
     return load_class(BACKBONES, kind, "backbone.kind")
 
 
@@ -25,11 +26,11 @@ def check_backbone(kind: str, params: dict[str, Any]) -> None:
 
     Params must bind to the backbone's constructor; a backbone class may also define
     ``check_params(params)`` for checks of its own (a checkpoint path that does not exist)."""
-    cls = _cls(kind)
+    cls = backbone_class(kind)
     check_params_bind(f"backbone.params (backbone {kind!r})", cls, params)
     if hasattr(cls, "check_params"):
         cls.check_params(params)
 
 
 def make_backbone(kind: str, params: dict[str, Any]) -> Backbone:
-    return _cls(kind)(**params)
+    return backbone_class(kind)(**params)

@@ -138,6 +138,12 @@ OPTIONAL_ENV_MEMBERS: dict[str, tuple[Any, str]] = {
         "classmethod(**params) -> list[TaskSpec]: the tasks without starting a simulator "
         "(pre-flight before any actor); None: the env is built once to call tasks()",
     ),
+    "describe": (
+        None,
+        "classmethod(**params) -> workers.io_spec.EnvIO: cameras, image size, state and "
+        "action dims and protocol, without a simulator (the pre-flight matches a checkpoint "
+        "against them); None: no check",
+    ),
 }
 
 
@@ -244,6 +250,8 @@ def _check_optional_members(env: Env) -> None:
     )
     listing = env_member(type(env), "suite_tasks")
     _require(listing is None or callable(listing), "suite_tasks must be a classmethod")
+    describe = env_member(type(env), "describe")
+    _require(describe is None or callable(describe), "describe must be a classmethod")
 
 
 def check_env(

@@ -15,12 +15,13 @@ ENVS: dict[str, str] = {
 }
 
 
-def _cls(suite: str) -> Any:
+def env_class(suite: str) -> Any:
+    """The env class of ``suite`` (its module imported; no simulator started)."""
     return load_class(ENVS, suite, "env.suite")
 
 
 def check_suite(suite: str, params: dict[str, Any] | None = None) -> None:
-    cls = _cls(suite)
+    cls = env_class(suite)
     if params is not None:
         check_params_bind(f"env.params (suite {suite!r})", cls, params)
 
@@ -28,7 +29,7 @@ def check_suite(suite: str, params: dict[str, Any] | None = None) -> None:
 def suite_tasks(suite: str, params: dict[str, Any]) -> list[TaskSpec]:
     """The suite's tasks, without starting a simulator where the env class can say so; each
     with its ``suite`` set (the env's own suite name where the task names none)."""
-    cls = _cls(suite)
+    cls = env_class(suite)
     listing = env_member(cls, "suite_tasks")
     if listing is not None:
         tasks = list(listing(**params))
@@ -43,4 +44,4 @@ def suite_tasks(suite: str, params: dict[str, Any]) -> list[TaskSpec]:
 
 
 def make_env(suite: str, params: dict[str, Any]) -> Env:
-    return _cls(suite)(**params)
+    return env_class(suite)(**params)

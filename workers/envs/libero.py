@@ -1,25 +1,28 @@
-"""LIBERO (hf-libero) as an Env: the four 10-task suites in one env, openpi / OpenVLA-OFT protocol.
+"""LIBERO (hf-libero) as an Env: the four 10-task suites in one env, under a named protocol.
 
 Task ids are ``"<suite>/<index>"`` (``libero_spatial/0`` .. ``libero_10/9``), the index being the
-position in the suite's default task order. The protocol, every constant a constructor param so
-a config can pin and log it:
+position in the suite's default task order. ``protocol`` (``openpi``, the default, or
+``lerobot``; see ``workers.envs.libero_protocol``) pins the seed rule, max steps, no-ops, render
+size, replan rule and state arithmetic; the params below override single figures of it:
 
-- ``reset(task_id, episode_index, seed)``: seed the env, reset it, set the suite's fixed init
-  state ``episode_index % n_init_states``, then run ``num_noops`` no-op actions
-  ``[0, 0, 0, 0, 0, 0, -1]`` so objects settle; the no-ops do not count as steps.
-- Episode ends at success (LIBERO's own goal check) or after ``max_steps`` control steps
-  (220 / 280 / 300 / 520 for spatial / object / goal / 10; lerobot uses 280 for spatial).
+- ``reset(task_id, episode_index, seed)``: seed the env (``seed``, or ``seed + episode_index``
+  under ``lerobot``), reset it, set the suite's fixed init state ``episode_index % n_init_states``,
+  then run ``num_noops`` no-op actions ``[0, 0, 0, 0, 0, 0, -1]`` so objects settle; the no-ops
+  do not count as steps.
+- Episode ends at success (LIBERO's own goal check) or after the suite's max steps.
 - Images rendered at ``image_size`` px and flipped 180 degrees (both axes): robosuite renders
-  with OpenGL's bottom-up rows, and policies trained on openpi / OFT data see the flipped view.
-  Rendered lazily by default (``lazy_render``): a camera costs ~110-170 ms per render on OSMesa
-  and open-loop chunk steps read no image, so a camera is rendered only when its image is read,
-  with the same pixels robosuite's camera observables give (see ``LiberoEnv.__init__``).
+  with OpenGL's bottom-up rows, and policies trained on openpi / OFT / lerobot data see the
+  flipped view. Rendered lazily by default (``lazy_render``): a camera costs ~110-170 ms per
+  render on OSMesa and open-loop chunk steps read no image, so a camera is rendered only when
+  its image is read, with the same pixels robosuite's camera observables give (see
+  ``LiberoEnv.__init__``).
 - State (8,): end-effector position (3), end-effector orientation as axis-angle (3),
   gripper finger positions (2). Action (7,): OSC_POSE deltas (6) + gripper (-1 open, +1 close).
 
 One simulator (``OffScreenRenderEnv``, 5-20 s to build) is kept for the current task and reused
 across its episodes; switching task closes it and builds the next. ``suite_tasks`` lists tasks
-from LIBERO's benchmark tables without importing MuJoCo.
+from LIBERO's benchmark tables without importing MuJoCo; ``describe`` says what the env gives a
+policy (for the pre-flight check against a checkpoint).
 """
 
 from __future__ import annotations
@@ -30,7 +33,6 @@ import io
 import os
 import types
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -38,22 +40,29 @@ import numpy as np
 
 from workers.envs.base import EnvObservation, LazyImages, TaskSpec
 from workers.envs.libero_assets import LiberoSetupError, ensure_config_env
+from workers.envs.libero_protocol import (
+    CAMERAS,
+    PROTOCOLS,
+    SUITES,
+    SUPPORTED_SUITES,
+    LiberoProtocol,
+    quat_to_axis_angle,
+    state_vector,
+)
+from workers.io_spec import ROBOSUITE_CAMERA_ALIASES, EnvIO
 
-SUITES: tuple[str, ...] = ("libero_spatial", "libero_object", "libero_goal", "libero_10")
-# libero_90 works too, with max_steps given for it: the protocol above has no figure for it.
-SUPPORTED_SUITES: tuple[str, ...] = (*SUITES, "libero_90")
-MAX_STEPS: Mapping[str, int] = {
-    "libero_spatial": 220,
-    "libero_object": 280,
-    "libero_goal": 300,
-    "libero_10": 520,
-}
+__all__ = [
+    "CAMERAS",
+    "PROTOCOLS",
+    "SUITES",
+    "SUPPORTED_SUITES",
+    "LiberoEnv",
+    "LiberoProtocol",
+    "quat_to_axis_angle",
+    "state_vector",
+]
+
 NOOP_ACTION: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0)
-# our camera name -> (robosuite camera, key of its image in the raw observation)
-CAMERAS: Mapping[str, tuple[str, str]] = {
-    "agentview": ("agentview", "agentview_image"),
-    "wrist": ("robot0_eye_in_hand", "robot0_eye_in_hand_image"),
-}
 SETUP_COMMAND = "python -m workers.envs.libero_assets"
 # Lazy rendering snapshots the simulator when robosuite samples this observable. All observables
 # sample at control_hz in lockstep, once per control step, at a substep that is not always the
@@ -99,76 +108,6 @@ class _Snapshots:
 
     def clear(self) -> None:
         self.latest, self._sim, self._free = None, None, []
-
-
-@dataclass(frozen=True)
-class LiberoProtocol:
-    """The validated constructor params; shared by ``LiberoEnv`` and ``suite_tasks``."""
-
-    suites: tuple[str, ...]
-    image_size: int
-    cameras: tuple[str, ...]
-    num_noops: int
-    max_steps: Mapping[str, int] = field(hash=False)
-    flip_images: bool
-    control_hz: float
-
-    def __post_init__(self) -> None:
-        if not self.suites:
-            raise ValueError(f"suites is empty; choose from {list(SUITES)}")
-        if isinstance(self.image_size, bool) or not isinstance(self.image_size, int):
-            raise ValueError(f"image_size must be an int, got {self.image_size!r}")
-        if self.image_size <= 0:
-            raise ValueError(f"image_size must be > 0, got {self.image_size}")
-        unknown = [c for c in self.cameras if c not in CAMERAS]
-        if unknown or len(set(self.cameras)) != len(self.cameras):
-            raise ValueError(
-                f"cameras={list(self.cameras)}: use distinct names from {list(CAMERAS)}"
-            )
-        if self.num_noops < 0:
-            raise ValueError(f"num_noops must be >= 0, got {self.num_noops}")
-        if self.control_hz <= 0:
-            raise ValueError(f"control_hz must be > 0, got {self.control_hz}")
-        for suite in self.suites:
-            steps = self.max_steps.get(suite)
-            if steps is None:
-                raise ValueError(f"max_steps[{suite!r}] must be set: the protocol has no default")
-            if not isinstance(steps, int) or isinstance(steps, bool) or steps <= 0:
-                raise ValueError(f"max_steps[{suite!r}] must be an int > 0, got {steps!r}")
-
-    @classmethod
-    def from_params(
-        cls,
-        suites: Sequence[str],
-        image_size: int,
-        cameras: Sequence[str],
-        num_noops: int,
-        max_steps: Mapping[str, int] | None,
-        flip_images: bool,
-        control_hz: float,
-    ) -> LiberoProtocol:
-        if isinstance(suites, str):  # a lone name from a YAML override
-            suites = (suites,)
-        if isinstance(cameras, str):
-            cameras = (cameras,)
-        unknown = [s for s in suites if s not in SUPPORTED_SUITES]
-        if unknown or len(set(suites)) != len(suites):
-            raise ValueError(
-                f"suites: {unknown or list(suites)} unknown or repeated; "
-                f"valid: {list(SUPPORTED_SUITES)}"
-            )
-        stray = [s for s in max_steps or {} if s not in SUPPORTED_SUITES]
-        if stray:
-            raise ValueError(f"max_steps: {stray} unknown suites; valid: {list(SUPPORTED_SUITES)}")
-        return cls(
-            suites=tuple(suites),
-            image_size=image_size,
-            cameras=tuple(cameras),
-            num_noops=num_noops,
-            max_steps={**MAX_STEPS, **(max_steps or {})},
-            flip_images=flip_images,
-            control_hz=float(control_hz),
-        )
 
 
 def _libero_benchmark_module() -> Any:
@@ -227,31 +166,6 @@ def _check_assets() -> None:
         )
 
 
-def quat_to_axis_angle(quat_xyzw: np.ndarray) -> np.ndarray:
-    """Axis-angle (3,) of a unit quaternion in robosuite's (x, y, z, w) order.
-
-    The angle is 2 acos(w) in [0, 2 pi] (no wrap to [-pi, pi]): openpi's LIBERO state uses this
-    convention, so a policy trained on its data sees the same numbers.
-    """
-    q = np.asarray(quat_xyzw, dtype=np.float64)
-    w = float(np.clip(q[3], -1.0, 1.0))
-    sin_half = np.sqrt(1.0 - w * w)
-    if np.isclose(sin_half, 0.0):
-        return np.zeros(3)
-    return q[:3] * (2.0 * np.arccos(w) / sin_half)
-
-
-def state_vector(raw_obs: Mapping[str, np.ndarray]) -> np.ndarray:
-    """(8,) float32: eef position, eef axis-angle, gripper finger positions."""
-    return np.concatenate(
-        [
-            raw_obs["robot0_eef_pos"],
-            quat_to_axis_angle(raw_obs["robot0_eef_quat"]),
-            raw_obs["robot0_gripper_qpos"],
-        ]
-    ).astype(np.float32)
-
-
 class LiberoEnv:
     """The LIBERO suites behind the Env protocol (see the module docstring for the protocol)."""
 
@@ -262,19 +176,23 @@ class LiberoEnv:
 
     def __init__(
         self,
+        protocol: str = "openpi",
         suites: Sequence[str] = SUITES,
-        image_size: int = 256,
+        image_size: int | None = None,
         cameras: Sequence[str] = ("agentview", "wrist"),
-        num_noops: int = 10,
+        num_noops: int | None = None,
         max_steps: Mapping[str, int] | None = None,
         flip_images: bool = True,
         control_hz: float = 20.0,
         lazy_render: bool = True,
     ) -> None:
-        """``max_steps`` maps suite -> steps and overrides the protocol's (``MAX_STEPS``) per
-        suite. ``cameras=()`` renders nothing (state-only observations: for physics
-        benchmarks; ``check_env`` requires at least one camera). The env's random seed comes
-        from ``reset``'s ``seed``.
+        """``protocol`` names the evaluation convention (``openpi`` or ``lerobot``); the other
+        params left at None take its figures, and given ones override them (logged with the
+        run): ``max_steps`` maps suite -> steps per suite, ``image_size`` None renders at the
+        protocol's size (``lerobot``: the checkpoint's, filled in by the driver's pre-flight;
+        360 without a checkpoint). ``cameras=()`` renders nothing (state-only observations: for
+        physics benchmarks; ``check_env`` requires at least one camera). The env's random seed
+        comes from ``reset``'s ``seed`` by the protocol's rule.
 
         ``lazy_render`` (default): observations carry ``LazyImages``; a camera is rendered when
         its image is first read, so reset (its no-ops included) and steps whose images nobody
@@ -288,7 +206,7 @@ class LiberoEnv:
         ``close`` (RuntimeError after). ``lazy_render=False``: robosuite renders every camera
         on every step and on reset (its camera observables), as before."""
         self.protocol = LiberoProtocol.from_params(
-            suites, image_size, cameras, num_noops, max_steps, flip_images, control_hz
+            protocol, suites, image_size, cameras, num_noops, max_steps, flip_images, control_hz
         )
         self.lazy_render = bool(lazy_render)
         self._snapshots = _Snapshots()
@@ -304,24 +222,37 @@ class LiberoEnv:
         self._success = False
 
     @classmethod
-    def suite_tasks(
-        cls,
-        suites: Sequence[str] = SUITES,
-        image_size: int = 256,
-        cameras: Sequence[str] = ("agentview", "wrist"),
-        num_noops: int = 10,
-        max_steps: Mapping[str, int] | None = None,
-        flip_images: bool = True,
-        control_hz: float = 20.0,
-        lazy_render: bool = True,
-    ) -> list[TaskSpec]:
-        """The tasks these params give, from LIBERO's tables: no simulator, no MuJoCo import.
-        Takes the constructor's params (``lazy_render`` changes no task)."""
-        del lazy_render
-        protocol = LiberoProtocol.from_params(
-            suites, image_size, cameras, num_noops, max_steps, flip_images, control_hz
+    def _protocol_of(cls, params: dict[str, Any]) -> LiberoProtocol:
+        """The validated protocol of constructor params (``lazy_render`` changes nothing)."""
+        import inspect
+
+        bound = inspect.signature(cls.__init__).bind(None, **params)
+        bound.apply_defaults()
+        args = dict(bound.arguments)
+        for name in ("self", "lazy_render"):
+            args.pop(name)
+        return LiberoProtocol.from_params(**args)
+
+    @classmethod
+    def suite_tasks(cls, **params: Any) -> list[TaskSpec]:
+        """The tasks these constructor params give, from LIBERO's tables: no simulator, no
+        MuJoCo import."""
+        return _list_tasks(cls._protocol_of(params))
+
+    @classmethod
+    def describe(cls, **params: Any) -> EnvIO:
+        """What an env of these params gives a policy, with its protocol (no simulator)."""
+        p = cls._protocol_of(params)
+        return EnvIO(
+            cameras=p.cameras,
+            image_size=p.image_size,
+            state_dim=cls.state_dim,
+            action_dim=cls.action_dim,
+            camera_aliases={c: ROBOSUITE_CAMERA_ALIASES[c] for c in p.cameras},
+            image_size_from_checkpoint=p.image_size_from_checkpoint,
+            replan=p.replan,
+            protocol=p.record(),
         )
-        return _list_tasks(protocol)
 
     def tasks(self) -> list[TaskSpec]:
         return list(self._specs.values())
@@ -406,7 +337,7 @@ class LiberoEnv:
         self._open(spec)
         assert self._init_states is not None
         self._init_index = episode_index % len(self._init_states)
-        self._sim.seed(seed)
+        self._sim.seed(self.protocol.reset_seed(seed, episode_index))
         self._sim.reset()
         raw = self._sim.set_init_state(self._init_states[self._init_index])
         for _ in range(self.protocol.num_noops):
@@ -437,7 +368,7 @@ class LiberoEnv:
             images = LazyImages(self.cameras, functools.partial(self._render, frame))
         else:
             images = {cam: self._finish(raw[CAMERAS[cam][1]]) for cam in self.cameras}
-        return EnvObservation(images=images, state=state_vector(raw))
+        return EnvObservation(images=images, state=state_vector(raw, self.protocol.float32_state))
 
     def _finish(self, img: np.ndarray) -> np.ndarray:
         """An image as robosuite's camera observable gives it -> as observations carry it."""

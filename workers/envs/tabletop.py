@@ -28,6 +28,7 @@ import numpy as np
 from workers.envs.base import EnvObservation, LazyImages, LazyState, TaskSpec
 from workers.envs.stability import mujoco_instability, raise_if_unstable
 from workers.envs.tabletop_layout import BIN_CENTER, BIN_INNER_HALF, CUBE_HALF, TABLE_TOP_Z
+from workers.io_spec import ROBOSUITE_CAMERA_ALIASES, EnvIO
 
 SUITE = "tabletop"
 CAMERAS = {"agentview": "agentview", "wrist": "robot0_eye_in_hand"}
@@ -132,6 +133,23 @@ class TabletopEnv:
             TaskSpec(t, cls.TASK_NAMES[t], steps[t], 5 if t == "organize" else 1, suite=SUITE)
             for t in DEFAULT_MAX_STEPS
         ]
+
+    @classmethod
+    def describe(
+        cls,
+        image_size: int = 96,
+        cameras: tuple[str, ...] | list[str] = ("agentview", "wrist"),
+        **_: Any,
+    ) -> EnvIO:
+        """What the suite gives a policy (the README's table): images uint8 at ``image_size``
+        px, not flipped; state and action as LIBERO's; no protocol beyond its params."""
+        return EnvIO(
+            cameras=tuple(cameras),
+            image_size=int(image_size),
+            state_dim=cls.state_dim,
+            action_dim=cls.action_dim,
+            camera_aliases={c: ROBOSUITE_CAMERA_ALIASES[c] for c in cameras if c in CAMERAS},
+        )
 
     def tasks(self) -> list[TaskSpec]:
         return self.suite_tasks(self._max_steps)

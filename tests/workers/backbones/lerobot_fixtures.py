@@ -61,6 +61,7 @@ def build_act(
     action: int = 7,
     chunk: int = 10,
     cams: tuple[str, ...] = ("agentview",),
+    n_action_steps: int | None = None,
 ) -> Path:
     from lerobot.policies.act.configuration_act import ACTConfig
     from lerobot.policies.act.modeling_act import ACTPolicy
@@ -77,7 +78,7 @@ def build_act(
         n_decoder_layers=1,
         use_vae=False,
         chunk_size=chunk,
-        n_action_steps=chunk,
+        n_action_steps=n_action_steps or chunk,
         device="cpu",
     )
     torch.manual_seed(0)

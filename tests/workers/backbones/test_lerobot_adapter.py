@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -13,6 +14,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 from lerobot_fixtures import build_act, build_diffusion
 
+from pipeline.config import ConfigError
 from workers.backbones.base import Observation
 from workers.idr import IDRConfig
 from workers.idr_policy import IDRPolicy
@@ -232,7 +234,7 @@ def test_camera_and_shape_mismatch_name_both_sides(ckpts) -> None:
 
     with pytest.raises(
         ValueError,
-        match=r"camera_map=.*policy image keys \['observation.images.top'\].*expects \['observation.images.agentview'\]",
+        match=r"camera_map=.*policy image keys \['observation.images.top'\].*declares \['observation.images.agentview'\]",
     ):
         LerobotBackbone(str(ckpts["act"]), camera_map={"agentview": "top"})
     bb = _backbone(ckpts["act"])
@@ -260,3 +262,89 @@ def test_runner_refuses_a_missing_checkpoint_before_work(tmp_path) -> None:
     with pytest.raises(ConfigError, match=r"backbone.params.path=.*does not exist"):
         plan_run(cfg, tmp_path / "run")
     assert np.True_
+
+
+def test_policy_io_reads_config_json_only(ckpts, tmp_path) -> None:
+    from workers.backbones.lerobot.adapter import LerobotBackbone, policy_io
+
+    io = policy_io(ckpts["act"])
+    assert dict(io.images) == {"agentview": (3, 64, 64)}
+    assert (io.state_dim, io.action_dim, io.chunk_len, io.resizes_images) == (8, 7, 10, False)
+    assert policy_io(ckpts["diffusion"]).chunk_len == 4  # its n_action_steps
+    assert LerobotBackbone.describe({"path": str(ckpts["act"]), "chunk_len": 3}).chunk_len == 3
+    assert LerobotBackbone.describe({"path": "lerobot/x", "allow_download": True}) is None
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    for f in ckpts["act"].iterdir():
+        (broken / f.name).write_bytes(f.read_bytes())
+    cfg = json.loads((broken / "config.json").read_text())
+    cfg["input_features"]["observation.state"] = {"type": "STATE"}
+    (broken / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(ValueError, match=r"'observation.state' has no valid shape"):
+        policy_io(broken)
+
+
+def _libero_argv(ckpt: Path, out: Path, *extra: str) -> list[str]:
+    return [
+        "run",
+        "conf/libero_smoke.yaml",
+        "--out",
+        str(out),
+        "backbone.kind=lerobot",
+        f"backbone.params={{path: {ckpt}}}",
+        "env.params={protocol: lerobot, suites: [libero_spatial]}",
+        "env.tasks=[libero_spatial/0]",
+        "executor.kind=inline",
+        "tracking.enabled=false",
+        *extra,
+    ]
+
+
+@pytest.mark.parametrize(
+    ("build", "message"),
+    [
+        ({"cams": ("image", "cam_high")}, r"reads observation.images.cam_high, which matches no"),
+        ({"cams": ("image", "image2"), "state": 9}, r"state: the env gives a 8-d state.*\(9,\)"),
+        ({"cams": ("image",), "action": 14}, r"action: the env takes 7-d actions.*\(14,\)"),
+    ],
+)
+def test_a_checkpoint_that_cannot_fit_libero_is_refused_before_work(
+    tmp_path, capsys, monkeypatch, build, message
+) -> None:
+    """The pre-flight reads config.json on the driver: exit 2, one message naming both sides,
+    no run dir, no simulator (LIBERO's tables only)."""
+    from pipeline.cli import main
+
+    monkeypatch.chdir(Path(__file__).resolve().parents[3])
+    ckpt = build_act(tmp_path / "ckpt", **build)
+    out = tmp_path / "run"
+    assert main(_libero_argv(ckpt, out)) == 2
+    err = capsys.readouterr().err
+    assert err.count("idr-eval: error:") == 1 and "Traceback" not in err
+    assert re.search(message, err), err
+    assert not out.exists()
+
+
+def test_the_preflight_takes_cameras_size_and_replan_from_the_checkpoint(tmp_path) -> None:
+    from pipeline.config import load_config
+    from pipeline.runner import plan_run
+
+    root = Path(__file__).resolve().parents[3]
+    ckpt = build_act(tmp_path / "ckpt", image=96, cams=("image", "image2"), n_action_steps=6)
+    argv = _libero_argv(ckpt, tmp_path / "run")
+    cfg = load_config(root / argv[1], argv[4:])
+    plan = plan_run(cfg, tmp_path / "run")
+    assert plan.worker_spec.backbone_params["camera_map"] == {
+        "agentview": "image",
+        "wrist": "image2",
+    }
+    assert plan.worker_spec.env_params["image_size"] == 96
+    assert plan.worker_spec.replan_steps == 6 and plan.cfg.backbone.replan_steps == 6
+    assert plan.fit.protocol["name"] == "lerobot" and plan.fit.protocol["image_size"] == 96
+    # told otherwise: the config wins where it speaks, and a size that does not fit is refused
+    cfg = load_config(root / argv[1], [*argv[4:], "backbone.replan_steps=2"])
+    assert plan_run(cfg, tmp_path / "run2").worker_spec.replan_steps == 2
+    sized = "env.params={protocol: lerobot, suites: [libero_spatial], image_size: 128}"
+    bad = [sized if a.startswith("env.params=") else a for a in argv[4:]]
+    with pytest.raises(ConfigError, match=r"renders .* at 128 px.*image_size=96"):
+        plan_run(load_config(root / argv[1], bad), tmp_path / "run3")

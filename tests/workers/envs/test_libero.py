@@ -142,17 +142,21 @@ def test_suite_tasks_params_select_suites_and_override_max_steps() -> None:
 @pytest.mark.parametrize(
     ("params", "message"),
     [
-        ({"image_size": 0}, "image_size must be > 0"),
-        ({"image_size": -8}, "image_size must be > 0"),
+        ({"image_size": 0}, "image_size must be an int > 0"),
+        ({"image_size": -8}, "image_size must be an int > 0"),
+        (
+            {"protocol": "oft"},
+            r"protocol='oft' is not a LIBERO protocol; choose one of \['openpi', 'lerobot'\]",
+        ),
         (
             {"suites": ["libero_spatail"]},
-            r"suites: \['libero_spatail'\] unknown or repeated; valid: .*libero_spatial",
+            r"suites: \['libero_spatail'\] empty, unknown or repeated; valid: .*libero_spatial",
         ),
         (
             {"cameras": ["agentview", "top"]},
             r"cameras=.*use distinct names from \['agentview', 'wrist'\]",
         ),
-        ({"num_noops": -1}, "num_noops must be >= 0"),
+        ({"num_noops": -1}, "num_noops must be an int >= 0"),
         ({"max_steps": {"libero_goal": 0}}, r"max_steps\['libero_goal'\] must be an int > 0"),
         ({"max_steps": {"libero_gaol": 300}}, r"max_steps: \['libero_gaol'\] unknown suites"),
         ({"suites": ["libero_10", "libero_10"]}, "unknown or repeated"),

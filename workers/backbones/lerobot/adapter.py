@@ -34,6 +34,7 @@ import torch
 
 from workers.backbones.base import Observation
 from workers.interventions import intervene
+from workers.io_spec import PolicyIO
 
 STATE_KEY = "observation.state"
 IMAGE_PREFIX = "observation.images."
@@ -43,6 +44,15 @@ DETERMINISTIC_TYPES = frozenset({"act", "vqbet", "tdmpc", "tiny_vla"})  # no sam
 # signature alone does not show it. X-VLA names a ``noise`` argument and ignores it.
 NOISE_VIA_KWARGS_TYPES = frozenset({"pi0", "pi05"})
 NOISE_IGNORED_TYPES = frozenset({"xvla"})
+# config.json keys by which a policy resizes its images to its own resolution (pi0, pi0.5,
+# pi0-FAST, SmolVLA, X-VLA, Diffusion's resize_shape...): any rendered size then fits it.
+RESIZE_KEYS = (
+    "image_resolution",
+    "resize_imgs_with_padding",
+    "resize_shape",
+    "image_resize_shape",
+    "resize_images_to",
+)
 
 
 def _is_local(path: str) -> bool:
@@ -119,6 +129,46 @@ def _check_safetensors(path: str, weights: Path) -> None:
         raise ValueError(f"backbone.params.path={path!r}: model.safetensors holds no tensors")
 
 
+def _shape(cfg_path: Path, key: str, feature: object) -> tuple[int, ...]:
+    shape = feature.get("shape") if isinstance(feature, dict) else None
+    if not isinstance(shape, list) or not all(isinstance(d, int) and d > 0 for d in shape):
+        raise ValueError(
+            f"{cfg_path}: {key!r} has no valid shape ({feature!r}); a lerobot config.json "
+            "gives each feature {'type': ..., 'shape': [...]}"
+        )
+    return tuple(shape)
+
+
+def policy_io(path: Path, chunk_len: int | None = None) -> PolicyIO:
+    """What the checkpoint in ``path`` reads and writes, from its config.json alone."""
+    cfg_path = path / "config.json"
+    cfg = json.loads(cfg_path.read_text())
+    inputs, outputs = cfg.get("input_features"), cfg.get("output_features")
+    if not isinstance(inputs, dict) or not isinstance(outputs, dict) or "action" not in outputs:
+        raise ValueError(
+            f"backbone.params.path={str(path)!r}: config.json lacks input_features / "
+            "output_features.action, so what the policy reads cannot be checked"
+        )
+    images = {
+        k.removeprefix(IMAGE_PREFIX): _shape(cfg_path, k, f)
+        for k, f in inputs.items()
+        if k.startswith(IMAGE_PREFIX)
+    }
+    for key, shape in images.items():
+        if len(shape) != 3:
+            raise ValueError(f"{cfg_path}: {IMAGE_PREFIX + key} shape {shape} is not (C, H, W)")
+    state = inputs.get(STATE_KEY)
+    steps = chunk_len or cfg.get("n_action_steps") or cfg.get("chunk_size") or 1
+    return PolicyIO(
+        images=images,
+        state_dim=_shape(cfg_path, STATE_KEY, state)[0] if state is not None else None,
+        action_dim=_shape(cfg_path, "action", outputs["action"])[0],
+        chunk_len=int(steps),
+        resizes_images=any(cfg.get(k) for k in RESIZE_KEYS),
+        source=f"{cfg_path} (policy type {cfg.get('type')!r})",
+    )
+
+
 _REGISTER = re.compile(r"@PreTrainedConfig\.register_subclass\(\s*[\"']([\w.-]+)[\"']")
 
 
@@ -159,6 +209,13 @@ class LerobotBackbone:
             )
         check_checkpoint(str(params["path"]), bool(params.get("allow_download", False)))
 
+    @classmethod
+    def describe(cls, params: dict[str, Any]) -> PolicyIO | None:
+        """The checkpoint's inputs and outputs from its config.json (no weights, no GPU);
+        None for a hub id, which is not on this machine to read."""
+        path = check_checkpoint(str(params["path"]), bool(params.get("allow_download", False)))
+        return None if path is None else policy_io(path, params.get("chunk_len"))
+
     def __init__(
         self,
         path: str,
@@ -167,7 +224,10 @@ class LerobotBackbone:
         chunk_len: int | None = None,
         allow_download: bool = False,
     ) -> None:
-        """``camera_map``: env camera -> policy image key suffix (default: same names);
+        """``camera_map``: env camera -> policy image key suffix (``observation.images.<suffix>``).
+        A run fills it in on the driver from the env's cameras and the names checkpoints give
+        them (``workers.io_spec``: LIBERO's ``image`` / ``image2`` ...); give it for a checkpoint
+        whose names no convention covers. Default here: the same names.
         ``allow_download``: a hub id may be fetched (off by default: runs are offline)."""
         from lerobot.configs.policies import PreTrainedConfig
         from lerobot.policies.factory import get_policy_class, make_pre_post_processors
@@ -197,7 +257,8 @@ class LerobotBackbone:
         if wanted != set(image_keys):
             raise ValueError(
                 f"backbone.params.camera_map={mapping} gives policy image keys {sorted(wanted)}, "
-                f"but the policy expects {sorted(image_keys)}"
+                f"but the checkpoint's config.json declares {sorted(image_keys)}: map each env "
+                "camera to one of them"
             )
         self.camera_map = mapping
         self.cameras = tuple(mapping)  # env cameras to render

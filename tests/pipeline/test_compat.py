@@ -1,0 +1,120 @@
+"""The pre-flight's matching of a checkpoint with an env, on hand-made descriptions."""
+
+from __future__ import annotations
+
+import pytest
+
+from pipeline.compat import fit_backbone_to_env, resolve_replan
+from pipeline.config import ConfigError
+from workers.io_spec import ROBOSUITE_CAMERA_ALIASES, EnvIO, PolicyIO
+
+
+def _env(**over) -> EnvIO:
+    base = {
+        "cameras": ("agentview", "wrist"),
+        "image_size": 256,
+        "state_dim": 8,
+        "action_dim": 7,
+        "camera_aliases": ROBOSUITE_CAMERA_ALIASES,
+        "protocol": {"name": "lerobot"},
+    }
+    return EnvIO(**{**base, **over})
+
+
+def _policy(**over) -> PolicyIO:
+    base = {
+        "images": {"image": (3, 256, 256), "image2": (3, 256, 256)},
+        "state_dim": 8,
+        "action_dim": 7,
+        "chunk_len": 10,
+        "resizes_images": False,
+        "source": "ckpt/config.json (policy type 'act')",
+    }
+    return PolicyIO(**{**base, **over})
+
+
+@pytest.mark.parametrize(
+    ("keys", "expected"),
+    [
+        (("image", "image2"), {"agentview": "image", "wrist": "image2"}),  # lerobot's LIBERO
+        (("image", "wrist_image"), {"agentview": "image", "wrist": "wrist_image"}),  # openpi's
+        (("front", "wrist"), {"agentview": "front", "wrist": "wrist"}),
+        (("agentview",), {"agentview": "agentview"}),
+    ],
+)
+def test_known_camera_names_map_without_a_camera_map(keys, expected) -> None:
+    policy = _policy(images={k: (3, 256, 256) for k in keys})
+    assert fit_backbone_to_env(_env(), policy, None, None).camera_map == expected
+
+
+def test_an_unknown_camera_name_is_refused_naming_both_sides_and_the_fix() -> None:
+    policy = _policy(images={"cam_high": (3, 256, 256)})
+    with pytest.raises(ConfigError) as e:
+        fit_backbone_to_env(_env(), policy, None, None)
+    msg = str(e.value)
+    assert "observation.images.cam_high" in msg and "ckpt/config.json" in msg
+    assert "['agentview', 'wrist']" in msg and "backbone.params.camera_map" in msg
+
+
+def test_a_camera_the_env_does_not_render_names_env_cameras() -> None:
+    with pytest.raises(ConfigError, match=r"image2.*matches no env camera.*env.params.cameras"):
+        fit_backbone_to_env(_env(cameras=("agentview",)), _policy(), None, None)
+
+
+def test_camera_map_is_checked_against_both_sides() -> None:
+    ok = fit_backbone_to_env(_env(), _policy(), None, {"wrist": "image", "agentview": "image2"})
+    assert ok.camera_map == {"wrist": "image", "agentview": "image2"}  # unusual, but as told
+    with pytest.raises(ConfigError, match=r"names env cameras \['top'\].*\['agentview', 'wrist'\]"):
+        fit_backbone_to_env(_env(), _policy(), None, {"top": "image", "wrist": "image2"})
+    with pytest.raises(ConfigError, match=r"feeds image keys .*declares .*image2"):
+        fit_backbone_to_env(_env(), _policy(), None, {"agentview": "image"})
+
+
+def test_image_size_comes_from_the_checkpoint_where_the_protocol_leaves_it() -> None:
+    policy = _policy(images={"image": (3, 64, 64), "image2": (3, 64, 64)})
+    fit = fit_backbone_to_env(
+        _env(image_size=360, image_size_from_checkpoint=True), policy, 5, None
+    )
+    assert fit.image_size == 64 and fit.protocol["image_size"] == 64
+    uneven = _policy(images={"image": (3, 64, 64), "image2": (3, 96, 96)})
+    with pytest.raises(ConfigError, match="not one square size"):
+        fit_backbone_to_env(_env(image_size_from_checkpoint=True), uneven, 5, None)
+
+
+def test_a_size_mismatch_is_refused_unless_the_policy_resizes() -> None:
+    policy = _policy(images={"image": (3, 224, 224), "image2": (3, 224, 224)})
+    with pytest.raises(ConfigError) as e:
+        fit_backbone_to_env(_env(), policy, None, None)
+    msg = str(e.value)
+    assert "256 px" in msg and "(3, 224, 224)" in msg and "env.params.image_size=224" in msg
+    resizing = _policy(images=policy.images, resizes_images=True)  # pi0.5: any size fits
+    assert fit_backbone_to_env(_env(), resizing, None, None).image_size is None
+
+
+@pytest.mark.parametrize(
+    ("over", "message"),
+    [
+        ({"state_dim": 9}, r"state: the env gives a 8-d state, but .*observation.state \(9,\)"),
+        ({"action_dim": 14}, r"action: the env takes 7-d actions, but .*action \(14,\)"),
+        ({"images": {"image": (1, 256, 256)}}, "RGB"),
+    ],
+)
+def test_dims_that_do_not_fit_are_refused(over, message) -> None:
+    with pytest.raises(ConfigError, match=message):
+        fit_backbone_to_env(_env(), _policy(**over), None, None)
+
+
+def test_a_policy_without_state_fits_any_state() -> None:
+    assert fit_backbone_to_env(_env(), _policy(state_dim=None), None, None).camera_map
+
+
+def test_replan_rule() -> None:
+    env, policy = _env(replan="chunk"), _policy(chunk_len=10)
+    assert resolve_replan(None, env, policy) == 10  # the protocol's rule, the checkpoint's n
+    assert resolve_replan(3, env, policy) == 3  # the config wins
+    assert resolve_replan(None, _env(replan=5), policy) == 5
+    assert resolve_replan(None, _env(), policy) == 4  # no rule anywhere
+    assert resolve_replan(None, None, None) == 4
+    assert resolve_replan("chunk", None, None) == "chunk"  # the backbone's chunk at run time
+    fit = fit_backbone_to_env(env, policy, None, None)
+    assert fit.replan_steps == 10 and fit.protocol["replan"] == 10

@@ -1,0 +1,193 @@
+"""Parity with lerobot-eval: under ``protocol: lerobot`` the same checkpoint and seed give
+lerobot's own episodes: the same actions sent to the simulator, bit for bit, the same simulator
+states after every step, the same success and length per episode.
+
+The reference is lerobot's code path itself, not a copy: its LIBERO env config and ``make_env``,
+``make_policy``, its policy and env processors and ``eval_policy_all`` (what ``lerobot-eval``
+runs), on an ACT checkpoint built offline with lerobot's LIBERO camera keys (``image``,
+``image2``), random weights, 2 episodes of 40 steps, replanning every ``n_action_steps`` = 5.
+Ours: the run's own pre-flight (``plan_run``: camera keys, render size and replan rule from the
+checkpoint's config.json) and episode worker.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.workers.backbones.lerobot_fixtures import build_act
+
+SIZE = 64  # the checkpoint declares 64 px; our pre-flight renders at it, lerobot is told it
+STEPS = 40
+EPISODES = 2
+SEED = 7
+TASK = "libero_spatial/0"
+
+
+def _sim_state(sim) -> np.ndarray:
+    """qpos, qvel (and time) of a robosuite simulator, flattened."""
+    return np.asarray(sim.get_state().flatten()).copy()
+
+
+def _lerobot_episodes(ckpt: Path) -> tuple[list[dict], dict]:
+    import gymnasium as gym
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.envs.configs import LiberoEnv as LiberoEnvConfig
+    from lerobot.envs.factory import make_env, make_env_pre_post_processors
+    from lerobot.policies.factory import make_policy, make_pre_post_processors
+    from lerobot.scripts.lerobot_eval import eval_policy_all
+
+    env_cfg = LiberoEnvConfig(
+        task="libero_spatial",
+        task_ids=[0],
+        episode_length=STEPS,
+        observation_height=SIZE,
+        observation_width=SIZE,
+    )
+    episodes: list[dict] = []
+
+    class Recorder(gym.vector.VectorWrapper):
+        """What reaches the simulator, step by step (lerobot's rollout is unchanged)."""
+
+        def reset(self, **kwargs):
+            out = self.env.reset(**kwargs)
+            episodes.append({"actions": [], "states": []})
+            return out
+
+        def call(self, name, *args, **kwargs):
+            return self.env.call(name, *args, **kwargs)
+
+        def step(self, actions):
+            out = self.env.step(actions)
+            libero = self.env.unwrapped.envs[0].unwrapped
+            episodes[-1]["actions"].append(np.array(actions[0], copy=True))
+            episodes[-1]["states"].append(_sim_state(libero._env.sim))
+            return out
+
+    envs = make_env(env_cfg, n_envs=1)
+    envs = {suite: {tid: Recorder(v) for tid, v in m.items()} for suite, m in envs.items()}
+    policy_cfg = PreTrainedConfig.from_pretrained(ckpt)
+    policy_cfg.pretrained_path = ckpt
+    policy_cfg.device = "cpu"
+    policy = make_policy(policy_cfg, env_cfg=env_cfg).eval()
+    pre, post = make_pre_post_processors(
+        policy_cfg,
+        pretrained_path=str(ckpt),
+        preprocessor_overrides={"device_processor": {"device": "cpu"}},
+    )
+    env_pre, env_post = make_env_pre_post_processors(env_cfg, policy_cfg)
+    try:
+        info = eval_policy_all(
+            envs=envs,
+            policy=policy,
+            env_preprocessor=env_pre,
+            env_postprocessor=env_post,
+            preprocessor=pre,
+            postprocessor=post,
+            n_episodes=EPISODES,
+            start_seed=SEED,
+        )
+    finally:
+        for m in envs.values():
+            for v in m.values():
+                v.close()
+    return episodes, info
+
+
+def _our_episodes(ckpt: Path, tmp_path: Path) -> tuple[list[dict], list, dict]:
+    from pipeline.config import config_from_dict
+    from pipeline.runner import plan_run
+    from workers.actor import EpisodeWorker
+
+    cfg = config_from_dict(
+        {
+            "name": "parity",
+            "backbone": {"kind": "lerobot", "params": {"path": str(ckpt)}},
+            "env": {
+                "suite": "libero",
+                "tasks": [TASK],
+                "params": {
+                    "protocol": "lerobot",
+                    "suites": ["libero_spatial"],
+                    "max_steps": {"libero_spatial": STEPS},
+                },
+            },
+            "episodes_per_task": EPISODES,
+            "seed": SEED,
+            "grid": [{"mode": ["baseline"]}],
+            "executor": {"kind": "inline"},
+            "tracking": {"enabled": False},
+            "output_root": str(tmp_path),
+        }
+    )
+    plan = plan_run(cfg, tmp_path / "run")
+    worker = EpisodeWorker(plan.worker_spec)
+    episodes: list[dict] = []
+    env = worker.env
+    step = env.step
+
+    def recording_step(action):
+        obs = step(action)
+        episodes[-1]["actions"].append(np.asarray(action, dtype=np.float32).copy())
+        episodes[-1]["states"].append(_sim_state(env._sim.sim))
+        return obs
+
+    env.step = recording_step
+    rows = []
+    try:
+        for spec in plan.specs:
+            episodes.append({"actions": [], "states": []})
+            result = worker.run_episode(spec)
+            assert result.episode.error is None, result.episode.error
+            rows.append(result.episode)
+    finally:
+        worker.close()
+    return episodes, rows, {"fit": plan.fit, "worker_spec": plan.worker_spec}
+
+
+@pytest.mark.slow
+def test_lerobot_protocol_gives_lerobot_evals_episodes(tmp_path) -> None:
+    ckpt = build_act(
+        tmp_path / "act", image=SIZE, cams=("image", "image2"), chunk=10, n_action_steps=5
+    )
+    ours, rows, plan = _our_episodes(ckpt, tmp_path)
+    # the pre-flight read the checkpoint: lerobot's LIBERO names, its size, its n_action_steps
+    assert plan["fit"].camera_map == {"agentview": "image", "wrist": "image2"}
+    assert plan["worker_spec"].env_params["image_size"] == SIZE
+    assert plan["worker_spec"].replan_steps == 5
+    theirs, info = _lerobot_episodes(ckpt)
+
+    assert len(theirs) == len(ours) == EPISODES
+    for e, (a, b, row) in enumerate(zip(theirs, ours, rows, strict=True)):
+        assert len(a["actions"]) == len(b["actions"]) == row.steps, f"episode {e}: lengths"
+        for t, (x, y) in enumerate(zip(a["actions"], b["actions"], strict=True)):
+            assert x.dtype == y.dtype == np.float32
+            assert np.array_equal(x, y), f"episode {e} step {t}: actions {x} vs {y}"
+        for t, (x, y) in enumerate(zip(a["states"], b["states"], strict=True)):
+            assert np.array_equal(x, y), f"episode {e} step {t}: simulator states differ"
+        per_episode = info["per_task"][0]["metrics"]
+        assert bool(per_episode["successes"][e]) == row.success
+    # the two episodes differ (seed + e, init state e): parity is not two copies of one
+    assert not np.array_equal(ours[0]["states"][0], ours[1]["states"][0])
+    # the policy moved the arm: the comparison is about actions that matter
+    assert np.abs(np.stack(ours[0]["actions"])[:, :6]).max() > 1e-3
+
+
+@pytest.mark.slow
+def test_float32_state_arithmetic_is_lerobots(tmp_path) -> None:
+    """Our float32 axis-angle equals lerobot's LiberoProcessorStep's, bit for bit."""
+    import torch
+    from lerobot.processor.env_processor import LiberoProcessorStep
+
+    from workers.envs.libero_protocol import quat_to_axis_angle_f32
+
+    rng = np.random.default_rng(0)
+    quats = rng.normal(size=(500, 4))
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    quats = np.concatenate([quats, [[0, 0, 0, 1.0], [0, 0, 1.0, 0]]])
+    step = LiberoProcessorStep()
+    for q in quats:
+        theirs = step._quat2axisangle(torch.from_numpy(q[None]))[0].numpy()
+        assert np.array_equal(quat_to_axis_angle_f32(q), theirs), q

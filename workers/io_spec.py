@@ -1,0 +1,60 @@
+"""What an env gives a policy and what a checkpoint asks for, known without a simulator or weights.
+
+The driver reads both before any actor starts (``pipeline.compat`` matches them): an env from its
+params (``describe`` classmethod), a checkpoint from its ``config.json``. A mismatch (a camera the
+env does not have, another image size, state or action dims) is refused there, naming both sides.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Literal
+
+# Names under which policies know robosuite's two standard cameras, by convention:
+# lerobot's LIBERO datasets (image, image2), openpi's converted LIBERO data (image, wrist_image),
+# robosuite's own observation keys, and other checkpoints' (front / wrist).
+AGENTVIEW_ALIASES: tuple[str, ...] = ("agentview", "image", "agentview_image", "front", "main")
+WRIST_ALIASES: tuple[str, ...] = (
+    "wrist",
+    "image2",
+    "wrist_image",
+    "robot0_eye_in_hand_image",
+    "eye_in_hand",
+)
+ROBOSUITE_CAMERA_ALIASES: Mapping[str, tuple[str, ...]] = {
+    "agentview": AGENTVIEW_ALIASES,
+    "wrist": WRIST_ALIASES,
+}
+
+Replan = int | Literal["chunk"]
+
+
+@dataclass(frozen=True)
+class EnvIO:
+    """What an env built from given params renders and accepts."""
+
+    cameras: tuple[str, ...]  # the ones it renders with these params
+    image_size: int  # square images, in px, unless the checkpoint decides (below)
+    state_dim: int
+    action_dim: int
+    # env camera -> other names a checkpoint may give it (its own name always matches)
+    camera_aliases: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
+    # True: the image size was left to the checkpoint (the protocol renders at its size)
+    image_size_from_checkpoint: bool = False
+    # actions executed per inference under the env's protocol; None: the env pins none
+    replan: Replan | None = None
+    # the pinned protocol, logged with the run and shown in the report ({}: none)
+    protocol: Mapping[str, object] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class PolicyIO:
+    """What a checkpoint declares it reads and writes (from its config.json)."""
+
+    images: Mapping[str, tuple[int, ...]]  # image key suffix (observation.images.<k>) -> (C, H, W)
+    state_dim: int | None  # None: reads no state
+    action_dim: int
+    chunk_len: int  # actions of each predicted chunk it executes (n_action_steps)
+    resizes_images: bool  # resizes any image to its own resolution (pi0, pi0.5, SmolVLA...)
+    source: str  # where this was read, for messages
