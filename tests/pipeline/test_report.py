@@ -15,7 +15,5 @@ def test_the_report_names_the_protocol_of_the_run(tmp_path) -> None:
     protocol = {"name": "lerobot", "seed": "seed + episode", "max_steps": {"libero_spatial": 280}}
     (tmp_path / "run.json").write_text(json.dumps({"run_id": "r", "protocol": protocol}))
     text = build_report(tmp_path)
-    assert (
-        "Env protocol: lerobot (seed seed + episode, max_steps {'libero_spatial': 280})." in text
-    )
+    assert "Env protocol: lerobot (seed seed + episode, max_steps {'libero_spatial': 280})." in text
     assert protocol_line({"name": "openpi"}) == "openpi"
