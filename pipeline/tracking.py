@@ -21,6 +21,7 @@ import json
 import logging
 import math
 import os
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -315,6 +316,9 @@ class Tracker:
 
     def _finish(self, episodes: pd.DataFrame, artifacts: list[Path], status: str) -> None:
         if not episodes.empty:
+            with tempfile.TemporaryDirectory() as tmp:
+                for path in task_tables(episodes, Path(tmp)):
+                    self.client.log_artifact(self.parent_id, str(path), "tables")
             for cell_id, metrics in cell_metrics(episodes).items():
                 if cell_id in self.children:
                     self._log_metrics(self.children[cell_id], metrics)
@@ -336,9 +340,22 @@ def _plain(value: Any) -> str:
     return getattr(value, "text", None) or str(value)
 
 
+def task_tables(episodes: pd.DataFrame, out: Path) -> list[Path]:
+    """Per-task success (and chain i/N rates) of every cell as CSV files in ``out``: the per-task
+    numbers the UI shows as the parent run's artifacts, one file whatever the grid's size."""
+    paths = [out / "success_by_task.csv"]
+    agg.success_by_task(episodes).to_csv(paths[0], index=False)
+    chains = agg.chain_metrics(episodes)
+    if not chains.empty:
+        paths.append(out / "chains_by_task.csv")
+        chains.to_csv(paths[-1], index=False)
+    return paths
+
+
 def cell_metrics(episodes: pd.DataFrame) -> dict[str, dict[str, float]]:
-    """Per cell: success overall/suite/task, Avg Len, completion times, diagnostics, Δ vs baseline,
-    failed episodes by cause."""
+    """Per cell: success overall and per suite, Avg Len overall and per suite, completion times,
+    diagnostics, Δ vs baseline, failed episodes by cause. Names are bounded by the number of
+    suites and failure causes, never by tasks or episodes (see ``task_tables``)."""
     out: dict[str, dict[str, float]] = {c: {} for c in episodes["cell_id"].unique()}
     for r in agg.success_overall(episodes).itertuples():
         out[r.cell_id].update(
@@ -353,12 +370,13 @@ def cell_metrics(episodes: pd.DataFrame) -> dict[str, dict[str, float]]:
         out[r.cell_id][_metric_key("success", r.suite)] = r.success_rate
     for cell, g in suites.groupby("cell_id"):  # the paper's Avg: the mean of the suites' rates
         out[cell]["success_avg"] = float(g["success_rate"].mean())
-    for r in agg.success_by_task(episodes).itertuples():
-        out[r.cell_id][_metric_key("success", r.suite, r.task_id)] = r.success_rate
+    # per task: in the parent's tables/ artifacts and the report, not as metrics (a metric
+    # name per task would grow with the benchmark: 130 for LIBERO, thousands of sequences)
     chains = agg.chain_metrics(episodes)
-    for r in chains.to_dict("records"):
-        out[r["cell_id"]][_metric_key("avg_len", r["task_id"])] = r["avg_len"]
     if not chains.empty:
+        for (cell, suite), g in chains.groupby(["cell_id", "suite"]):
+            weighted = float((g["avg_len"] * g["n"]).sum() / g["n"].sum())
+            out[cell][_metric_key("avg_len", suite)] = weighted
         for cell, g in chains.groupby("cell_id"):
             out[cell]["avg_len"] = float((g["avg_len"] * g["n"]).sum() / g["n"].sum())
     for r in agg.completion_times(episodes).itertuples():

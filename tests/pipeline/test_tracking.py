@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pandas as pd
 import pytest
 from mlflow import MlflowClient
 
@@ -48,12 +49,12 @@ def test_parent_and_one_child_per_cell(tmp_path) -> None:
     for cell, run in by_cell.items():
         sub = eps[eps.cell_id == cell]
         assert run.data.metrics["success"] == pytest.approx(sub.success.mean())
-        assert run.data.metrics["success/fake_marker/reach"] == pytest.approx(
-            sub[sub.task_id == "reach"].success.mean()
-        )
-        assert run.data.metrics["avg_len"] == pytest.approx(
-            sub[sub.task_id == "reach_chain"].subtasks_done.mean()
-        )
+        assert run.data.metrics["success/fake_marker"] == pytest.approx(sub.success.mean())
+        chain = sub[sub.task_id == "reach_chain"].subtasks_done.mean()
+        assert run.data.metrics["avg_len"] == pytest.approx(chain)
+        assert run.data.metrics["avg_len/fake_marker"] == pytest.approx(chain)
+        # no metric name per task: their count must not grow with the benchmark
+        assert not [m for m in run.data.metrics if "reach" in m], run.data.metrics
         # failed episodes by cause (the fake ends episodes only at max_steps: all timeouts)
         assert run.data.metrics.get("failures/timeout", 0.0) == (~sub.success).sum()
     assert (
@@ -62,7 +63,14 @@ def test_parent_and_one_child_per_cell(tmp_path) -> None:
     )
     assert "delta_vs_baseline" in by_cell["E"].data.metrics
     arts = {a.path for a in client.list_artifacts(parent.info.run_id)}
-    assert {"report.md", "config.yaml"} <= arts
+    assert {"report.md", "config.yaml", "tables"} <= arts
+    # per-task numbers: one table for the whole grid, as the parent's artifact
+    table = Path(client.download_artifacts(parent.info.run_id, "tables/success_by_task.csv"))
+    per_task = pd.read_csv(table).set_index(["cell_id", "task_id"])["success_rate"]
+    for (cell, task), rate in per_task.items():
+        sub = eps[(eps.cell_id == cell) & (eps.task_id == task)]
+        assert rate == pytest.approx(sub.success.mean())
+    assert len(per_task) == 3 * 2
     # resume logs into the same runs
     execute(plan_run(cfg, tmp_path / "run"))
     assert len(client.search_runs([exp.experiment_id])) == 4

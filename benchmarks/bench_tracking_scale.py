@@ -1,0 +1,141 @@
+"""MLflow at grid scale: a 100-cell grid over LIBERO's 40 tasks, logged to a local sqlite store.
+
+Times what a run does with MLflow: ``Tracker.start`` (the parent run and one child per cell,
+with their params) and ``Tracker.finish`` (per-cell metrics, the per-task tables, the runs
+ended), on synthetic episodes (100 cells x 40 tasks x 5 episodes, 4 suites). Counts the metric
+names per child, which must not grow with tasks: the per-task numbers go to the parent's
+``tables/`` artifacts.
+
+Writes ``benchmarks/results/tracking_scale.json``. Usage:
+``python benchmarks/bench_tracking_scale.py [--cells 100] [--tasks-per-suite 10]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+RESULTS = Path(__file__).parent / "results" / "tracking_scale.json"
+SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10")
+
+
+def _config(cells: int):
+    from pipeline.config import load_config
+
+    alphas = [round(0.01 * (i + 1), 2) for i in range(cells - 2)]
+    grid = f"grid=[{{mode: [baseline, diagnose, E]}}, {{alpha: {alphas}}}]"
+    return load_config(ROOT / "conf" / "smoke.yaml", [grid, "max_cells=1000"])
+
+
+def _episodes(cell_ids: list[str], tasks_per_suite: int, per_task: int) -> pd.DataFrame:
+    from pipeline.store import EPISODE_SCHEMA, rows_to_table
+    from workers.episode import EpisodeRow
+
+    rng = np.random.default_rng(0)
+    rows = []
+    for cell in cell_ids:
+        for suite in SUITES:
+            for t in range(tasks_per_suite):
+                for e in range(per_task):
+                    ok = bool(rng.random() < 0.6)
+                    rows.append(
+                        EpisodeRow(
+                            run_id="bench",
+                            cell_id=cell,
+                            mode="E",
+                            guidance="visual",
+                            strategy="zero",
+                            alpha=0.08,
+                            beta=0.05,
+                            lam=0.1,
+                            tau=7.0,
+                            backbone="lerobot",
+                            suite=suite,
+                            task_id=f"{suite}/{t}",
+                            task_name=f"{suite} task {t}",
+                            episode_index=e,
+                            seed=0,
+                            max_steps=300,
+                            subtasks_total=1,
+                            success=ok,
+                            steps=int(rng.integers(50, 300)),
+                            success_step=int(rng.integers(50, 300)) if ok else None,
+                            subtasks_done=int(ok),
+                            failure=None if ok else "timeout",
+                            sim_seconds=10.0,
+                            wall_seconds=30.0,
+                            inference_ms_mean=80.0,
+                            gate_rate=0.3,
+                            e_img_mean=7.0,
+                            e_prop_mean=2.0,
+                            r_img_mean=0.7,
+                        )
+                    )
+    return rows_to_table(rows, EPISODE_SCHEMA).to_pandas()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cells", type=int, default=100)
+    ap.add_argument("--tasks-per-suite", type=int, default=10)
+    ap.add_argument("--episodes-per-task", type=int, default=5)
+    args = ap.parse_args()
+
+    from mlflow import MlflowClient
+
+    from pipeline.tracking import Tracker, cell_metrics
+
+    cfg = _config(args.cells)
+    cells = cfg.cells()
+    episodes = _episodes([c.cell_id for c in cells], args.tasks_per_suite, args.episodes_per_task)
+    with tempfile.TemporaryDirectory() as tmp:
+        run_dir = Path(tmp) / "run"
+        run_dir.mkdir()
+        uri = f"sqlite:///{Path(tmp) / 'mlflow.db'}"
+        t0 = time.perf_counter()
+        tracker = Tracker(uri, "bench", run_dir)
+        t_open = time.perf_counter() - t0
+        params = {"backbone": "lerobot", "suite": "libero", "episodes_per_task": 5}
+        t0 = time.perf_counter()
+        tracker.start(run_name="bench", run_id="bench", params=params, cells=cells)
+        t_start = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        cell_metrics(episodes)  # the aggregation alone (bootstrap CIs, paired tests)
+        t_compute = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        assert tracker.finish(episodes, [], "FINISHED")
+        t_finish = time.perf_counter() - t0
+        client = MlflowClient(uri)
+        counts = [len(client.get_run(rid).data.metrics) for rid in tracker.children.values()]
+        tables = [a.path for a in client.list_artifacts(tracker.parent_id, "tables")]
+    out = {
+        "cells": len(cells),
+        "tasks": len(SUITES) * args.tasks_per_suite,
+        "episodes": len(episodes),
+        "store": "sqlite (local file)",
+        "open_s": round(t_open, 2),
+        "start_s": round(t_start, 2),
+        "finish_s": round(t_finish, 2),
+        "finish_of_which_aggregation_s": round(t_compute, 2),
+        "metrics_per_child_max": max(counts),
+        "metrics_per_child_min": min(counts),
+        "parent_tables": tables,
+        "machine": f"{platform.machine()}, {platform.python_version()}",
+    }
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(json.dumps(out, indent=2) + "\n")
+    print(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()
