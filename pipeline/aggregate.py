@@ -1,6 +1,6 @@
 """From the episodes table to the numbers a paper reports, with honest uncertainty.
 
-- success per task, per suite and overall, with Wilson 95% intervals (scipy);
+- success per task, per suite and overall, with Wilson 95% intervals;
 - for chain tasks (subtasks_total > 1): the i/N completion rates and Avg Len (mean completed
   subtasks, CALVIN-style), with a bootstrap interval;
 - completion time: simulated seconds to success over successful episodes, and wall seconds;
@@ -18,29 +18,51 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 import pyarrow as pa
-from scipy.stats import binomtest
+
+# scipy.special, not scipy.stats: the same numbers (tested against binomtest), and it imports
+# in a fraction of the time (scipy.stats was ~3 s of every `idr-eval report` here)
+from scipy.special import bdtr, ndtri
 
 Z95 = 0.95
+MULTINOMIAL_MAX_DISTINCT = 64  # bootstrap by counts per distinct value up to this many values
 
 
 def wilson(successes: int, n: int, confidence: float = Z95) -> tuple[float, float]:
+    """Wilson score interval of successes / n (without continuity correction)."""
     if n == 0:
         return (float("nan"), float("nan"))
-    ci = binomtest(int(successes), int(n)).proportion_ci(
-        confidence_level=confidence, method="wilson"
-    )
-    return (float(ci.low), float(ci.high))
+    z = float(ndtri(1 - (1 - confidence) / 2))
+    p, z2 = successes / n, z * z
+    centre = (p + z2 / (2 * n)) / (1 + z2 / n)
+    half = z * np.sqrt(p * (1 - p) / n + z2 / (4 * n * n)) / (1 + z2 / n)
+    return (float(max(0.0, centre - half)), float(min(1.0, centre + half)))
+
+
+def bootstrap_means(values: np.ndarray, n_boot: int, rng: np.random.Generator) -> np.ndarray:
+    """``n_boot`` means of ``values`` resampled with replacement.
+
+    Episode outcomes take few distinct values (success 0/1, subtasks done 0..5, paired
+    differences -1/0/1): resampling n of them is then drawing how many of each value from a
+    multinomial(n, their shares), the same distribution of resampled means at O(n_boot x
+    distinct values) instead of O(n_boot x n) (a 50,000-episode cell: 2,000 x 3 numbers, not
+    2,000 x 50,000). Many distinct values: plain index resampling."""
+    values = np.asarray(values, dtype=float)
+    distinct, counts = np.unique(values, return_counts=True)
+    if distinct.size <= MULTINOMIAL_MAX_DISTINCT:
+        draws = rng.multinomial(values.size, counts / values.size, size=n_boot)
+        return draws @ distinct / values.size
+    idx = rng.integers(0, values.size, size=(n_boot, values.size))
+    return values[idx].mean(axis=1)
 
 
 def bootstrap_mean_ci(
     values: np.ndarray, n_boot: int = 2000, confidence: float = Z95, seed: int = 0
 ) -> tuple[float, float]:
+    """Percentile bootstrap interval of the mean (see ``bootstrap_means``)."""
     values = np.asarray(values, dtype=float)
     if values.size == 0:
         return (float("nan"), float("nan"))
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, values.size, size=(n_boot, values.size))
-    means = values[idx].mean(axis=1)
+    means = bootstrap_means(values, n_boot, np.random.default_rng(seed))
     lo, hi = np.quantile(means, [(1 - confidence) / 2, 1 - (1 - confidence) / 2])
     return (float(lo), float(hi))
 
@@ -49,7 +71,8 @@ def mcnemar_exact(b: int, c: int) -> float:
     """Two-sided exact McNemar p-value from the discordant counts b (only A) and c (only B)."""
     if b + c == 0:
         return 1.0
-    return float(binomtest(int(b), int(b + c), 0.5).pvalue)
+    # binomial(b + c, 1/2) is symmetric: twice the lower tail of the smaller count
+    return float(min(1.0, 2.0 * bdtr(min(b, c), b + c, 0.5)))
 
 
 def _frame(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:

@@ -121,9 +121,8 @@ def paired_avg_diff(
     diff = float(np.mean([g.mean() for g in groups]))
     rng = np.random.default_rng(seed)
     boots = np.zeros(n_boot)
-    for g in groups:
-        idx = rng.integers(0, g.size, size=(n_boot, g.size))
-        boots += g[idx].mean(axis=1)
+    for g in groups:  # stratified: each suite resampled within itself
+        boots += agg.bootstrap_means(g, n_boot, rng)
     boots /= len(groups)
     lo, hi = np.quantile(boots, [0.025, 0.975])
     flat = np.concatenate(groups)

@@ -23,6 +23,19 @@ def test_wilson_matches_formula(k, n) -> None:
     assert agg.wilson(k, n) == pytest.approx(_wilson_by_hand(k, n), abs=1e-9)
 
 
+def test_wilson_and_mcnemar_equal_scipy_stats_binomtest() -> None:
+    from scipy.stats import binomtest
+
+    for n in (1, 2, 7, 50, 500):
+        for k in sorted({0, 1, n // 3, n // 2, n - 1, n}):
+            ci = binomtest(k, n).proportion_ci(method="wilson")
+            assert agg.wilson(k, n) == pytest.approx((ci.low, ci.high), abs=1e-12)
+    for b in range(0, 40, 3):
+        for c in range(0, 40, 5):
+            want = binomtest(b, b + c, 0.5).pvalue if b + c else 1.0
+            assert agg.mcnemar_exact(b, c) == pytest.approx(want, rel=1e-9, abs=1e-15)
+
+
 def test_mcnemar_exact_by_hand() -> None:
     assert agg.mcnemar_exact(5, 0) == pytest.approx(2 * 0.5**5)  # 0.0625
     assert agg.mcnemar_exact(3, 3) == pytest.approx(1.0)
@@ -173,3 +186,20 @@ def test_failure_causes_of_old_rows_are_unknown_and_all_successes_give_empty() -
     assert list(t.columns) == ["n", "failed", "unknown"]
     assert t.loc[("baseline", "a"), "unknown"] == 3
     assert agg.failure_causes(df[df["success"]]).empty
+
+
+def test_bootstrap_by_counts_matches_resampling_episodes() -> None:
+    """Few distinct values: the multinomial draw gives the interval index resampling gives."""
+    rng = np.random.default_rng(3)
+    for values in (rng.binomial(1, 0.3, 300), rng.integers(0, 6, 500), rng.integers(-1, 2, 400)):
+        values = values.astype(float)
+        idx = np.random.default_rng(9).integers(0, values.size, size=(20000, values.size))
+        want = np.quantile(values[idx].mean(axis=1), [0.025, 0.975])
+        got = agg.bootstrap_mean_ci(values, n_boot=20000)
+        assert got == pytest.approx(tuple(want), abs=0.01 * max(1.0, np.ptp(values)))
+        assert got[0] < values.mean() < got[1]
+    continuous = rng.normal(size=200)  # > 64 distinct values: index resampling
+    lo, hi = agg.bootstrap_mean_ci(continuous)
+    assert lo < continuous.mean() < hi and hi - lo == pytest.approx(
+        2 * 1.96 * continuous.std() / np.sqrt(200), rel=0.15
+    )
