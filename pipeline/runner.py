@@ -12,7 +12,7 @@ import logging
 import os
 import subprocess
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -476,14 +476,13 @@ def run_episodes(
     progress = Progress(len(plan.all_specs()))
     # what the run dir holds now must still be there at each flush
     markers = tuple(n for n in RUN_DIR_MARKERS if (plan.run_dir / n).exists())
+    writer = BatchWriter(
+        store, ex.flush_every, check_dir=lambda: check_run_dir_intact(plan.run_dir, markers)
+    )
+    writer.on_flush = CompactFinishedCells(plan, store, writer.stored_keys, then=on_flush)
     sched = Scheduler(
         executor,
-        BatchWriter(
-            store,
-            ex.flush_every,
-            on_flush,
-            check_dir=lambda: check_run_dir_intact(plan.run_dir, markers),
-        ),
+        writer,
         ex.max_attempts,
         total=len(plan.all_specs()),
         progress=progress,
@@ -498,11 +497,47 @@ def run_episodes(
     return sched.summary
 
 
-def compact_run_dir(store: RunStore) -> dict[str, int]:
-    """Merge each cell's batches into one file per table (pipeline.store: crash-safe), so that
-    readers of a large run open one file per cell and table, not one per batch."""
+class CompactFinishedCells:
+    """After each flush, compact the cells whose every episode is now stored: a long grid
+    (cells run one after another) keeps one file per finished cell and table instead of one
+    per batch, for its readers and for the key scan of a resume. Then calls ``then``."""
+
+    def __init__(
+        self,
+        plan: RunPlan,
+        store: RunStore,
+        stored_keys: Iterable[tuple[str, str, int]],
+        then: Callable[[list[EpisodeResult]], None] | None = None,
+    ) -> None:
+        self.store, self.then = store, then
+        per_cell = len(plan.tasks) * plan.cfg.episodes_per_task
+        cells = [c.cell_id for c in (*plan.specs.cells, *plan.calibrated.cells)]
+        stored: dict[str, int] = {}
+        for cell, _, _ in stored_keys:
+            stored[cell] = stored.get(cell, 0) + 1
+        # cells complete at the start were compacted by the run that completed them
+        self.remaining = {c: per_cell - stored.get(c, 0) for c in cells}
+
+    def __call__(self, batch: list[EpisodeResult]) -> None:
+        finished = []
+        for result in batch:
+            cell = result.episode.cell_id
+            if cell in self.remaining:
+                self.remaining[cell] -= 1
+                if self.remaining[cell] == 0:
+                    finished.append(cell)
+        if finished:
+            compact_run_dir(self.store, finished)
+        if self.then is not None:
+            self.then(batch)
+
+
+def compact_run_dir(store: RunStore, cells: list[str] | None = None) -> dict[str, int]:
+    """Merge each cell's batches (of ``cells``; None: all) into one file per table
+    (pipeline.store: crash-safe), so that readers of a large run open one file per cell and
+    table, not one per batch."""
     with critical_section():  # a signal waits: the compaction's removals are not interrupted
-        merged = store.compact()
+        merged = store.compact(cells)
     if merged:
         log.info(
             "compacted %d files of %d cells into one per cell and table",

@@ -246,8 +246,9 @@ class RunStore:
         return n
 
     # -- compaction ----------------------------------------------------------------------------
-    def compact(self) -> dict[str, int]:
-        """Merge each cell's files into one per table; returns {cell dir: files merged}.
+    def compact(self, cells: Iterable[str] | None = None) -> dict[str, int]:
+        """Merge each cell's files (of ``cells``, by cell id; None: every cell) into one per
+        table; returns {cell dir: files merged}.
 
         Order, so that a kill at any point leaves every key stored once and every file
         readable: (1) the steps file is written (temporary name, fsync, rename): until its
@@ -259,8 +260,12 @@ class RunStore:
         if self.read_only:
             raise RuntimeError(f"RunStore({self.run_dir}) was opened read-only")
         done: dict[str, int] = {}
+        wanted = None if cells is None else {f"cell={_safe(c)}" for c in cells}
+        live = self._live(self.episodes_dir)
         for cell_dir in sorted(p for p in self.episodes_dir.glob("cell=*") if p.is_dir()):
-            files = [f for f in self._live(self.episodes_dir) if f.parent == cell_dir]
+            if wanted is not None and cell_dir.name not in wanted:
+                continue
+            files = [f for f in live if f.parent == cell_dir]
             if len(files) < 2:
                 continue
             names = [f.name for f in files]

@@ -131,3 +131,31 @@ def test_readers_project_columns(tmp_path) -> None:
     t = store.episodes(columns=["cell_id", "success"])
     assert t.column_names == ["cell_id", "success"] and t.num_rows == 12
     assert len(store.stored_keys()) == 12
+
+
+def test_a_cell_is_compacted_as_soon_as_its_last_episode_is_stored(tmp_path) -> None:
+    """Cells run one after another: when the E cell's first batch lands, the baseline cell
+    (all 6 episodes stored) is already one file per table; a resume changes nothing."""
+    from pipeline.config import load_config
+    from pipeline.runner import plan_run, run_episodes
+
+    cfg = load_config(
+        ROOT / "conf" / "smoke.yaml",
+        ["executor.kind=inline", "executor.flush_every=1", "tracking.enabled=false"],
+    )
+    plan = plan_run(cfg, tmp_path / "run")
+    seen: list[tuple[str, list[str]]] = []
+
+    def files_of_baseline(batch) -> None:
+        names = sorted(p.name for p in (tmp_path / "run" / "episodes").glob("cell=baseline/*"))
+        seen.append((batch[0].episode.cell_id, names))
+
+    run_episodes(plan, on_flush=files_of_baseline)
+    first_e = next(names for cell, names in seen if cell == "E")
+    assert len(first_e) == 1 and first_e[0].startswith("compact-")
+    # while the baseline cell ran, its batches were kept as they landed (crash safety)
+    assert max(len(names) for cell, names in seen if cell == "baseline") == 5
+    store = RunStore(tmp_path / "run")
+    assert len(store.stored_keys()) == 12
+    steps = store.steps(columns=[*KEY, "inference_index"]).to_pandas()
+    assert not steps.duplicated().any()
