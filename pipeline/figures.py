@@ -194,20 +194,28 @@ def gripper_events(steps: pd.DataFrame) -> dict[str, list[float]]:
 
     An event is a sign change of the gripper action between consecutive inferences: to > 0 is
     a close, to <= 0 an open (+1 closes in LIBERO and robosuite); the k-th event of a kind is
-    drawn when at least one episode has it, at its median progress."""
-    found: dict[str, dict[int, list[float]]] = {"close": {}, "open": {}}
+    drawn when at least one episode has it, at its median progress. Vectorized over episodes
+    (a diagnose cell of tens of thousands of episodes: no Python loop per episode)."""
     df = steps.dropna(subset=["grip"]).sort_values([*KEY, "step"])
-    for _, g in df.groupby(KEY, sort=False):
-        closed = g["grip"].to_numpy() > 0
-        prog = g["progress"].to_numpy()
-        counts = {"close": 0, "open": 0}
-        for i in np.flatnonzero(closed[1:] != closed[:-1]) + 1:
-            kind = "close" if closed[i] else "open"
-            counts[kind] += 1
-            if counts[kind] <= MAX_EVENTS:
-                found[kind].setdefault(counts[kind], []).append(float(prog[i]))
+    if df.empty:
+        return {"close": [], "open": []}
+    episode = df.groupby(KEY, sort=False).ngroup().to_numpy()
+    closed = df["grip"].to_numpy() > 0
+    at = np.flatnonzero((closed[1:] != closed[:-1]) & (episode[1:] == episode[:-1])) + 1
+    events = pd.DataFrame(
+        {
+            "episode": episode[at],
+            "kind": np.where(closed[at], "close", "open"),
+            "progress": df["progress"].to_numpy()[at],
+        }
+    )
+    events["k"] = events.groupby(["episode", "kind"]).cumcount() + 1
+    medians = events[events["k"] <= MAX_EVENTS].groupby(["kind", "k"])["progress"].median()
     return {
-        kind: [float(np.median(v)) for _, v in sorted(ks.items())] for kind, ks in found.items()
+        kind: [float(medians[(kind, k)]) for k in sorted(medians[kind].index)]
+        if kind in medians.index.get_level_values(0)
+        else []
+        for kind in ("close", "open")
     }
 
 

@@ -203,3 +203,44 @@ def test_a_grid_without_diagnose_or_sweeps_says_what_is_not_drawn(tmp_path) -> N
     assert set(figs.built) == {"gate_progress"}
     assert "needs a diagnose cell" in figs.skipped["rimg_heatmap"]
     assert "differ only in alpha" in figs.skipped["success_alpha"]
+
+
+def _gripper_events_by_loop(steps: pd.DataFrame) -> dict[str, list[float]]:
+    """The definition, one episode at a time."""
+    found: dict[str, dict[int, list[float]]] = {"close": {}, "open": {}}
+    df = steps.dropna(subset=["grip"]).sort_values([*F.KEY, "step"])
+    for _, g in df.groupby(F.KEY, sort=False):
+        closed = g["grip"].to_numpy() > 0
+        prog = g["progress"].to_numpy()
+        counts = {"close": 0, "open": 0}
+        for i in np.flatnonzero(closed[1:] != closed[:-1]) + 1:
+            kind = "close" if closed[i] else "open"
+            counts[kind] += 1
+            if counts[kind] <= F.MAX_EVENTS:
+                found[kind].setdefault(counts[kind], []).append(float(prog[i]))
+    return {k: [float(np.median(v)) for _, v in sorted(ks.items())] for k, ks in found.items()}
+
+
+def test_gripper_events_equal_the_per_episode_definition() -> None:
+    rng = np.random.default_rng(5)
+    rows = []
+    for e in range(300):
+        n = int(rng.integers(1, 40))
+        grip = np.where(rng.random(n) < 0.15, np.nan, rng.choice([-1.0, 1.0], n, p=[0.7, 0.3]))
+        for k in range(n):
+            rows.append(
+                {
+                    "cell_id": "diagnose",
+                    "task_id": f"t{e % 3}",
+                    "episode_index": e,
+                    "step": 4 * k,
+                    "grip": grip[k],
+                    "progress": k / n,
+                }
+            )
+    steps = pd.DataFrame(rows).sample(frac=1.0, random_state=1)  # any order
+    got, want = F.gripper_events(steps), _gripper_events_by_loop(steps)
+    assert got.keys() == want.keys() and all(len(got[k]) > 1 for k in got)
+    for kind in want:
+        assert got[kind] == pytest.approx(want[kind])
+    assert F.gripper_events(steps.iloc[:0]) == {"close": [], "open": []}
