@@ -167,7 +167,8 @@ class RunStore:
                 meta = pq.read_schema(c).metadata or {}
             except (OSError, pa.ArrowException):
                 continue  # unreadable: quarantined by a writer, skipped by a reader
-            out.update((c.parent.name, n) for n in json.loads(meta.get(SOURCES_KEY, b"[]")))
+            cell = c.parent.name
+            out.update((cell, n) for n in json.loads(meta.get(SOURCES_KEY, b"[]")))
         return out
 
     def _live(self, root: Path) -> list[Path]:
