@@ -137,6 +137,8 @@ def fit_backbone_to_env(
     """Match what the checkpoint reads with what the env gives; ConfigError on a mismatch."""
     replan = resolve_replan(requested_replan, env, policy)
     protocol = dict(env.protocol) if env else {}
+    if protocol:
+        protocol["replan"] = replan
     if env is None or policy is None:
         return Fit(replan, protocol=protocol)
     mapping = match_cameras(env, policy, camera_map)
@@ -155,10 +157,12 @@ def fit_backbone_to_env(
     notes = []
     if size is not None:
         notes.append(f"image_size {size} px from the checkpoint (protocol {protocol.get('name')})")
-        protocol["image_size"] = size
-    if camera_map is None and mapping:
+    if camera_map is None and any(k != v for k, v in mapping.items()):
         notes.append(f"camera_map {mapping} by the checkpoint's camera names")
-    protocol["replan"] = replan
+    if protocol:  # the figures the protocol left to the checkpoint, as they were settled
+        protocol["replan"] = replan
+        if size is not None:
+            protocol["image_size"] = size
     return Fit(replan, mapping or None, size, protocol, tuple(notes))
 
 

@@ -118,3 +118,16 @@ def test_replan_rule() -> None:
     assert resolve_replan("chunk", None, None) == "chunk"  # the backbone's chunk at run time
     fit = fit_backbone_to_env(env, policy, None, None)
     assert fit.replan_steps == 10 and fit.protocol["replan"] == 10
+
+
+def test_an_env_without_a_protocol_logs_none_and_same_names_need_no_note() -> None:
+    """The tabletop suite: no protocol to log, cameras named as the env names them."""
+    policy = _policy(images={"agentview": (3, 256, 256), "wrist": (3, 256, 256)})
+    fit = fit_backbone_to_env(_env(protocol={}), policy, None, None)
+    assert fit.protocol == {} and fit.notes == () and fit.replan_steps == 4
+    assert fit.camera_map == {"agentview": "agentview", "wrist": "wrist"}
+    lerobot = fit_backbone_to_env(_env(replan="chunk"), _policy(), None, None)
+    assert lerobot.protocol == {"name": "lerobot", "replan": 10}
+    assert lerobot.notes == (
+        "camera_map {'agentview': 'image', 'wrist': 'image2'} by the checkpoint's camera names",
+    )
