@@ -159,10 +159,8 @@ def fit_backbone_to_env(
         notes.append(f"image_size {size} px from the checkpoint (protocol {protocol.get('name')})")
     if camera_map is None and any(k != v for k, v in mapping.items()):
         notes.append(f"camera_map {mapping} by the checkpoint's camera names")
-    if protocol:  # the figures the protocol left to the checkpoint, as they were settled
-        protocol["replan"] = replan
-        if size is not None:
-            protocol["image_size"] = size
+    if protocol and size is not None:  # the size the protocol left to the checkpoint
+        protocol["image_size"] = size
     return Fit(replan, mapping or None, size, protocol, tuple(notes))
 
 

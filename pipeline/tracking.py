@@ -316,10 +316,11 @@ class Tracker:
 
     def _finish(self, episodes: pd.DataFrame, artifacts: list[Path], status: str) -> None:
         if not episodes.empty:
+            chains = agg.chain_metrics(episodes)  # bootstrapped once, for both below
             with tempfile.TemporaryDirectory() as tmp:
-                for path in task_tables(episodes, Path(tmp)):
+                for path in task_tables(episodes, Path(tmp), chains):
                     self.client.log_artifact(self.parent_id, str(path), "tables")
-            for cell_id, metrics in cell_metrics(episodes).items():
+            for cell_id, metrics in cell_metrics(episodes, chains).items():
                 if cell_id in self.children:
                     self._log_metrics(self.children[cell_id], metrics)
             overall = agg.success_overall(episodes)
@@ -340,19 +341,29 @@ def _plain(value: Any) -> str:
     return getattr(value, "text", None) or str(value)
 
 
-def task_tables(episodes: pd.DataFrame, out: Path) -> list[Path]:
+def task_tables(
+    episodes: pd.DataFrame, out: Path, chains: pd.DataFrame | None = None
+) -> list[Path]:
     """Per-task success (and chain i/N rates) of every cell as CSV files in ``out``: the per-task
-    numbers the UI shows as the parent run's artifacts, one file whatever the grid's size."""
+    numbers the UI shows as the parent run's artifacts, one file whatever the grid's size.
+    ``chains``: ``agg.chain_metrics(episodes)`` where the caller has it already."""
     paths = [out / "success_by_task.csv"]
     agg.success_by_task(episodes).to_csv(paths[0], index=False)
-    chains = agg.chain_metrics(episodes)
+    chains = agg.chain_metrics(episodes) if chains is None else chains
     if not chains.empty:
         paths.append(out / "chains_by_task.csv")
         chains.to_csv(paths[-1], index=False)
     return paths
 
 
-def cell_metrics(episodes: pd.DataFrame) -> dict[str, dict[str, float]]:
+def _avg_len(chains: pd.DataFrame) -> float:
+    """Avg Len over chain tasks, each weighted by its number of chains."""
+    return float((chains["avg_len"] * chains["n"]).sum() / chains["n"].sum())
+
+
+def cell_metrics(
+    episodes: pd.DataFrame, chains: pd.DataFrame | None = None
+) -> dict[str, dict[str, float]]:
     """Per cell: success overall and per suite, Avg Len overall and per suite, completion times,
     diagnostics, Δ vs baseline, failed episodes by cause. Names are bounded by the number of
     suites and failure causes, never by tasks or episodes (see ``task_tables``)."""
@@ -372,13 +383,12 @@ def cell_metrics(episodes: pd.DataFrame) -> dict[str, dict[str, float]]:
         out[cell]["success_avg"] = float(g["success_rate"].mean())
     # per task: in the parent's tables/ artifacts and the report, not as metrics (a metric
     # name per task would grow with the benchmark: 130 for LIBERO, thousands of sequences)
-    chains = agg.chain_metrics(episodes)
+    chains = agg.chain_metrics(episodes) if chains is None else chains
     if not chains.empty:
         for (cell, suite), g in chains.groupby(["cell_id", "suite"]):
-            weighted = float((g["avg_len"] * g["n"]).sum() / g["n"].sum())
-            out[cell][_metric_key("avg_len", suite)] = weighted
+            out[cell][_metric_key("avg_len", suite)] = _avg_len(g)
         for cell, g in chains.groupby("cell_id"):
-            out[cell]["avg_len"] = float((g["avg_len"] * g["n"]).sum() / g["n"].sum())
+            out[cell]["avg_len"] = _avg_len(g)
     for r in agg.completion_times(episodes).itertuples():
         out[r.cell_id][_metric_key("sim_seconds_to_success", r.suite)] = r.sim_seconds_to_success
         out[r.cell_id]["wall_seconds_per_episode"] = r.wall_seconds_mean
