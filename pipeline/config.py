@@ -58,6 +58,19 @@ class EnvConfig(_Model):
     suite: str = Field(description="env suite, e.g. fake_marker, tabletop, libero_spatial")
     tasks: list[str] | None = Field(default=None, description="task ids; None = all of the suite")
     params: dict[str, Any] = Field(default_factory=dict)
+    python: str | None = Field(
+        default=None,
+        min_length=1,
+        description="interpreter of an env server: the simulator runs in a child process of "
+        "each actor started from it (another venv, e.g. .venv-calvin/bin/python for PyBullet on "
+        "Python 3.11); None: in the actor's own process. Results are the same either way",
+    )
+    server_timeout_s: float = Field(
+        default=120.0,
+        gt=0,
+        description="env server: a start or a request taking longer is killed (an actor-level "
+        "fault: the server is restarted and the episode run again)",
+    )
 
 
 class InterventionSettings(_Model):
@@ -241,7 +254,16 @@ class RunConfig(_Model):
     def fingerprint(self) -> str:
         """Hash of what determines results; a run dir may be resumed only with the same one."""
         keep = self.model_dump(
-            exclude={"executor", "tracking", "output_root", "name", "max_cells", "max_episodes"}
+            exclude={
+                "executor": True,
+                "tracking": True,
+                "output_root": True,
+                "name": True,
+                "max_cells": True,
+                "max_episodes": True,
+                # where the simulator runs does not change results (in-process or env server)
+                "env": {"python", "server_timeout_s"},
+            }
         )
         return hashlib.sha256(json.dumps(keep, sort_keys=True, default=str).encode()).hexdigest()[
             :16

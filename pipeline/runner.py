@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 from pipeline.calibration import CALIBRATION_FILE, calibrate
 from pipeline.compat import Fit, fit_config
 from pipeline.config import ConfigError, RunConfig, dump_config
+from pipeline.env_runtime import check_env_runtime
 from pipeline.errors import AllEpisodesFailedError, DiskFullError, RunDirLostError
 from pipeline.executors import Executor, make_executor
 from pipeline.lock import LOCK_FILE, RunDirLock
@@ -35,6 +36,7 @@ from pipeline.writer import BatchWriter
 from workers.backbones.factory import check_backbone
 from workers.envs.base import TaskSpec
 from workers.envs.factory import check_suite, suite_tasks
+from workers.envs.remote import ServerSpec
 from workers.episode import EpisodeResult, WorkerSpec
 
 if TYPE_CHECKING:
@@ -73,18 +75,22 @@ class RunPlan:
     code_version: str = ""
     checkpoint: dict[str, object] | None = None  # pipeline.provenance.checkpoint_record
     fit: Fit | None = None  # what the pre-flight settled (pipeline.compat)
+    env_server: dict[str, object] | None = None  # the env server's hello (python, version)
 
     def all_specs(self) -> Chain:
         return Chain((self.specs, self.calibrated))
 
 
-def _select_tasks(cfg: RunConfig) -> list[TaskSpec]:
+def _check_names(cfg: RunConfig) -> None:
     try:
         check_suite(cfg.env.suite, cfg.env.params)
         check_backbone(cfg.backbone.kind, cfg.backbone.params)
     except ValueError as e:
         raise ConfigError(str(e)) from None
-    tasks = suite_tasks(cfg.env.suite, cfg.env.params)
+
+
+def _select_tasks(cfg: RunConfig, server: ServerSpec | None = None) -> list[TaskSpec]:
+    tasks = suite_tasks(cfg.env.suite, cfg.env.params, server)
     if cfg.env.tasks is None:
         return tasks
     by_id = {t.task_id: t for t in tasks}
@@ -206,7 +212,10 @@ def plan_run(
 ) -> RunPlan:
     """Everything checked, nothing started; ``yes`` confirms a grid larger than max_cells."""
     run_dir = check_run_dir(run_dir, cfg.output_root)
-    tasks = _select_tasks(cfg)
+    _check_names(cfg)
+    # where the simulator runs (an env server: started once here, version and runtime checked)
+    server, server_hello = check_env_runtime(cfg)
+    tasks = _select_tasks(cfg, server)
     # the checkpoint against the env (config.json only): cameras, sizes, dims; the config the
     # run uses, saved and fingerprinted, has what this settled filled in
     cfg, fit = fit_config(cfg)
@@ -239,9 +248,20 @@ def plan_run(
         cfg.env.params,
         None if fit.replan_steps == "chunk" else int(fit.replan_steps),
         cfg.backbone.batched,
+        server,
     )
     return RunPlan(
-        cfg, run_dir, run_id, tasks, specs, worker_spec, deferred, version, checkpoint, fit
+        cfg,
+        run_dir,
+        run_id,
+        tasks,
+        specs,
+        worker_spec,
+        deferred,
+        version,
+        checkpoint,
+        fit,
+        server_hello,
     )
 
 
@@ -276,6 +296,8 @@ def _write_meta(plan: RunPlan) -> None:
     }
     if plan.checkpoint is not None:
         meta["checkpoint"] = plan.checkpoint
+    if plan.env_server is not None:
+        meta["env_server"] = plan.env_server
     if plan.fit is not None:
         meta["fit"] = plan.fit.record()
         if plan.fit.protocol:

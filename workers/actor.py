@@ -8,6 +8,7 @@ episodes does not reload the backbone. An exception inside an episode becomes an
 
 from __future__ import annotations
 
+import logging
 import os
 import socket
 import sys
@@ -21,8 +22,12 @@ import numpy as np
 
 from workers.backbones.base import backbone_member
 from workers.envs.base import env_member
+from workers.envs.remote import EnvServerError
 from workers.episode import EpisodeResult, EpisodeRow, EpisodeSpec, StepRow, WorkerSpec
 
+log = logging.getLogger(__name__)
+
+MAX_SERVER_RESTARTS = 2  # env server deaths under one episode before it becomes an error row
 DIAGNOSTICS = ("e_img", "e_prop", "r_img", "gate", "w_prop")  # per-inference, from the refiner
 
 
@@ -66,7 +71,9 @@ class EpisodeWorker:
         from workers.idr_policy import IDRPolicy
 
         self.backbone = make_backbone(spec.backbone_kind, spec.backbone_params)
-        self.env = make_env(spec.env_suite, spec.env_params)
+        self.env = make_env(spec.env_suite, spec.env_params, spec.env_server)
+        # an env with its own renderer (PyBullet...) says so; MuJoCo envs use the worker's
+        self.render_backend = env_member(self.env, "render_backend") or self.render_backend
         self.policy = IDRPolicy(self.backbone, batched=spec.batched)
         self.tasks = {t.task_id: t for t in self.env.tasks()}
         self.worker_id = f"{socket.gethostname()}:{os.getpid()}"
@@ -79,7 +86,7 @@ class EpisodeWorker:
         started, t0 = _now(), time.perf_counter()
         where = {"worker": self.worker_id, "node": self.node, "render_backend": self.render_backend}
         try:
-            steps, outcome = self._rollout(spec)
+            steps, outcome = self._rollout_restarting(spec)
             row = EpisodeRow.from_spec(spec, **outcome, **where)
             unhealthy = False
         except Exception as exc:
@@ -93,6 +100,24 @@ class EpisodeWorker:
         row.wall_seconds = time.perf_counter() - t0
         return EpisodeResult(row, steps, unhealthy=unhealthy)
 
+    def _rollout_restarting(self, spec: EpisodeSpec) -> tuple[list[StepRow], dict[str, Any]]:
+        """The rollout; when the env server dies or hangs under it (a fault of this actor's
+        machinery, not of the episode), the server is restarted and the episode run again from
+        its reset, up to MAX_SERVER_RESTARTS times per episode."""
+        for restart in range(MAX_SERVER_RESTARTS + 1):
+            try:
+                return self._rollout(spec)
+            except EnvServerError as exc:
+                if restart == MAX_SERVER_RESTARTS:
+                    raise
+                log.warning(
+                    "episode %s: %s; restarting the env server and running the episode again",
+                    spec.key,
+                    str(exc).splitlines()[0],
+                )
+                self.env.restart()
+        raise AssertionError("unreachable")
+
     def _rollout(self, spec: EpisodeSpec) -> tuple[list[StepRow], dict[str, Any]]:
         """Run one episode: infer a chunk, execute ``replan_steps`` of it, until the env is
         done. Returns the step rows and the episode's outcome columns."""
@@ -104,7 +129,8 @@ class EpisodeWorker:
         policy.set_config(spec.idr, spec.intervention)
         policy.reset()
         obs = env.reset(spec.task_id, spec.episode_index, spec.seed)
-        instruction = env.instruction
+        instruction = env.instruction  # the episode's first (CALVIN: one per subtask)
+        per_subtask = env_member(env, "policy_reset_per_subtask")
         gripper_index = env_member(env, "gripper_index")
         cameras = backbone_member(self.backbone, "cameras")  # None: every camera the env has
         steps: list[StepRow] = []
@@ -113,7 +139,7 @@ class EpisodeWorker:
         crn = None
         while not env.done:
             out = policy.infer(
-                to_policy_observation(obs, instruction, cameras),
+                to_policy_observation(obs, env.instruction, cameras),
                 step_seed(spec.seed, spec.task_id, spec.episode_index, k),
             )
             crn = out.crn
@@ -136,6 +162,7 @@ class EpisodeWorker:
                 )
             )
             k += 1
+            subtasks_before = env.subtasks_done
             for action in chunk[: self.spec.replan_steps]:
                 if not np.isfinite(action).all():
                     raise NonFiniteActionError(
@@ -150,6 +177,9 @@ class EpisodeWorker:
                 if success_step is None and env.success:
                     success_step = env.steps
                 if env.done:
+                    break
+                if per_subtask and env.subtasks_done != subtasks_before:
+                    policy.reset()  # the next subtask is a rollout of its own (CALVIN)
                     break
 
         def mean(name: str) -> float | None:

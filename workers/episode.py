@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import Annotated, Any
 
 from workers.envs.base import TaskSpec
+from workers.envs.remote import ServerSpec
 from workers.idr import IDRConfig
 from workers.interventions import InterventionConfig
 
@@ -34,6 +35,7 @@ class WorkerSpec:
     env_params: dict[str, Any]
     replan_steps: int | None = 4  # actions executed per inference; None: the whole chunk
     batched: bool | None = None
+    env_server: ServerSpec | None = None  # the env runs in an env server started from this
 
 
 @dataclass(frozen=True)

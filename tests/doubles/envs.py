@@ -89,3 +89,62 @@ class UnloadableMarkerEnv(FakeMarkerEnv):
 
     def __init__(self, image_size: int = 32) -> None:
         raise RuntimeError("simulator cannot start: no rendering backend (injected)")
+
+
+class ServerFaultEnv(FakeMarkerEnv):
+    """FakeMarkerEnv for env-server tests, with faults placed by step inside the server
+    process: ``exit_at_step`` kills the process at that step (a simulator that segfaults),
+    ``hang_at_step`` never returns (a wedged one); with ``once_dir`` each fires once per test
+    (a marker file), so the episode run again on a restarted server goes through.
+    ``render_log`` appends each camera rendered to a file (lazy rendering seen from outside).
+    ``check_runtime`` refuses ``missing_checkout`` as a real env refuses a missing checkout."""
+
+    def __init__(
+        self,
+        image_size: int = 32,
+        exit_at_step: int | None = None,
+        hang_at_step: int | None = None,
+        once_dir: str | None = None,
+        render_log: str | None = None,
+        missing_checkout: str | None = None,
+    ) -> None:
+        super().__init__(image_size=image_size)
+        self.exit_at_step, self.hang_at_step = exit_at_step, hang_at_step
+        self.once_dir, self.render_log = once_dir, render_log
+        self.episode = -1
+
+    @classmethod
+    def check_runtime(cls, missing_checkout: str | None = None, **_: object) -> None:
+        if missing_checkout is not None and not os.path.isdir(missing_checkout):
+            raise ValueError(
+                f"env.params.missing_checkout={missing_checkout}: no such checkout; point it at "
+                "a clone of the fake"
+            )
+
+    def reset(self, task_id: str, episode_index: int, seed: int) -> EnvObservation:
+        self.episode = episode_index
+        return self._logged(super().reset(task_id, episode_index, seed))
+
+    def step(self, action):  # type: ignore[no-untyped-def]
+        if self._steps + 1 == self.exit_at_step and faults.should_fire(
+            "server_exit", self.episode, {self.episode}, self.once_dir
+        ):
+            os._exit(9)
+        if self._steps + 1 == self.hang_at_step and faults.should_fire(
+            "server_hang", self.episode, {self.episode}, self.once_dir
+        ):
+            faults.hang_forever()
+        return self._logged(super().step(action))
+
+    def _logged(self, obs: EnvObservation) -> EnvObservation:
+        if self.render_log is None:
+            return obs
+        log_path, images = self.render_log, obs.images
+
+        class Logged(dict):  # type: ignore[type-arg]
+            def __getitem__(self, cam: str):  # type: ignore[no-untyped-def]
+                with open(log_path, "a") as f:
+                    f.write(f"{cam}\n")
+                return images[cam]
+
+        return replace(obs, images=Logged.fromkeys(images))

@@ -138,6 +138,23 @@ OPTIONAL_ENV_MEMBERS: dict[str, tuple[Any, str]] = {
         "classmethod(**params) -> list[TaskSpec]: the tasks without starting a simulator "
         "(pre-flight before any actor); None: the env is built once to call tasks()",
     ),
+    "render_backend": (
+        None,
+        "str: the renderer of an env that does not render with MuJoCo's headless GL (e.g. "
+        "PyBullet's CPU renderer 'pybullet-tiny'), recorded with every episode; None: the "
+        "worker's MuJoCo backend (egl / osmesa)",
+    ),
+    "policy_reset_per_subtask": (
+        False,
+        "bool: each subtask of a chain is a rollout of its own (CALVIN): when one is done the "
+        "policy is reset, the rest of its chunk dropped and the instruction read anew",
+    ),
+    "check_runtime": (
+        None,
+        "classmethod(**params) -> None: check what the env needs in the interpreter it runs in "
+        "(simulator packages, a checkout), raising ValueError naming the field and the fix; "
+        "the pre-flight calls it there (in an env server for env.python) before any episode",
+    ),
     "describe": (
         None,
         "classmethod(**params) -> workers.io_spec.EnvIO: cameras, image size, state and "
@@ -250,8 +267,18 @@ def _check_optional_members(env: Env) -> None:
     )
     listing = env_member(type(env), "suite_tasks")
     _require(listing is None or callable(listing), "suite_tasks must be a classmethod")
-    describe = env_member(type(env), "describe")
-    _require(describe is None or callable(describe), "describe must be a classmethod")
+    for name in ("describe", "check_runtime"):
+        member = env_member(type(env), name)
+        _require(member is None or callable(member), f"{name} must be a classmethod")
+    backend = env_member(env, "render_backend")
+    _require(
+        backend is None or (isinstance(backend, str) and backend != ""),
+        f"render_backend must be None or a non-empty str, got {backend!r}",
+    )
+    _require(
+        isinstance(env_member(env, "policy_reset_per_subtask"), bool),
+        "policy_reset_per_subtask must be a bool",
+    )
 
 
 def check_env(

@@ -3,16 +3,27 @@
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from workers.envs.base import Env, TaskSpec, env_member
 from workers.registry import check_params_bind, load_class
+
+if TYPE_CHECKING:
+    from workers.envs.remote import ServerSpec
 
 ENVS: dict[str, str] = {
     "fake_marker": "workers.envs.fakes:FakeMarkerEnv",
     "tabletop": "workers.envs.tabletop:TabletopEnv",
     "libero": "workers.envs.libero:LiberoEnv",
 }
+
+
+def env_entry(suite: str) -> str:
+    """``"module:Class"`` of ``suite`` (what an env server imports)."""
+    entry = suite if ":" in suite else ENVS.get(suite)
+    if entry is None:
+        load_class(ENVS, suite, "env.suite")  # raises the did-you-mean error
+    return str(entry)
 
 
 def env_class(suite: str) -> Any:
@@ -26,15 +37,18 @@ def check_suite(suite: str, params: dict[str, Any] | None = None) -> None:
         check_params_bind(f"env.params (suite {suite!r})", cls, params)
 
 
-def suite_tasks(suite: str, params: dict[str, Any]) -> list[TaskSpec]:
-    """The suite's tasks, without starting a simulator where the env class can say so; each
-    with its ``suite`` set (the env's own suite name where the task names none)."""
+def suite_tasks(
+    suite: str, params: dict[str, Any], server: ServerSpec | None = None
+) -> list[TaskSpec]:
+    """The suite's tasks, without starting a simulator where the env class can say so (else
+    the env is built once, where it will run); each with its ``suite`` set (the env's own
+    suite name where the task names none)."""
     cls = env_class(suite)
     listing = env_member(cls, "suite_tasks")
     if listing is not None:
         tasks = list(listing(**params))
     else:
-        env = cls(**params)
+        env = make_env(suite, params, server)
         try:
             tasks = env.tasks()
         finally:
@@ -43,5 +57,11 @@ def suite_tasks(suite: str, params: dict[str, Any]) -> list[TaskSpec]:
     return [t if t.suite else replace(t, suite=default) for t in tasks]
 
 
-def make_env(suite: str, params: dict[str, Any]) -> Env:
+def make_env(suite: str, params: dict[str, Any], server: ServerSpec | None = None) -> Env:
+    """The env of ``suite``: in this process, or behind an env server started from
+    ``server.python`` (``env.python``)."""
+    if server is not None:
+        from workers.envs.remote import RemoteEnv
+
+        return RemoteEnv(env_entry(suite), params, server)
     return env_class(suite)(**params)

@@ -1,0 +1,93 @@
+"""The env server's wire format: length-prefixed msgpack frames, numpy arrays as raw buffers.
+
+Both ends import this module: the actor (Python 3.12) and the env server (any Python >= 3.10
+with numpy and msgpack, e.g. 3.11 for PyBullet or SAPIEN), so it needs nothing else. A frame
+is a 4-byte big-endian length and a msgpack map. An ndarray travels as msgpack extension type
+1 whose payload is a small msgpack header (dtype string, shape) and the array's bytes, so an
+image is never text-encoded or pickled. (msgpack-numpy would do it as a map with the bytes
+copied twice; its last release is from 2022, so the 20 lines are ours.)
+
+Requests are ``{"op": name, ...}``; replies ``{"ok": True, "result": ...}`` or ``{"ok": False,
+"type": exception class name, "message": ..., "traceback": ...}``.
+"""
+
+from __future__ import annotations
+
+import socket
+import struct
+from typing import Any
+
+import msgpack
+import numpy as np
+
+PROTOCOL_VERSION = 1
+MAX_FRAME = 1 << 30  # 1 GiB: a longer length prefix means a corrupt stream, not a message
+_NDARRAY = 1
+_LEN = struct.Struct("!I")
+
+
+class WireError(ConnectionError):
+    """The peer closed the connection or sent something that is not a frame."""
+
+
+def _default(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        if obj.dtype.hasobject:
+            raise TypeError("an object array cannot cross the env-server boundary")
+        arr = obj if obj.flags.c_contiguous else np.ascontiguousarray(obj)  # keeps 0-d
+        header = msgpack.packb([arr.dtype.str, list(arr.shape)])
+        return msgpack.ExtType(_NDARRAY, _LEN.pack(len(header)) + header + arr.tobytes())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, set | frozenset):
+        return sorted(obj)
+    raise TypeError(f"cannot send a {type(obj).__name__} to or from an env server")
+
+
+def _ext_hook(code: int, data: bytes) -> Any:
+    if code != _NDARRAY:
+        return msgpack.ExtType(code, data)
+    (n,) = _LEN.unpack_from(data)
+    dtype, shape = msgpack.unpackb(data[_LEN.size : _LEN.size + n])
+    # a copy: the receiver owns a writable array, as from an env in its own process
+    return (
+        np.frombuffer(data, dtype=np.dtype(dtype), offset=_LEN.size + n)
+        .reshape(tuple(shape))
+        .copy()
+    )
+
+
+def encode(message: Any) -> bytes:
+    return msgpack.packb(message, default=_default, use_bin_type=True)
+
+
+def decode(payload: bytes | bytearray | memoryview) -> Any:
+    return msgpack.unpackb(payload, ext_hook=_ext_hook, raw=False, strict_map_key=False)
+
+
+def send(sock: socket.socket, message: Any) -> None:
+    payload = encode(message)
+    if len(payload) < 65536:
+        sock.sendall(_LEN.pack(len(payload)) + payload)
+    else:  # large frames (images): the header apart, no concatenated copy
+        sock.sendall(_LEN.pack(len(payload)))
+        sock.sendall(payload)
+
+
+def _recv_exact(sock: socket.socket, n: int) -> bytearray:
+    buf = bytearray(n)
+    view = memoryview(buf)
+    got = 0
+    while got < n:
+        k = sock.recv_into(view[got:], n - got)
+        if k == 0:
+            raise WireError("the peer closed the connection")
+        got += k
+    return buf
+
+
+def recv(sock: socket.socket) -> Any:
+    (n,) = _LEN.unpack(_recv_exact(sock, _LEN.size))
+    if n > MAX_FRAME:
+        raise WireError(f"frame of {n} bytes announced: not this protocol")
+    return decode(_recv_exact(sock, n))
