@@ -4,10 +4,14 @@ VENV ?= .venv
 RUN_DIR ?= runs/default
 PYTEST_ARGS ?=
 
-.PHONY: setup run test lint bench clean
+.PHONY: setup setup-calvin run test lint bench clean
 
 setup:
 	@bash scripts/setup.sh
+
+# the CALVIN env server's Python 3.11 venv (.venv-calvin): only for configs with env.suite calvin
+setup-calvin:
+	@bash scripts/setup_calvin.sh
 
 run: setup
 	$(VENV)/bin/idr-eval run conf/default.yaml --out $(RUN_DIR)

@@ -106,9 +106,19 @@ def _image_size(env: EnvIO, policy: PolicyIO, mapping: Mapping[str, str]) -> int
             f"{policy.source} declares {declared}: not one square size the env can render for "
             "all cameras; set env.params.image_size (the policy must then resize)"
         )
-    wrong = {k: s for k, s in shapes.items() if (s[1], s[2]) != (env.image_size, env.image_size)}
+    wrong = {
+        key: shape
+        for cam, key in mapping.items()
+        if ((shape := policy.images[key])[1], shape[2]) != (env.size_of(cam), env.size_of(cam))
+    }
     if wrong and not policy.resizes_images:
         h = next(iter(wrong.values()))[1]
+        if env.camera_sizes:  # sizes fixed per camera by the benchmark: nothing to set
+            rendered = {c: env.size_of(c) for c in mapping}
+            raise ConfigError(
+                f"image size: the env renders {rendered} px (fixed by its protocol), but "
+                f"{policy.source} declares {declared} and does not resize its inputs"
+            )
         raise ConfigError(
             f"image size: {_env_side(env)}, but {policy.source} declares {declared} and does "
             f"not resize its inputs; set env.params.image_size={h} (lerobot-eval: "

@@ -46,6 +46,11 @@ class EnvIO:
     replan: Replan | None = None
     # the pinned protocol, logged with the run and shown in the report ({}: none)
     protocol: Mapping[str, object] = field(default_factory=dict)
+    # cameras rendered at another square size than image_size (CALVIN: static 200, gripper 84)
+    camera_sizes: Mapping[str, int] = field(default_factory=dict)
+
+    def size_of(self, camera: str) -> int:
+        return self.camera_sizes.get(camera, self.image_size)
 
 
 @dataclass(frozen=True)

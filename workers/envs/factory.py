@@ -15,6 +15,7 @@ ENVS: dict[str, str] = {
     "fake_marker": "workers.envs.fakes:FakeMarkerEnv",
     "tabletop": "workers.envs.tabletop:TabletopEnv",
     "libero": "workers.envs.libero:LiberoEnv",
+    "calvin": "workers.envs.calvin:CalvinEnv",  # in an env server: env.python (Python 3.11)
 }
 
 
