@@ -20,11 +20,13 @@ adapter with it:
   x 0.05 rad, added to the robot's target pose by calvin_env), the gripper binarized as the
   official wrapper does (> 0: open +1, else close -1).
 
-Deliberate difference: each sequence starts from the simulator state saved right after the
-build (``restoreState``) before the official reset, so a sequence's result does not depend on
-which sequences ran before it in the same process (the official loop carries contact and
-solver state over: up to 1e-2 after 150 steps, measured); otherwise sharding episodes across
-actors would change results.
+Deliberate difference: each sequence runs in a freshly built simulator (about 1 s), so its
+result does not depend on which sequences ran before it in the same process. The official loop
+resets one simulator for all 1000, which carries Bullet's contact, solver, sleeping and
+broad-phase state over: measured here, two runs of one sequence with the same actions diverge
+from step 2 (up to 1e-2 after 150 steps), also after pybullet's restoreState; sharding episodes
+across actors would then change results. A rebuilt simulator gives, to the bit, what a new
+process gives.
 
 calvin_env (MIT, GitHub only) and PyBullet (wheels up to Python 3.11) run in an env server
 (``env.python``: ``make setup-calvin`` creates ``.venv-calvin``); this module imports only
@@ -227,8 +229,10 @@ class CalvinEnv:
         self._sequences = load_sequences(sequences)
         self._annotations = self._load_annotations(_annotations_file(self.checkout, annotations))
         self._task = self._task_spec(scene, subtask_steps, len(self._sequences))
-        self._env, self._oracle = self._build(robot)
-        self._fresh_state = self._env.p.saveState(physicsClientId=self._env.cid)
+        self.robot = robot
+        self._env = self._build()
+        self._oracle = self._build_oracle()
+        self._used = False  # the simulator has run a sequence: the next one gets a new one
         self._subtasks: tuple[str, ...] = ()
         self._done_count = 0
         self._steps = 0
@@ -306,11 +310,16 @@ class CalvinEnv:
             "renderer": RENDERERS.get(renderer, renderer),
             "policy_reset": "per subtask",
             "actions": "relative 7-d (x0.02 m, x0.05 rad), gripper binarized (>0 open)",
-            "reset": "simulator state restored before each sequence (history-free)",
+            "reset": "a freshly built simulator per sequence (history-free), then the official reset",
         }
         root = calvin_env or os.environ.get("CALVIN_ENV")
         if root and (commit := checkout_commit(Path(root))):
             protocol["calvin_env_commit"] = commit[:12]
+            if commit.startswith(BUTTON_BUG_COMMIT):
+                protocol["calvin_env_warning"] = (
+                    "this commit (what mees/calvin pins) leaves the LED on when its button is "
+                    "pressed once: turn_off_led cannot succeed; 797142c fixes it"
+                )
         return EnvIO(
             cameras=tuple(cameras),
             image_size=max(sizes) if sizes else 200,
@@ -349,29 +358,33 @@ class CalvinEnv:
             )
 
     # -- the simulator -----------------------------------------------------------------------
-    def _build(self, robot: str) -> tuple[Any, Any]:
+    def _build(self) -> Any:
+        """calvin_env's PlayTableSimEnv, composed from its own conf/ as the dataset's
+        merged_config.yaml was, and instantiated as the official ``get_env`` does."""
         if str(self.checkout) not in sys.path:
             sys.path.insert(0, str(self.checkout))
-        import calvin_env.envs.play_table_env as play_table_env
         import hydra
         from hydra.core.global_hydra import GlobalHydra
-        from omegaconf import OmegaConf
+
+        import calvin_env.envs.play_table_env as play_table_env
 
         original = play_table_env.get_git_commit_hash
+        if not getattr(original, "idr_wrapped", False):
 
-        def commit_or_unknown(path: Any) -> str:  # it raises outside a git clone
-            try:
-                return original(path)
-            except Exception:
-                return "unknown"
+            def commit_or_unknown(path: Any) -> str:  # it raises outside a git clone
+                try:
+                    return original(path)
+                except Exception:
+                    return "unknown"
 
-        play_table_env.get_git_commit_hash = commit_or_unknown
+            commit_or_unknown.idr_wrapped = True  # type: ignore[attr-defined]
+            play_table_env.get_git_commit_hash = commit_or_unknown
         overrides = [
             "hydra/job_logging=default",  # its colorlog needs a plugin the eval does not
             "hydra/hydra_logging=default",
             "cameras=static_and_gripper",
             f"scene={self.scene}",
-            f"robot={robot}",
+            f"robot={self.robot}",
             "use_vr=false",
             f"env.use_egl={str(self.renderer == 'egl').lower()}",
             "env.show_gui=false",
@@ -389,9 +402,22 @@ class CalvinEnv:
                 "PyBullet's EGL renderer plugin did not load here: install an EGL driver (a GPU's, "
                 "or Mesa's libegl1), or set env.params.renderer=tiny (CPU renderer, other pixels)"
             ) from None
-        oracle = hydra.utils.instantiate(OmegaConf.load(self.checkout / TASKS_IN_CALVIN_ENV))
         self._calvin_cameras = {f"rgb_{cam.name}": cam for cam in env.cameras}
-        return env, oracle
+        return env
+
+    def _build_oracle(self) -> Any:
+        import hydra
+        from omegaconf import OmegaConf
+
+        return hydra.utils.instantiate(OmegaConf.load(self.checkout / TASKS_IN_CALVIN_ENV))
+
+    def _rebuild(self) -> None:
+        """A new simulator in this process: the old one disconnected here, once (calvin_env's
+        ``__del__`` would disconnect its client id again, which pybullet gives the new one)."""
+        old, self._env = self._env, None
+        old.close()
+        old.ownsPhysicsClient = False
+        self._env = self._build()  # client 0 again, as its robot base needs
 
     @staticmethod
     def _load_annotations(path: Path) -> dict[str, str]:
@@ -413,9 +439,10 @@ class CalvinEnv:
             )
         condition, self._subtasks = self._sequences[episode_index]
         robot_obs, scene_obs = initial_state(condition)
+        if self._used:
+            self._rebuild()
+        self._used = True
         env = self._env
-        env.p.restoreState(self._fresh_state, physicsClientId=env.cid)
-        env.robot.gripper_action = 1  # as built: the official loop keeps the last command
         env.reset(robot_obs=robot_obs, scene_obs=scene_obs)  # the official reset
         self._episode = episode_index
         self._done_count, self._steps, self._subtask_step, self._failed = 0, 0, 0, None
