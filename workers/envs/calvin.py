@@ -363,10 +363,9 @@ class CalvinEnv:
         merged_config.yaml was, and instantiated as the official ``get_env`` does."""
         if str(self.checkout) not in sys.path:
             sys.path.insert(0, str(self.checkout))
+        import calvin_env.envs.play_table_env as play_table_env
         import hydra
         from hydra.core.global_hydra import GlobalHydra
-
-        import calvin_env.envs.play_table_env as play_table_env
 
         original = play_table_env.get_git_commit_hash
         if not getattr(original, "idr_wrapped", False):

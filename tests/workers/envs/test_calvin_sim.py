@@ -78,10 +78,10 @@ def test_a_scripted_controller_opens_the_drawer_and_the_oracle_sees_it(env):
     env.reset("scene_D", e, 0)
     assert env.instruction == "pull the handle to open the drawer"
     handle = np.array([0.18, -0.25, 0.36])  # the drawer's handle bar (found with rayTest)
-    _go(env, handle + [0, 0, 0.10], OPEN, 60)
+    _go(env, handle + np.array([0, 0, 0.10]), OPEN, 60)
     _go(env, handle, OPEN, 40)
     _go(env, handle, CLOSE, 15)
-    _go(env, handle - [0, 0.20, 0], CLOSE, 80)
+    _go(env, handle - np.array([0, 0.20, 0]), CLOSE, 80)
     assert env.subtasks_done == 1 and not env.done, env.failure_reason
     assert env.steps < 360
     # the next subtask's instruction; the policy is reset there (policy_reset_per_subtask)
