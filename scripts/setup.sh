@@ -12,18 +12,7 @@ STAMP="$VENV/.idr-setup-stamp"
 log() { printf '[setup] %s\n' "$*"; }
 die() { printf '[setup] error: %s\n' "$*" >&2; exit 1; }
 
-find_python() {
-    local c
-    for c in "${PYTHON:-}" python3.12 "${PYENV_ROOT:-$HOME/.pyenv}"/versions/3.12*/bin/python3.12 \
-        /usr/local/bin/python3.12 /usr/bin/python3.12; do
-        [ -n "$c" ] || continue
-        if "$c" -c 'import sys; assert sys.version_info[:2] == (3, 12)' >/dev/null 2>&1; then
-            command -v "$c" || echo "$c"
-            return 0
-        fi
-    done
-    return 1
-}
+. scripts/find_python.sh
 
 # --- system libraries for headless rendering (OSMesa; EGL comes with GPU drivers) ---------
 have_lib() { ldconfig -p 2>/dev/null | grep -q "$1"; }
@@ -38,12 +27,12 @@ if ! have_lib 'libOSMesa.so'; then
 fi
 
 # --- the virtual environment ---------------------------------------------------------------
-want=$(cat requirements.lock pyproject.toml scripts/setup.sh | sha256sum | cut -d' ' -f1)
+want=$(cat requirements.lock pyproject.toml scripts/setup.sh scripts/find_python.sh | sha256sum | cut -d' ' -f1)
 if [ -x "$VENV/bin/python" ] && [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want" ]; then
     log "$VENV is up to date"
 else
     if [ ! -x "$VENV/bin/python" ]; then
-        py=$(find_python) || die "Python 3.12 not found (looked for python3.12 on PATH and in pyenv); install it or set PYTHON=/path/to/python3.12"
+        py=$(find_python 3.12) || die "Python 3.12 not found (looked for python3.12 on PATH and in pyenv); install it or set PYTHON=/path/to/python3.12"
         log "creating $VENV with $py"
         "$py" -m venv "$VENV"
     fi

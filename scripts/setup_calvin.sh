@@ -13,25 +13,14 @@ STAMP="$VENV/.idr-setup-stamp"
 log() { printf '[setup-calvin] %s\n' "$*"; }
 die() { printf '[setup-calvin] error: %s\n' "$*" >&2; exit 1; }
 
-find_python311() {
-    local c
-    for c in "${PYTHON311:-}" python3.11 "${PYENV_ROOT:-$HOME/.pyenv}"/versions/3.11*/bin/python3.11 \
-        /usr/local/bin/python3.11 /usr/bin/python3.11; do
-        [ -n "$c" ] || continue
-        if "$c" -c 'import sys; assert sys.version_info[:2] == (3, 11)' >/dev/null 2>&1; then
-            command -v "$c" || echo "$c"
-            return 0
-        fi
-    done
-    return 1
-}
+. scripts/find_python.sh
 
-want=$(cat requirements-calvin.lock scripts/setup_calvin.sh | sha256sum | cut -d' ' -f1)
+want=$(cat requirements-calvin.lock scripts/setup_calvin.sh scripts/find_python.sh | sha256sum | cut -d' ' -f1)
 if [ -x "$VENV/bin/python" ] && [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want" ]; then
     log "$VENV is up to date"
 else
     if [ ! -x "$VENV/bin/python" ]; then
-        py=$(find_python311) || die "Python 3.11 not found (looked for python3.11 on PATH and in pyenv); install it (pyenv install 3.11) or set PYTHON311=/path/to/python3.11"
+        py=$(PYTHON=${PYTHON311:-} find_python 3.11) || die "Python 3.11 not found (looked for python3.11 on PATH and in pyenv); install it (pyenv install 3.11) or set PYTHON311=/path/to/python3.11"
         log "creating $VENV with $py"
         "$py" -m venv "$VENV"
     fi

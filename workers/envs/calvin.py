@@ -38,6 +38,7 @@ checkout it is a submodule of (or ``env.params.annotations``). Nothing of theirs
 from __future__ import annotations
 
 import functools
+import inspect
 import json
 import os
 import subprocess
@@ -331,20 +332,16 @@ class CalvinEnv:
         )
 
     @classmethod
-    def check_runtime(
-        cls,
-        calvin_env: str | None = None,
-        annotations: str | None = None,
-        scene: str = "calvin_scene_D",
-        cameras: Sequence[str] = ("rgb_static", "rgb_gripper"),
-        renderer: str = "egl",
-        robot: str = "panda_longer_finger",
-        subtask_steps: int = EP_LEN,
-        sequences: str | None = None,
-    ) -> None:
-        """What the env needs where it runs: the checkout, the annotations and the packages."""
-        params = cls._check_params(calvin_env, scene, cameras, renderer, robot, subtask_steps)
-        _annotations_file(params["checkout"], annotations)
+    def check_runtime(cls, **params: Any) -> None:
+        """What the env needs where it runs: the checkout, the annotations and the packages
+        (``params``: the constructor's, defaults filled in from its signature)."""
+        bound = inspect.signature(cls).bind(**params)
+        bound.apply_defaults()
+        p = bound.arguments
+        checked = cls._check_params(
+            p["calvin_env"], p["scene"], p["cameras"], p["renderer"], p["robot"], p["subtask_steps"]
+        )
+        _annotations_file(checked["checkout"], p["annotations"])
         missing = []
         for module in ("pybullet", "hydra", "omegaconf", "gym", "cv2", "quaternion", "scipy"):
             try:
