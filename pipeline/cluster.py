@@ -98,7 +98,7 @@ def connect(ex: ExecutorConfig) -> None:
         )
     else:
         resources = {k: v * ex.workers for k, v in ex.resources.items()} or None
-        init_ray(None, ex.workers * ex.cpus_per_worker, resources=resources)
+        init_ray(None, ex.local_cpus(), resources=resources)
     if ex.autoscaling:
         log.info("executor.autoscaling: not checking the actors against the nodes up now")
         return
@@ -171,8 +171,30 @@ def describe(nodes: Iterable[dict[str, Any]], keys: Iterable[str] = ("CPU", "GPU
 
 
 def check_capacity(ex: ExecutorConfig, nodes: list[dict[str, Any]]) -> None:
-    """Refuse a run whose ``ex.workers`` actors cannot all be placed on ``nodes``."""
-    demand = {k: v for k, v in ex.actor_demand().items() if v > 0}
+    """Refuse a run whose actors cannot all be placed on ``nodes``: with a shared policy, the
+    policy actors first (on what they need: GPUs), then the episode actors on what is left."""
+    if ex.policy == "shared":
+        left = [dict(n) for n in nodes]
+        for what, count, demand in ex.actor_groups():
+            _check_group(ex, left, what, count, demand)
+            _take(left, count, {k: v for k, v in demand.items() if v > 0})
+        return
+    _check_group(ex, nodes, "executor.workers", ex.workers, ex.actor_demand())
+
+
+def _take(nodes: list[dict[str, Any]], count: int, demand: dict[str, float]) -> None:
+    """Subtract ``count`` actors of ``demand`` from ``nodes``, first fit."""
+    for node in nodes:
+        while count and _fits(node, demand) > 0:
+            for k, v in demand.items():
+                node[k] = float(node.get(k, 0.0)) - v
+            count -= 1
+
+
+def _check_group(
+    ex: ExecutorConfig, nodes: list[dict[str, Any]], what: str, count: int, demand: dict[str, float]
+) -> None:
+    demand = {k: v for k, v in demand.items() if v > 0}
     keys = ["CPU", "GPU", *ex.resources]
     has = describe(nodes, keys)
     ask = ", ".join(f"{k} {v:g}" for k, v in demand.items())
@@ -187,20 +209,25 @@ def check_capacity(ex: ExecutorConfig, nodes: list[dict[str, Any]]) -> None:
                 + _hint(k)
             )
     fit = sum(_fits(n, demand) for n in nodes)
-    if fit < ex.workers:
-        need = {k: v * ex.workers for k, v in demand.items()}
+    if fit < count:
+        need = {k: v * count for k, v in demand.items()}
         short = [
             k for k in demand if need[k] > sum(float(n.get(k, 0.0)) for n in nodes) + _EPS
         ] or list(demand)
         k = "GPU" if "GPU" in short else short[0]
+        after = (
+            " (after the policy actors)"
+            if what == "executor.workers" and ex.policy == "shared"
+            else ""
+        )
         raise ConfigError(
-            f"executor.workers={ex.workers} actors of {{{ask}}}{share if k == 'GPU' else ''} "
-            f"need {k} {need[k]:g}, but the cluster has {has}: at most {fit} such actor(s) fit. "
-            "Lower executor.workers"
+            f"{what}={count} actors of {{{ask}}}{share if k == 'GPU' else ''} "
+            f"need {k} {need[k]:g}, but the cluster has {has}{after}: at most {fit} such "
+            f"actor(s) fit. Lower {what}"
             + (", raise executor.actors_per_gpu" if k == "GPU" else "")
             + ", or add nodes"
         )
-    log.info("Ray cluster: %s; %d actor(s) of {%s}", has, ex.workers, ask)
+    log.info("Ray cluster: %s; %d actor(s) of {%s}", has, count, ask)
 
 
 def _hint(resource: str) -> str:

@@ -100,6 +100,24 @@ class ExecutorConfig(_Model):
         description="wall-clock limit per episode: a hung episode's actor is replaced and the "
         "episode retried (inline: SIGALRM, main thread only); None: no limit",
     )
+    # -- where the model lives
+    policy: Literal["in_actor", "shared"] = Field(
+        default="in_actor",
+        description="in_actor: each actor holds a backbone and an env (the default; small "
+        "policies, one machine); shared: actors hold only envs and send each inference to "
+        "policy actors that batch many episodes' requests into one forward (a GPU per policy "
+        "actor, or executor.actors_per_gpu of them per GPU); the same results",
+    )
+    policy_actors: int = Field(default=1, ge=1, description="shared: policy actors")
+    policy_cpus: float = Field(default=1.0, gt=0, description="shared: CPUs per policy actor")
+    max_batch: int = Field(
+        default=32, ge=1, description="shared: requests (episodes) per forward at most"
+    )
+    batch_wait_ms: float = Field(
+        default=2.0,
+        ge=0,
+        description="shared: how long a policy actor gathers requests for one forward",
+    )
     # -- placement on a cluster (pipeline.cluster checks it against the nodes before any work)
     actors_per_gpu: int | None = Field(
         default=None,
@@ -154,8 +172,22 @@ class ExecutorConfig(_Model):
         return 1 / self.actors_per_gpu if self.actors_per_gpu else self.gpus_per_worker
 
     def actor_demand(self) -> dict[str, float]:
-        """What one actor asks the cluster for, as Ray resource names."""
-        return {"CPU": self.cpus_per_worker, "GPU": self.gpu_share, **self.resources}
+        """What one (episode) actor asks the cluster for, as Ray resource names; with a shared
+        policy it holds only an env: no GPU."""
+        gpu = 0.0 if self.policy == "shared" else self.gpu_share
+        return {"CPU": self.cpus_per_worker, "GPU": gpu, **self.resources}
+
+    def actor_groups(self) -> list[tuple[str, int, dict[str, float]]]:
+        """(what, how many, what each asks for) of every kind of actor the run starts."""
+        groups = [("executor.workers", self.workers, self.actor_demand())]
+        if self.policy == "shared":
+            demand = {"CPU": self.policy_cpus, "GPU": self.gpu_share}
+            groups.insert(0, ("executor.policy_actors", self.policy_actors, demand))
+        return groups
+
+    def local_cpus(self) -> float:
+        """CPUs a local Ray is started with: every actor's."""
+        return sum(n * d["CPU"] for _, n, d in self.actor_groups())
 
 
 class TrackingConfig(_Model):

@@ -104,14 +104,25 @@ def _select_tasks(cfg: RunConfig, server: ServerSpec | None = None) -> list[Task
 
 def _check_executor(cfg: RunConfig) -> None:
     ex = cfg.executor
+    if ex.policy == "shared" and ex.kind != "ray":
+        raise ConfigError(
+            "executor.policy=shared runs policy actors on Ray: set executor.kind=ray (inline "
+            "holds the backbone in this process: executor.policy=in_actor)"
+        )
     if ex.kind == "ray" and ex.address is None and not ex.oversubscribe:
-        need = ex.workers * ex.cpus_per_worker
+        need = ex.local_cpus()
         have = os.cpu_count() or 1
         if need > have:
+            policy = (
+                f" + executor.policy_actors={ex.policy_actors} x executor.policy_cpus="
+                f"{ex.policy_cpus}"
+                if ex.policy == "shared"
+                else ""
+            )
             raise ConfigError(
-                f"executor.workers={ex.workers} x executor.cpus_per_worker={ex.cpus_per_worker} "
-                f"needs {need:g} CPUs but this machine has {have}; lower executor.workers or set "
-                "executor.oversubscribe=true"
+                f"executor.workers={ex.workers} x executor.cpus_per_worker={ex.cpus_per_worker}"
+                f"{policy} needs {need:g} CPUs but this machine has {have}; lower "
+                "executor.workers or set executor.oversubscribe=true"
             )
 
 

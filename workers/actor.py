@@ -70,11 +70,22 @@ class EpisodeWorker:
         from workers.envs.factory import make_env
         from workers.idr_policy import IDRPolicy
 
-        self.backbone = make_backbone(spec.backbone_kind, spec.backbone_params)
+        if spec.policy_actor is not None:  # shared: the model lives in a policy actor
+            import ray
+
+            from workers.policy_actor import RemotePolicy
+
+            info = ray.get(spec.policy_actor.describe.remote())
+            self.backbone = None
+            self.policy: Any = RemotePolicy(spec.policy_actor, info)
+            self.cameras = info["cameras"]
+        else:
+            self.backbone = make_backbone(spec.backbone_kind, spec.backbone_params)
+            self.policy = IDRPolicy(self.backbone, batched=spec.batched)
+            self.cameras = backbone_member(self.backbone, "cameras")  # None: all the env has
         self.env = make_env(spec.env_suite, spec.env_params, spec.env_server)
         # an env with its own renderer (PyBullet...) says so; MuJoCo envs use the worker's
         self.render_backend = env_member(self.env, "render_backend") or self.render_backend
-        self.policy = IDRPolicy(self.backbone, batched=spec.batched)
         self.tasks = {t.task_id: t for t in self.env.tasks()}
         self.worker_id = f"{socket.gethostname()}:{os.getpid()}"
         self.node = current_node()
@@ -132,7 +143,7 @@ class EpisodeWorker:
         instruction = env.instruction  # the episode's first (CALVIN: one per subtask)
         per_subtask = env_member(env, "policy_reset_per_subtask")
         gripper_index = env_member(env, "gripper_index")
-        cameras = backbone_member(self.backbone, "cameras")  # None: every camera the env has
+        cameras = self.cameras
         steps: list[StepRow] = []
         success_step = None
         k = 0

@@ -36,6 +36,9 @@ class WorkerSpec:
     replan_steps: int | None = 4  # actions executed per inference; None: the whole chunk
     batched: bool | None = None
     env_server: ServerSpec | None = None  # the env runs in an env server started from this
+    # shared policy: the policy actor (a Ray handle) this actor sends its inferences to;
+    # None: the actor holds the backbone itself
+    policy_actor: Any = None
 
 
 @dataclass(frozen=True)

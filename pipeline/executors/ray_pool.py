@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 import re
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from pipeline.config import ExecutorConfig
@@ -59,6 +59,7 @@ class RayActorPool:
         self._calls: dict[Any, _Call] = {}  # object ref -> the call it answers
         self._next_id = 0
         self._cls: Any = None
+        self.policy_actors: list[Any] = []  # shared policy: the actors holding the backbone
 
     # -- lifecycle ----------------------------------------------------------------------------
     def _spawn(self, replacement: bool = False) -> int:
@@ -66,12 +67,16 @@ class RayActorPool:
             from workers.actor import remote_worker_class
 
             ex = self.ex
+            demand = ex.actor_demand()
             self._cls = remote_worker_class(
-                ex.cpus_per_worker, ex.gpu_share, ex.resources, ex.placement
+                demand["CPU"], demand["GPU"], ex.resources, ex.placement
             )
         self._next_id += 1
         aid = self._next_id
-        self.actors[aid] = self._cls.remote(self.worker_spec)
+        spec = self.worker_spec
+        if self.policy_actors:  # episode actors spread over the policy actors
+            spec = replace(spec, policy_actor=self.policy_actors[aid % len(self.policy_actors)])
+        self.actors[aid] = self._cls.remote(spec)
         self._busy[aid] = 0
         if replacement:
             self._starting[aid] = (self.actors[aid].ping.remote(), time.monotonic())
@@ -104,6 +109,8 @@ class RayActorPool:
         if self.actors or n_pending == 0:
             return
         t0 = time.monotonic()
+        if self.ex.policy == "shared":
+            self._start_policy_actors()
         load_errors: set[str] = set()
         for _ in range(min(self.ex.workers, n_pending)):
             self._spawn()
@@ -141,10 +148,59 @@ class RayActorPool:
                     self.stats.replaced += 1
         self.stats.startup_seconds = time.monotonic() - t0
 
+    def _start_policy_actors(self) -> None:
+        """The backbone's actors of a shared policy, loaded before any episode actor."""
+        import ray
+        from ray.exceptions import RayActorError
+
+        from workers.policy_actor import policy_actor_class
+
+        ex, spec = self.ex, self.worker_spec
+        cls = policy_actor_class(ex.policy_cpus, ex.gpu_share)
+        self.policy_actors = [
+            cls.remote(
+                spec.backbone_kind,
+                spec.backbone_params,
+                spec.batched,
+                ex.max_batch,
+                ex.batch_wait_ms,
+            )
+            for _ in range(ex.policy_actors)
+        ]
+        try:
+            infos = ray.get(
+                [a.describe.remote() for a in self.policy_actors], timeout=STARTUP_TIMEOUT_S
+            )
+        except RayActorError as exc:
+            raise RunError(
+                f"the policy actors cannot load: {load_error(exc) or type(exc).__name__}"
+            ) from None
+        for info in infos:
+            self.stats.workers.append(f"policy {info['worker']}")
+            if not info["batched"]:
+                log.warning(
+                    "backbone %s cannot batch: the policy actors run each request's three "
+                    "passes in turn (no batching across episodes)",
+                    info["name"],
+                )
+
+    def policy_stats(self) -> list[dict[str, float]]:
+        import ray
+
+        return ray.get([a.stats.remote() for a in self.policy_actors]) if self.policy_actors else []
+
     def close(self) -> None:
+        import ray
+
         for aid in list(self.actors):  # also on SIGTERM / an error: no actor outlives the run
             self._kill(aid)
         self._calls.clear()
+        for actor in self.policy_actors:
+            try:
+                ray.kill(actor, no_restart=True)
+            except Exception as exc:
+                log.warning("could not kill a policy actor: %s", exc)
+        self.policy_actors = []
 
     def _demand(self) -> str:
         return f"{self.ex.cpus_per_worker} CPU, {self.ex.gpu_share:g} GPU per worker"

@@ -16,19 +16,24 @@ from workers.backbones.fakes import FakeMarkerBackbone
 class FaultyMarkerBackbone(FakeMarkerBackbone):
     """FakeMarkerBackbone whose calls fail on purpose, by call number (0-based, counted over
     this object's life, not cleared by reset): ``nonfinite_calls`` return ``nonfinite_value``
-    (NaN or inf) in every action; calls from ``hang_from_call`` on never return."""
+    (NaN or inf) in every action; calls from ``hang_from_call`` on never return;
+    ``exit_on_call`` kills the process at that call (a policy actor that crashes), once per test
+    with ``once_dir``."""
 
     def __init__(
         self,
         nonfinite_calls: tuple[int, ...] = (),
         nonfinite_value: float = float("nan"),
         hang_from_call: int | None = None,
+        exit_on_call: int | None = None,
+        once_dir: str | None = None,
         **params: Any,
     ) -> None:
         super().__init__(**params)
         self.nonfinite_calls = frozenset(nonfinite_calls)
         self.nonfinite_value = float(nonfinite_value)
         self.hang_from_call = hang_from_call
+        self.exit_on_call, self.once_dir = exit_on_call, once_dir
         self._n_calls = 0
 
     def predict_chunk(
@@ -37,6 +42,12 @@ class FaultyMarkerBackbone(FakeMarkerBackbone):
         call, self._n_calls = self._n_calls, self._n_calls + 1
         if self.hang_from_call is not None and call >= self.hang_from_call:
             faults.hang_forever()
+        if call == self.exit_on_call and faults.should_fire(
+            "backbone_exit", call, {call}, self.once_dir
+        ):
+            import os
+
+            os._exit(9)
         a = super().predict_chunk(obs, noise, intervention)
         if call in self.nonfinite_calls:
             a = torch.full_like(a, self.nonfinite_value)

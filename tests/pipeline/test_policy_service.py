@@ -1,0 +1,88 @@
+"""Runs with a shared policy service (executor.policy=shared): the same tables as in-actor,
+a policy actor that dies is restarted and its requests retried, refusals before any work."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from pipeline.cluster import check_capacity
+from pipeline.config import ConfigError, load_config
+from pipeline.runner import execute, plan_run
+from pipeline.store import RunStore
+from tests.pipeline.test_runner import _episodes, _steps
+
+CONF = Path(__file__).resolve().parents[2] / "conf"
+SHARED = ["executor.policy=shared", "executor.cpus_per_worker=0.5", "executor.policy_cpus=1"]
+
+
+@pytest.mark.slow
+def test_shared_policy_gives_the_same_tables_as_in_actor(tmp_path, ray_local) -> None:
+    base = ["tracking.enabled=false", "executor.kind=ray"]
+    in_actor = execute(plan_run(load_config(CONF / "smoke.yaml", base), tmp_path / "in_actor"))
+    cfg = load_config(CONF / "smoke.yaml", [*base, *SHARED, "executor.batch_wait_ms=20"])
+    shared = execute(plan_run(cfg, tmp_path / "shared"))
+    assert in_actor.stored == shared.stored == 12 and shared.errors == 0
+    # actions, E_img, success: everything but timing and worker columns
+    pd.testing.assert_frame_equal(_episodes(tmp_path / "in_actor"), _episodes(tmp_path / "shared"))
+    pd.testing.assert_frame_equal(_steps(tmp_path / "in_actor"), _steps(tmp_path / "shared"))
+    assert any(w.startswith("policy ") for w in shared.workers)
+    assert cfg.fingerprint() == load_config(CONF / "smoke.yaml", base).fingerprint()
+
+
+@pytest.mark.slow
+def test_a_policy_actor_that_dies_is_restarted_and_its_requests_retried(tmp_path, ray_local):
+    cfg = load_config(
+        CONF / "smoke.yaml",
+        [
+            "tracking.enabled=false",
+            *SHARED,
+            "backbone.kind=tests.doubles.backbones:FaultyMarkerBackbone",
+            "backbone.params.exit_on_call=5",
+            f"backbone.params.once_dir={tmp_path / 'once'}",
+        ],
+    )
+    summary = execute(plan_run(cfg, tmp_path / "run"))
+    assert (tmp_path / "once" / "backbone_exit-5").exists()  # it did die
+    assert summary.stored == 12 and summary.errors == 0
+    eps = RunStore(tmp_path / "run").episodes().to_pandas()
+    assert eps.error.isna().all() and len(eps) == 12 and (eps.attempt == 1).all()
+    steps = RunStore(tmp_path / "run").steps().to_pandas()
+    keys = ["cell_id", "task_id", "episode_index", "inference_index"]
+    assert not steps.duplicated(keys).any()
+
+
+@pytest.mark.parametrize(
+    ("overrides", "pattern"),
+    [
+        (["executor.policy=shared", "executor.kind=inline"], "executor.policy=shared runs"),
+        (["executor.policy=shared", "executor.max_batch=0"], "max_batch"),
+        (["executor.policy=sharded"], "executor.policy"),
+        (["executor.policy=shared", "executor.policy_actors=4"], "needs 6 CPUs"),
+    ],
+)
+def test_bad_policy_settings_are_refused_before_work(tmp_path, overrides, pattern) -> None:
+    with pytest.raises(ConfigError, match=pattern):
+        plan_run(load_config(CONF / "smoke.yaml", overrides), tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+def test_more_policy_actors_than_gpus_is_refused_with_what_the_cluster_has() -> None:
+    cfg = load_config(
+        CONF / "smoke.yaml",
+        ["executor.policy=shared", "executor.policy_actors=3", "executor.gpus_per_worker=1"],
+    )
+    nodes = [{"CPU": 16.0, "GPU": 2.0, "_id": "a"}, {"CPU": 8.0, "_id": "b"}]
+    with pytest.raises(ConfigError, match=r"executor.policy_actors=3 .* need GPU 3.*GPU 2"):
+        check_capacity(cfg.executor, nodes)
+    ok = load_config(
+        CONF / "smoke.yaml",
+        ["executor.policy=shared", "executor.policy_actors=2", "executor.gpus_per_worker=1",
+         "executor.workers=20"],
+    )  # fmt: skip
+    check_capacity(ok.executor, nodes)  # 2 GPU actors; 20 episode actors on the 22 CPUs left
+    too_many = ok.model_copy(update={"executor": ok.executor.model_copy(update={"workers": 23})})
+    with pytest.raises(ConfigError, match="after the policy actors"):
+        check_capacity(too_many.executor, nodes)

@@ -1,0 +1,163 @@
+"""The shared policy service on Ray: policy actors that batch many episodes' requests, and the
+simulator side's proxy to them.
+
+A policy actor (an asyncio Ray actor around :class:`workers.policy_service.PolicyWorker`)
+queues requests as they arrive; a batcher takes the first one waiting, gathers more for up to
+``batch_wait_ms`` or until ``max_batch``, and runs one forward in a thread, so requests keep
+queueing while the device computes and the next batch starts at once. Ray restarts a policy
+actor that dies (``max_restarts``) and retries the calls it held (``max_task_retries``): a
+request is a pure function of its content, so a retry gives the same answer.
+
+:class:`RemotePolicy` is what an episode worker holds instead of an ``IDRPolicy`` in shared
+mode: the same ``set_config`` / ``reset`` / ``infer``, one Ray call per inference (never per
+env step), the observation sent once as numpy.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+import numpy as np
+
+from workers.backbones.base import Observation
+from workers.idr import IDRConfig
+from workers.idr_policy import IDRStep
+from workers.interventions import InterventionConfig
+from workers.policy_service import InferRequest, PolicyWorker
+
+
+class BatchingPolicyActor:
+    """The policy actor's body (Ray wraps it with ``policy_actor_class``)."""
+
+    def __init__(
+        self,
+        kind: str,
+        params: dict[str, Any],
+        batched: bool | None,
+        max_batch: int,
+        batch_wait_ms: float,
+    ) -> None:
+        self.worker = PolicyWorker(kind, params, batched)
+        self.max_batch = max_batch
+        self.wait_s = batch_wait_ms / 1e3
+        self._queue: asyncio.Queue[tuple[InferRequest, asyncio.Future[IDRStep]]] | None = None
+        self._device = ThreadPoolExecutor(max_workers=1, thread_name_prefix="forward")
+        self._batch_sizes: list[int] = []
+        self._busy_s = 0.0
+
+    def describe(self) -> dict[str, Any]:
+        import os
+        import socket
+
+        return {**self.worker.describe(), "worker": f"{socket.gethostname()}:{os.getpid()}"}
+
+    def stats(self) -> dict[str, float]:
+        sizes = self._batch_sizes
+        return {
+            "forwards": len(sizes),
+            "requests": sum(sizes),
+            "mean_batch": float(np.mean(sizes)) if sizes else 0.0,
+            "busy_s": self._busy_s,
+        }
+
+    async def infer(self, request: InferRequest) -> IDRStep:
+        if self._queue is None:
+            self._queue = asyncio.Queue()
+            asyncio.get_running_loop().create_task(self._batcher())
+        future: asyncio.Future[IDRStep] = asyncio.get_running_loop().create_future()
+        await self._queue.put((request, future))
+        return await future
+
+    async def _batcher(self) -> None:
+        assert self._queue is not None
+        loop = asyncio.get_running_loop()
+        while True:
+            batch = [await self._queue.get()]
+            deadline = loop.time() + self.wait_s
+            while len(batch) < self.max_batch:
+                left = deadline - loop.time()
+                try:
+                    batch.append(
+                        self._queue.get_nowait()
+                        if left <= 0
+                        else await asyncio.wait_for(self._queue.get(), left)
+                    )
+                except (asyncio.QueueEmpty, TimeoutError):
+                    break
+            t0 = time.perf_counter()
+            try:
+                answers = await loop.run_in_executor(
+                    self._device, self.worker.infer_many, [req for req, _ in batch]
+                )
+            except Exception as exc:  # the whole batch fails alike (each episode an error row)
+                for _, fut in batch:
+                    if not fut.done():
+                        fut.set_exception(exc)
+                continue
+            finally:
+                self._busy_s += time.perf_counter() - t0
+            self._batch_sizes.append(len(batch))
+            for (_, fut), answer in zip(batch, answers, strict=True):
+                if not fut.done():
+                    fut.set_result(answer)
+
+
+def policy_actor_class(
+    num_cpus: float, num_gpus: float, resources: dict[str, float] | None = None
+) -> Any:
+    """The Ray actor class of a policy actor (Ray imported here, lazily)."""
+    import ray
+
+    return ray.remote(
+        num_cpus=num_cpus,
+        num_gpus=num_gpus,
+        resources=dict(resources) if resources else None,
+        max_restarts=-1,  # a policy actor that dies is started again...
+        max_task_retries=-1,  # ...and the requests it held are sent to it again
+        max_concurrency=1000,
+    )(BatchingPolicyActor)
+
+
+def _plain(value: Any) -> Any:
+    if type(value).__module__.startswith("torch"):
+        return value.detach().cpu().numpy()
+    return value
+
+
+class RemotePolicy:
+    """The IDRPolicy interface over a policy actor (see the module docstring)."""
+
+    def __init__(self, handle: Any, info: dict[str, Any]) -> None:
+        self.handle = handle
+        self.info = info
+        self.cfg = IDRConfig()
+        self.intervention = InterventionConfig()
+        self.batched = bool(info.get("batched"))
+
+    def set_config(self, cfg: IDRConfig, intervention: InterventionConfig | None = None) -> None:
+        self.cfg = cfg
+        if intervention is not None:
+            self.intervention = intervention
+
+    def reset(self) -> None:
+        """Nothing to forget: the service calls the backbone on whole chunks, without state."""
+
+    def infer(self, obs: Observation, step_seed: int = 0) -> IDRStep:
+        import ray
+
+        extras = dict(obs.extras)
+        if "privileged" in extras:  # lazy views of the live simulator: sent as plain dicts
+            extras["privileged"] = [None if p is None else dict(p) for p in extras["privileged"]]
+        plain = Observation(
+            images={k: _plain(v) for k, v in obs.images.items()},
+            state=_plain(obs.state),
+            instruction=list(obs.instruction),
+            do_image=obs.do_image,
+            do_state=obs.do_state,
+            extras=extras,
+        )
+        request = InferRequest(plain, int(step_seed), self.cfg, self.intervention)
+        return ray.get(self.handle.infer.remote(request))

@@ -1,0 +1,174 @@
+"""One backbone for many episodes: IDR's three passes of many requests in one forward.
+
+A request is one episode's inference: its observation (a batch of one), its step seed and its
+IDR cell (config and intervention). :func:`infer_many` builds the rows of all requests (the
+factual one, and for IDR cells the do(V) and do(S) ones, exactly as ``IDRPolicy.infer`` builds
+them), runs the backbone once over all of them, each row with its own request's noise (drawn
+from its own step seed: common random numbers per episode and inference, as in-actor), splits
+the output and refines each request with its own config. So an episode's actions never depend
+on which other episodes shared its forward (for a backbone whose rows do not interact, which
+a policy network's do not, up to the floating-point order of a batched kernel).
+
+:class:`PolicyWorker` holds the backbone (a plain class, testable without Ray); the Ray actor
+around it (``workers.policy_actor``) batches requests as they arrive.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from itertools import groupby
+from typing import Any
+
+import numpy as np
+
+from workers.backbones.base import Observation, backbone_member, concat_observations
+from workers.idr import Diagnostics, IDRConfig, refine
+from workers.idr_policy import IDRPolicy, IDRStep
+from workers.interventions import InterventionConfig
+
+
+@dataclass(frozen=True)
+class InferRequest:
+    """One episode's inference, as the simulator side sends it."""
+
+    obs: Observation  # a batch of one, numpy arrays (images float (1, 3, H, W), state (1, S))
+    step_seed: int
+    idr: IDRConfig
+    intervention: InterventionConfig
+
+
+def _native(iv: InterventionConfig) -> bool:
+    return iv.image_space != "raw" or iv.state_space != "raw"
+
+
+def _cat(xs: list[Any]) -> Any:
+    if type(xs[0]).__module__.startswith("torch"):
+        import torch
+
+        return torch.cat(xs, dim=0)
+    return np.concatenate(xs, axis=0)
+
+
+def _to_numpy(x: Any) -> Any:
+    if x is None:
+        return None
+    if type(x).__module__.startswith("torch"):
+        return x.detach().float().cpu().numpy()
+    return np.asarray(x)
+
+
+def to_numpy_step(step: IDRStep) -> IDRStep:
+    """The step with numpy arrays only (what crosses back to the simulator side)."""
+    diag = None
+    if step.diag is not None:
+        diag = Diagnostics(**step.diag.to_numpy())
+    return IDRStep(
+        _to_numpy(step.action),
+        _to_numpy(step.a_base),
+        _to_numpy(step.a_no_img),
+        _to_numpy(step.a_no_prop),
+        diag,
+        step.inference_ms,
+        step.batched,
+        step.crn,
+    )
+
+
+def infer_many(policy: IDRPolicy, requests: list[InferRequest]) -> list[IDRStep]:
+    """Every request answered; one backbone forward per group of requests that share how the
+    backbone applies interventions (all of them, unless some use normalized-space ones)."""
+    if not policy.batched:  # a backbone that cannot batch: each request's passes in turn
+        out = []
+        for req in requests:
+            policy.set_config(req.idr, req.intervention)
+            out.append(policy.infer(req.obs, req.step_seed))
+        return out
+    answers: dict[int, IDRStep] = {}
+    indexed = sorted(
+        enumerate(requests),
+        key=lambda p: repr(p[1].intervention) if _native(p[1].intervention) else "",
+    )
+    for _, group in groupby(
+        indexed, key=lambda p: repr(p[1].intervention) if _native(p[1].intervention) else ""
+    ):
+        answers.update(_one_forward(policy, list(group)))
+    return [answers[i] for i in range(len(requests))]
+
+
+def _one_forward(policy: IDRPolicy, group: list[tuple[int, InferRequest]]) -> dict[int, IDRStep]:
+    backbone = policy.backbone
+    t0 = time.perf_counter()
+    rows: list[Observation] = []
+    noises: list[Any] = []
+    spans: list[tuple[int, int, int]] = []  # request index, first row, rows (1 or 3)
+    for i, req in group:
+        req.obs.validate()
+        b = req.obs.batch_size
+        policy.set_config(req.idr, req.intervention)
+        noise = backbone.make_noise(b, req.step_seed)
+        parts = [req.obs]
+        if req.idr.needs_counterfactuals:
+            parts += list(policy.counterfactuals(req.obs, req.step_seed))
+        spans.append((i, sum(r.batch_size for r in rows), len(parts) * b))
+        rows += parts
+        if noise is not None:
+            noises += [noise] * len(parts)
+    native = _native(group[0][1].intervention)
+    out = backbone.predict_chunk(
+        concat_observations(rows),
+        noise=_cat(noises) if noises else None,
+        intervention=group[0][1].intervention if native else None,
+    )
+    ms = (time.perf_counter() - t0) * 1e3
+    answers = {}
+    for (i, req), (_, first, n) in zip(group, spans, strict=True):
+        a = out[first : first + n]
+        crn = bool(noises)
+        if n == req.obs.batch_size:  # baseline / no counterfactuals
+            answers[i] = IDRStep(a, a, None, None, None, ms, batched=False, crn=crn)
+            continue
+        b = req.obs.batch_size
+        a_base, a_no_img, a_no_prop = a[:b], a[b : 2 * b], a[2 * b :]
+        action, diag = refine(a_base, a_no_img, a_no_prop, req.idr)
+        answers[i] = IDRStep(action, a_base, a_no_img, a_no_prop, diag, ms, True, crn)
+    return answers
+
+
+class PolicyWorker:
+    """A backbone wrapped by IDR that answers many episodes' requests (no per-episode state:
+    the backbone is called on whole chunks, never through a queue of its own)."""
+
+    def __init__(self, kind: str, params: dict[str, Any], batched: bool | None = None) -> None:
+        from workers.backbones.factory import make_backbone
+
+        self.backbone = make_backbone(kind, params)
+        self.policy = IDRPolicy(self.backbone, batched=batched)
+        self.forwards = 0
+        self.requests = 0
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            "name": self.backbone.name,
+            "cameras": backbone_member(self.backbone, "cameras"),
+            "batched": self.policy.batched,
+        }
+
+    def infer_many(self, requests: list[InferRequest]) -> list[IDRStep]:
+        self.forwards += 1
+        self.requests += len(requests)
+        requests = [dataclasses.replace(r, obs=_as_torch(r.obs)) for r in requests]
+        return [to_numpy_step(s) for s in infer_many(self.policy, requests)]
+
+
+def _as_torch(obs: Observation) -> Observation:
+    """The observation as the actor's backbone gets it in-actor (torch float32 tensors)."""
+    import torch
+
+    def t(x: Any) -> Any:
+        return torch.from_numpy(np.ascontiguousarray(x)) if isinstance(x, np.ndarray) else x
+
+    return dataclasses.replace(
+        obs, images={k: t(v) for k, v in obs.images.items()}, state=t(obs.state)
+    )
