@@ -109,6 +109,12 @@ class ExecutorConfig(_Model):
         "actor, or executor.actors_per_gpu of them per GPU); the same results",
     )
     policy_actors: int = Field(default=1, ge=1, description="shared: policy actors")
+    envs_per_worker: int = Field(
+        default=1,
+        ge=1,
+        description="shared: envs each actor holds, each episode in a thread of its own, so one "
+        "steps while another waits for its inference (in_actor: 1)",
+    )
     policy_cpus: float = Field(default=1.0, gt=0, description="shared: CPUs per policy actor")
     max_batch: int = Field(
         default=32, ge=1, description="shared: requests (episodes) per forward at most"
@@ -163,6 +169,15 @@ class ExecutorConfig(_Model):
             raise ValueError(
                 f"actors_per_gpu={self.actors_per_gpu} and gpus_per_worker="
                 f"{self.gpus_per_worker:g} disagree: set one of them"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _envs_need_a_shared_policy(self) -> ExecutorConfig:
+        if self.envs_per_worker > 1 and self.policy != "shared":
+            raise ValueError(
+                f"envs_per_worker={self.envs_per_worker} needs policy=shared: in_actor, an "
+                "actor's one backbone serves one episode at a time"
             )
         return self
 

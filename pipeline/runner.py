@@ -260,6 +260,7 @@ def plan_run(
         None if fit.replan_steps == "chunk" else int(fit.replan_steps),
         cfg.backbone.batched,
         server,
+        envs_per_worker=cfg.executor.envs_per_worker,
     )
     return RunPlan(
         cfg,

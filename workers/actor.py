@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+import queue
 import socket
 import sys
 import time
@@ -84,6 +85,14 @@ class EpisodeWorker:
             self.policy = IDRPolicy(self.backbone, batched=spec.batched)
             self.cameras = backbone_member(self.backbone, "cameras")  # None: all the env has
         self.env = make_env(spec.env_suite, spec.env_params, spec.env_server)
+        # shared policy: more envs, each episode on one of them in its own thread (Ray runs up
+        # to envs_per_worker calls at once), so one env steps while another's request is away
+        self._envs: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._all_envs = [self.env]
+        for _ in range(spec.envs_per_worker - 1):
+            self._all_envs.append(make_env(spec.env_suite, spec.env_params, spec.env_server))
+        for env in self._all_envs:
+            self._envs.put(env)
         # an env with its own renderer (PyBullet...) says so; MuJoCo envs use the worker's
         self.render_backend = env_member(self.env, "render_backend") or self.render_backend
         self.tasks = {t.task_id: t for t in self.env.tasks()}
@@ -96,8 +105,9 @@ class EpisodeWorker:
     def run_episode(self, spec: EpisodeSpec) -> EpisodeResult:
         started, t0 = _now(), time.perf_counter()
         where = {"worker": self.worker_id, "node": self.node, "render_backend": self.render_backend}
+        env = self._envs.get()
         try:
-            steps, outcome = self._rollout_restarting(spec)
+            steps, outcome = self._rollout_restarting(spec, env)
             row = EpisodeRow.from_spec(spec, **outcome, **where)
             unhealthy = False
         except Exception as exc:
@@ -107,17 +117,21 @@ class EpisodeWorker:
             row = EpisodeRow.error_row(spec, reason, **where)
             # out of memory: this process may be left broken; the scheduler replaces the worker
             unhealthy = isinstance(exc, MemoryError)
+        finally:
+            self._envs.put(env)
         row.started_at, row.finished_at = started, _now()
         row.wall_seconds = time.perf_counter() - t0
         return EpisodeResult(row, steps, unhealthy=unhealthy)
 
-    def _rollout_restarting(self, spec: EpisodeSpec) -> tuple[list[StepRow], dict[str, Any]]:
+    def _rollout_restarting(
+        self, spec: EpisodeSpec, env: Any
+    ) -> tuple[list[StepRow], dict[str, Any]]:
         """The rollout; when the env server dies or hangs under it (a fault of this actor's
         machinery, not of the episode), the server is restarted and the episode run again from
         its reset, up to MAX_SERVER_RESTARTS times per episode."""
         for restart in range(MAX_SERVER_RESTARTS + 1):
             try:
-                return self._rollout(spec)
+                return self._rollout(spec, env)
             except EnvServerError as exc:
                 if restart == MAX_SERVER_RESTARTS:
                     raise
@@ -126,15 +140,19 @@ class EpisodeWorker:
                     spec.key,
                     str(exc).splitlines()[0],
                 )
-                self.env.restart()
+                env.restart()
         raise AssertionError("unreachable")
 
-    def _rollout(self, spec: EpisodeSpec) -> tuple[list[StepRow], dict[str, Any]]:
+    def _rollout(self, spec: EpisodeSpec, env: Any) -> tuple[list[StepRow], dict[str, Any]]:
         """Run one episode: infer a chunk, execute ``replan_steps`` of it, until the env is
         done. Returns the step rows and the episode's outcome columns."""
         from workers.observation import to_policy_observation
 
-        env, policy = self.env, self.policy
+        policy = self.policy
+        if self.spec.policy_actor is not None:  # one proxy per episode: threads share the actor
+            from workers.policy_actor import RemotePolicy
+
+            policy = RemotePolicy(self.spec.policy_actor, self.policy.info)
         if spec.task_id not in self.tasks:
             raise ValueError(f"task_id={spec.task_id!r} not in suite {self.spec.env_suite!r}")
         policy.set_config(spec.idr, spec.intervention)
@@ -219,8 +237,9 @@ class EpisodeWorker:
 
     def close(self) -> None:
         """Idempotent."""
-        env, self.env = getattr(self, "env", None), None
-        if env is not None:
+        envs, self._all_envs = getattr(self, "_all_envs", []), []
+        self.env = None
+        for env in envs:
             env.close()
 
 
@@ -243,6 +262,7 @@ def remote_worker_class(
     num_gpus: float,
     resources: dict[str, float] | None = None,
     placement: str = "default",
+    concurrency: int = 1,
 ) -> Any:
     """The Ray actor class wrapping EpisodeWorker (Ray imported here, lazily): ``num_gpus`` may
     be a fraction (actors sharing a GPU), ``resources`` custom Ray resources per actor,
@@ -255,6 +275,7 @@ def remote_worker_class(
         resources=dict(resources) if resources else None,
         scheduling_strategy="SPREAD" if placement == "spread" else "DEFAULT",
         max_restarts=0,
+        max_concurrency=concurrency,  # envs_per_worker episodes at once (threads)
     )(EpisodeWorker)
 
 

@@ -39,6 +39,7 @@ class WorkerSpec:
     # shared policy: the policy actor (a Ray handle) this actor sends its inferences to;
     # None: the actor holds the backbone itself
     policy_actor: Any = None
+    envs_per_worker: int = 1  # envs an actor holds (> 1 only with a shared policy)
 
 
 @dataclass(frozen=True)

@@ -69,7 +69,7 @@ class RayActorPool:
             ex = self.ex
             demand = ex.actor_demand()
             self._cls = remote_worker_class(
-                demand["CPU"], demand["GPU"], ex.resources, ex.placement
+                demand["CPU"], demand["GPU"], ex.resources, ex.placement, ex.envs_per_worker
             )
         self._next_id += 1
         aid = self._next_id
@@ -211,15 +211,18 @@ class RayActorPool:
         loading gets work only while no started actor is left: after a node is lost, its
         replacement may wait for capacity that never comes back."""
         any_started = any(a not in self._starting for a in self._busy)
+        per_actor = self.ex.envs_per_worker
         return [
             a
             for a in sorted(self._busy, key=self._busy.get)
-            if self._busy[a] == 0 and not (any_started and a in self._starting)
+            if self._busy[a] < per_actor and not (any_started and a in self._starting)
         ]
 
     def free_slots(self) -> int:
-        cap = self.ex.max_in_flight or len(self._busy)
-        return max(0, min(len(self._idle()), cap - len(self._calls)))
+        per_actor = self.ex.envs_per_worker
+        cap = self.ex.max_in_flight or len(self._busy) * per_actor
+        free = sum(per_actor - self._busy[a] for a in self._idle())
+        return max(0, min(free, cap - len(self._calls)))
 
     def in_flight(self) -> int:
         return len(self._calls)

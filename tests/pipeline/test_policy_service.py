@@ -22,7 +22,10 @@ SHARED = ["executor.policy=shared", "executor.cpus_per_worker=0.5", "executor.po
 def test_shared_policy_gives_the_same_tables_as_in_actor(tmp_path, ray_local) -> None:
     base = ["tracking.enabled=false", "executor.kind=ray"]
     in_actor = execute(plan_run(load_config(CONF / "smoke.yaml", base), tmp_path / "in_actor"))
-    cfg = load_config(CONF / "smoke.yaml", [*base, *SHARED, "executor.batch_wait_ms=20"])
+    cfg = load_config(
+        CONF / "smoke.yaml",
+        [*base, *SHARED, "executor.batch_wait_ms=20", "executor.envs_per_worker=3"],
+    )
     shared = execute(plan_run(cfg, tmp_path / "shared"))
     assert in_actor.stored == shared.stored == 12 and shared.errors == 0
     # actions, E_img, success: everything but timing and worker columns
@@ -61,6 +64,7 @@ def test_a_policy_actor_that_dies_is_restarted_and_its_requests_retried(tmp_path
         (["executor.policy=shared", "executor.max_batch=0"], "max_batch"),
         (["executor.policy=sharded"], "executor.policy"),
         (["executor.policy=shared", "executor.policy_actors=4"], "needs 6 CPUs"),
+        (["executor.envs_per_worker=2"], "envs_per_worker=2 needs policy=shared"),
     ],
 )
 def test_bad_policy_settings_are_refused_before_work(tmp_path, overrides, pattern) -> None:
