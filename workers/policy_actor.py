@@ -127,6 +127,18 @@ def _plain(value: Any) -> Any:
     return value
 
 
+def _image_bytes(image: Any) -> Any:
+    """An image in [0, 1] as the uint8 it was made from (a quarter of the bytes), when it was
+    made from one exactly (``workers.observation.image_to_tensor``); else as it is. The policy
+    side divides by 255 again: the same floats."""
+    x = _plain(image)
+    if isinstance(x, np.ndarray) and x.dtype == np.float32:
+        u8 = np.rint(x * 255).clip(0, 255).astype(np.uint8)
+        if np.array_equal(u8.astype(np.float32) / np.float32(255), x):
+            return u8
+    return x
+
+
 class RemotePolicy:
     """The IDRPolicy interface over a policy actor (see the module docstring)."""
 
@@ -152,7 +164,7 @@ class RemotePolicy:
         if "privileged" in extras:  # lazy views of the live simulator: sent as plain dicts
             extras["privileged"] = [None if p is None else dict(p) for p in extras["privileged"]]
         plain = Observation(
-            images={k: _plain(v) for k, v in obs.images.items()},
+            images={k: _image_bytes(v) for k, v in obs.images.items()},
             state=_plain(obs.state),
             instruction=list(obs.instruction),
             do_image=obs.do_image,

@@ -169,6 +169,9 @@ def _as_torch(obs: Observation) -> Observation:
     def t(x: Any) -> Any:
         return torch.from_numpy(np.ascontiguousarray(x)) if isinstance(x, np.ndarray) else x
 
+    def image(x: Any) -> Any:  # uint8 on the wire (a quarter of the bytes): [0, 1] floats
+        return t(x).float() / 255.0 if isinstance(x, np.ndarray) and x.dtype == np.uint8 else t(x)
+
     return dataclasses.replace(
-        obs, images={k: t(v) for k, v in obs.images.items()}, state=t(obs.state)
+        obs, images={k: image(v) for k, v in obs.images.items()}, state=t(obs.state)
     )

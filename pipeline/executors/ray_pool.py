@@ -184,17 +184,27 @@ class RayActorPool:
                     info["name"],
                 )
 
-    def policy_stats(self) -> list[dict[str, float]]:
-        import ray
-
-        return ray.get([a.stats.remote() for a in self.policy_actors]) if self.policy_actors else []
-
     def close(self) -> None:
         import ray
 
         for aid in list(self.actors):  # also on SIGTERM / an error: no actor outlives the run
             self._kill(aid)
         self._calls.clear()
+        if self.policy_actors:
+            try:
+                for i, st in enumerate(
+                    ray.get([a.stats.remote() for a in self.policy_actors], timeout=5)
+                ):
+                    log.info(
+                        "policy actor %d: %d requests in %d forwards (mean batch %.1f), busy %.1f s",
+                        i,
+                        st["requests"],
+                        st["forwards"],
+                        st["mean_batch"],
+                        st["busy_s"],
+                    )
+            except Exception as exc:  # closing anyway
+                log.debug("no policy actor stats: %s", exc)
         for actor in self.policy_actors:
             try:
                 ray.kill(actor, no_restart=True)

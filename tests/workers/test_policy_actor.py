@@ -1,0 +1,67 @@
+"""The policy actor: concurrent requests batched into few forwards, each answered as alone;
+images cross as the uint8 they were made from."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from workers.backbones.fakes import FakeMarkerBackbone
+from workers.envs.fakes import FakeMarkerEnv
+from workers.idr import IDRConfig
+from workers.idr_policy import IDRPolicy
+from workers.observation import image_to_tensor, to_policy_observation
+from workers.policy_actor import RemotePolicy, _image_bytes, policy_actor_class
+
+
+def test_images_cross_as_their_bytes_and_come_back_the_same_floats():
+    img = np.random.default_rng(0).integers(0, 256, (64, 64, 3), dtype=np.uint8)
+    x = image_to_tensor(img)
+    u8 = _image_bytes(x)
+    assert u8.dtype == np.uint8 and u8.nbytes * 4 == x.numpy().nbytes
+    assert torch.equal(torch.from_numpy(u8).float() / 255.0, x)
+    noisy = x + 1e-3  # not made from a uint8 image: sent as it is
+    assert _image_bytes(noisy).dtype == np.float32
+
+
+@pytest.mark.slow
+def test_concurrent_requests_share_forwards_and_get_their_own_answers(ray_local):
+    params = {"chunk_len": 4, "gain": 5.0, "noise_std": 0.2, "delay_s": 0.05}
+    actor = policy_actor_class(0.5, 0).remote("fake_marker", params, None, 16, 20.0)
+    remote = RemotePolicy(actor, ray_local.get(actor.describe.remote()))
+    env = FakeMarkerEnv()
+    observations = [
+        to_policy_observation(env.reset("reach", e, 0), env.instruction) for e in range(12)
+    ]
+    remote.set_config(IDRConfig(mode="E"))
+    from workers.policy_service import InferRequest
+
+    refs = [
+        actor.infer.remote(
+            InferRequest(
+                type(o)(
+                    {k: _image_bytes(v) for k, v in o.images.items()},
+                    o.state.numpy(),
+                    o.instruction,
+                ),
+                100 + i,
+                IDRConfig(mode="E"),
+                remote.intervention,
+            )
+        )
+        for i, o in enumerate(observations)
+    ]
+    answers = ray_local.get(refs)
+    stats = ray_local.get(actor.stats.remote())
+    assert stats["requests"] == 12 and stats["forwards"] < 12  # batched while the first computed
+    local = IDRPolicy(FakeMarkerBackbone(**params))
+    local.set_config(IDRConfig(mode="E"))
+    for i, (o, got) in enumerate(zip(observations, answers, strict=True)):
+        want = local.infer(o, 100 + i)
+        assert np.array_equal(got.action, want.action.numpy())
+        assert np.array_equal(got.diag.e_img, want.diag.e_img.numpy())
+    # the proxy's own path: one Ray call per inference, the same answer
+    again = remote.infer(observations[3], 103)
+    assert np.array_equal(again.action, answers[3].action)
+    ray_local.kill(actor)
