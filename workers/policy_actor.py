@@ -47,6 +47,7 @@ class BatchingPolicyActor:
         self.wait_s = batch_wait_ms / 1e3
         self._queue: queue.SimpleQueue[_Pending] = queue.SimpleQueue()
         self._batch_sizes: list[int] = []
+        self._served: list[float] = []
         self._busy_s = 0.0
         threading.Thread(target=self._batcher, name="batcher", daemon=True).start()
 
@@ -63,15 +64,18 @@ class BatchingPolicyActor:
             "requests": sum(sizes),
             "mean_batch": float(np.mean(sizes)) if sizes else 0.0,
             "busy_s": self._busy_s,
+            "served_ms_median": float(np.median(self._served)) * 1e3 if self._served else 0.0,
         }
 
     def infer(self, request: InferRequest) -> IDRStep:
+        t_in = time.perf_counter()
         pending = _Pending(request)
         self._queue.put(pending)
         pending.done.wait()
         if pending.error is not None:
             raise pending.error
         assert pending.answer is not None
+        self._served.append(time.perf_counter() - t_in)
         return pending.answer
 
     def _batcher(self) -> None:
