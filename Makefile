@@ -34,6 +34,7 @@ bench: setup
 	$(VENV)/bin/python benchmarks/bench_env_server.py
 	$(VENV)/bin/python benchmarks/bench_calvin_env.py
 	$(VENV)/bin/python benchmarks/bench_policy_service.py
+	$(VENV)/bin/python benchmarks/bench_remote_backbone.py
 	$(VENV)/bin/python benchmarks/bench_default_run.py --run-dir $(RUN_DIR)
 	$(VENV)/bin/python benchmarks/bench_report_scale.py
 	$(VENV)/bin/python benchmarks/bench_tracking_scale.py

@@ -11,6 +11,8 @@ BACKBONES: dict[str, str] = {
     "fake_marker": "workers.backbones.fakes:FakeMarkerBackbone",
     "noop": "workers.backbones.noop:NoopBackbone",
     "lerobot": "workers.backbones.lerobot.adapter:LerobotBackbone",
+    # a policy server speaking openpi's websocket protocol (OpenVLA-OFT, openpi's JAX pi0.5...)
+    "remote": "workers.backbones.remote.client:RemoteBackbone",
     # env-side: reads the tabletop env's privileged state
     "tabletop_expert": "workers.experts.tabletop:TabletopExpertBackbone",
 }

@@ -1,0 +1,123 @@
+"""The remote backbone's cost per inference over loopback: IDR's three passes as one batched
+request vs three requests, against the same closed-form policy called in this process.
+
+The server is the fake openpi-protocol server of the tests (another process, websockets);
+the in-process reference calls its policy function directly on the same observations.
+Writes ``benchmarks/results/remote_backbone.json``.
+Usage: ``python benchmarks/bench_remote_backbone.py [--calls 300]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import socket
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+RESULTS = Path(__file__).parent / "results" / "remote_backbone.json"
+KEYS = {"image:agentview": "observation/image", "state": "observation/state", "prompt": "prompt"}
+
+
+class InProcess:
+    """The fake server's policy as an in-process backbone (the reference)."""
+
+    native_intervention_spaces: ClassVar[frozenset[str]] = frozenset()
+    can_batch = True
+    name, chunk_len, action_dim = "closed_form", 4, 7
+
+    def reset(self) -> None:
+        pass
+
+    def make_noise(self, batch_size: int, seed: int) -> None:
+        return None
+
+    def predict_chunk(self, obs: Any, noise: Any = None, intervention: Any = None) -> np.ndarray:
+        from tests.doubles.openpi_server import act
+        from workers.backbones.remote.client import RemoteBackbone
+
+        rows = [RemoteBackbone._row(self, obs, i) for i in range(obs.batch_size)]  # type: ignore[arg-type]
+        return np.stack([act(r, 2.0, 0.5, 0.0, 4, 7) for r in rows])
+
+    key_map = KEYS
+
+
+def _port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def measure(policy: Any, obs: Any, calls: int) -> float:
+    from workers.idr import IDRConfig
+
+    policy.set_config(IDRConfig(mode="E"))
+    policy.infer(obs, 0)
+    times = []
+    for i in range(calls):
+        t0 = time.perf_counter()
+        policy.infer(obs, i)
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times) * 1e3
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--calls", type=int, default=300)
+    ap.add_argument("--out", type=Path, default=RESULTS)
+    args = ap.parse_args()
+    from workers.backbones.remote.client import RemoteBackbone
+    from workers.idr_policy import IDRPolicy
+    from workers.observation import to_policy_observation
+
+    rng = np.random.default_rng(0)
+    from workers.envs.base import EnvObservation
+
+    raw = EnvObservation(
+        images={"agentview": rng.integers(0, 256, (96, 96, 3), dtype=np.uint8)},
+        state=rng.standard_normal(8).astype(np.float32),
+    )
+    obs = to_policy_observation(raw, "pick up the red cube")
+    rows: dict[str, float] = {"in_process_ms": measure(IDRPolicy(InProcess()), obs, args.calls)}
+    for label, flags in (("three_requests_ms", []), ("one_batched_request_ms", ["--batch"])):
+        port = _port()
+        server = subprocess.Popen(
+            [sys.executable, "-m", "tests.doubles.openpi_server", "--port", str(port), *flags],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            assert server.stdout is not None and server.stdout.readline().strip() == "ready"
+            backbone = RemoteBackbone(port=port, key_map=KEYS)
+            rows[label] = measure(IDRPolicy(backbone), obs, args.calls)
+            backbone.close()
+        finally:
+            server.kill()
+            server.wait()
+    for k, v in rows.items():
+        print(f"{k:<24} {v:6.2f} ms per inference (IDR: 3 passes)")
+    out = {
+        "what": "IDR inference (mode E, 3 passes) of a closed-form policy: in this process vs "
+        "over loopback websockets (openpi's protocol), 96 px image + 8-d state",
+        "calls": args.calls,
+        "per_inference": rows,
+        "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(out, indent=2) + "\n")
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
