@@ -203,6 +203,15 @@ def fit_config(cfg: RunConfig) -> tuple[RunConfig, Fit]:
         raise ConfigError(
             f"backbone.params.camera_map must map env camera -> image key, got {camera_map!r}"
         )
+    if env is None and policy is not None:  # an env without describe: its class's action dim
+        from workers.envs.factory import env_class
+
+        dim = getattr(env_class(cfg.env.suite), "action_dim", None)
+        if isinstance(dim, int) and dim != policy.action_dim:
+            raise ConfigError(
+                f"action: the env takes {dim}-d actions, but {policy.source} declares action "
+                f"({policy.action_dim},); use a policy trained on this env's action space"
+            )
     fit = fit_backbone_to_env(env, policy, cfg.backbone.replan_steps, camera_map)
     backbone = dict(cfg.backbone.params)
     if fit.camera_map is not None and any(k != v for k, v in fit.camera_map.items()):

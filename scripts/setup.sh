@@ -53,6 +53,9 @@ else
     echo "$want" > "$STAMP"
 fi
 
+# --- openpi's server packages in their own venv (numpy < 2): the remote backbone's tests ----
+bash scripts/setup_openpi.sh
+
 # --- LIBERO offline: link packaged assets, write the config (never prompts) ----------------
 "$VENV/bin/python" -m workers.envs.libero_assets >/dev/null
 log "ready: $VENV (Python $("$VENV/bin/python" -c 'import platform; print(platform.python_version())'))"

@@ -30,9 +30,15 @@ def act(
     return a.astype(np.float32)
 
 
-def main(argv: list[str] | None = None) -> None:
-    from websockets.sync.server import serve
+def respond(obs: dict, gains: tuple[float, float, float, int, int]) -> np.ndarray:
+    """The actions for an observation map, or for a batched one (``prompt`` a list)."""
+    if isinstance(obs["prompt"], list):
+        rows = [{k: v[i] for k, v in obs.items()} for i in range(len(obs["prompt"]))]
+        return np.stack([act(r, *gains) for r in rows])
+    return act(obs, *gains)
 
+
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser()
     ap.add_argument("--port", type=int, required=True)
     ap.add_argument("--batch", action="store_true")
@@ -44,10 +50,21 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--noise-std", type=float, default=0.1)
     ap.add_argument("--horizon", type=int, default=4)
     ap.add_argument("--action-dim", type=int, default=7)
-    args = ap.parse_args(argv)
+    return ap
+
+
+def metadata_of(args: argparse.Namespace) -> dict:
+    shape = [args.horizon, args.action_dim]
+    return {"idr": {"batch": args.batch, "noise": args.noise, "noise_shape": shape}}
+
+
+def main(argv: list[str] | None = None) -> None:
+    from websockets.sync.server import serve
+
+    args = parser().parse_args(argv)
     calls = {"n": 0}
-    T, D = args.horizon, args.action_dim
-    metadata = {"idr": {"batch": args.batch, "noise": args.noise, "noise_shape": [T, D]}}
+    metadata = metadata_of(args)
+    gains = (args.img_gain, args.state_gain, args.noise_std, args.horizon, args.action_dim)
 
     def handler(ws) -> None:  # type: ignore[no-untyped-def]
         ws.send(codec.packb(metadata))
@@ -58,14 +75,7 @@ def main(argv: list[str] | None = None) -> None:
             try:
                 if calls["n"] == args.fail_on:
                     raise RuntimeError("injected failure in the fake policy")
-                obs = codec.unpackb(frame)
-                gains = (args.img_gain, args.state_gain, args.noise_std, T, D)
-                if isinstance(obs["prompt"], list):  # a batched request
-                    rows = [{k: v[i] for k, v in obs.items()} for i in range(len(obs["prompt"]))]
-                    actions = np.stack([act(r, *gains) for r in rows])
-                else:
-                    actions = act(obs, *gains)
-                ws.send(codec.packb({"actions": actions}))
+                ws.send(codec.packb({"actions": respond(codec.unpackb(frame), gains)}))
             except Exception:
                 ws.send(traceback.format_exc())
                 ws.close(1011, "internal error")

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import os
 import socket
 import subprocess
 import sys
@@ -29,16 +30,39 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+OPENPI_PYTHON = ROOT / ".venv-openpi" / "bin" / "python"
+needs_openpi = pytest.mark.skipif(
+    not OPENPI_PYTHON.exists(),
+    reason="no .venv-openpi (scripts/setup_openpi.sh, run by make setup)",
+)
+
+
 class Server:
-    def __init__(self, *flags: str, port: int | None = None) -> None:
+    """The fake server (this Python, websockets), or with ``real=True`` the closed-form policy
+    served by the openpi-server package in .venv-openpi."""
+
+    def __init__(self, *flags: str, port: int | None = None, real: bool = False) -> None:
         self.port = port or _free_port()
+        python, module = (
+            (str(OPENPI_PYTHON), "tests.doubles.openpi_real_server")
+            if real
+            else (sys.executable, "tests.doubles.openpi_server")
+        )
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "tests.doubles.openpi_server", "--port", str(self.port), *flags],
+            [python, "-m", module, "--port", str(self.port), *flags],
             cwd=ROOT,
             stdout=subprocess.PIPE,
             text=True,
+            env={**os.environ, "PYTHONPATH": str(ROOT)},
         )
         assert self.proc.stdout.readline().strip() == "ready"
+        if real:  # it prints before binding: wait until it answers
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline:
+                with socket.socket() as s:
+                    if s.connect_ex(("127.0.0.1", self.port)) == 0:
+                        break
+                time.sleep(0.1)
 
     def stop(self) -> None:
         self.proc.kill()
@@ -69,15 +93,50 @@ def test_codec_round_trip_in_openpis_form():
         codec.packb(np.array([1j]))
 
 
-def test_codec_matches_openpi_client_where_installed():
-    msgpack_numpy = pytest.importorskip("openpi_client.msgpack_numpy")
-    msg = {"a": np.arange(6, dtype=np.float32).reshape(2, 3), "b": np.int64(3)}
-    for theirs_pack, ours_unpack in (
-        (msgpack_numpy.packb, codec.unpackb),
-        (codec.packb, msgpack_numpy.unpackb),
-    ):
-        got = ours_unpack(theirs_pack(msg))
-        assert np.array_equal(got["a"], msg["a"]) and got["b"] == 3
+@needs_openpi
+def test_codec_round_trips_through_openpi_clients_own():
+    """Ours packs, openpi_client.msgpack_numpy (its numpy 1.26 venv) unpacks and packs back,
+    ours unpacks: the same arrays, dtypes and scalars."""
+    msg = {
+        "observation/image": np.arange(2 * 4 * 3, dtype=np.uint8).reshape(2, 4, 3),
+        "observation/state": np.linspace(-1, 1, 8, dtype=np.float32),
+        "noise": np.ones((4, 7), dtype=np.float32),
+        "step": np.int64(3),
+        "prompt": "pick up the red cube",
+    }
+    r = subprocess.run(
+        [str(OPENPI_PYTHON), "-m", "tests.doubles.openpi_real_server", "--codec-check"],
+        input=codec.packb(msg),
+        capture_output=True,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        timeout=60,
+    )
+    assert r.returncode == 0, r.stderr.decode()[-2000:]
+    back = codec.unpackb(r.stdout)
+    assert back["prompt"] == msg["prompt"] and back["step"] == 3 and back["step"].dtype == np.int64
+    for k in ("observation/image", "observation/state", "noise"):
+        assert back[k].dtype == msg[k].dtype and np.array_equal(back[k], msg[k])
+
+
+@needs_openpi
+@pytest.mark.parametrize("flags", [(), ("--batch", "--noise")], ids=["per-row", "batched+noise"])
+def test_idr_through_the_real_openpi_server_package(flags):
+    server = Server(*flags, real=True)
+    try:
+        backbone = RemoteBackbone(port=server.port, key_map=KEYS)
+        policy = IDRPolicy(backbone)
+        policy.set_config(IDRConfig(mode="E"))
+        raw, obs = _obs(2)
+        out = policy.infer(obs, 5)
+        m = raw.images["agentview"].astype(np.float64).mean() / 255
+        s = raw.state.astype(np.float64).mean()
+        assert out.diag.e_img[0] == pytest.approx(2.0 * m * np.sqrt(28), rel=1e-5)
+        assert out.diag.e_prop[0] == pytest.approx(0.5 * abs(s) * np.sqrt(28), rel=1e-5)
+        assert out.crn is ("--noise" in flags)
+        backbone.close()
+    finally:
+        server.stop()
 
 
 def _obs(e: int = 0):
@@ -204,3 +263,23 @@ def test_an_unreachable_server_is_refused_before_any_work(tmp_path):
     with pytest.raises(ConfigError, match=r"policy server ws://127\.0\.0\.1"):
         plan_run(cfg, tmp_path / "run")
     assert not (tmp_path / "run").exists()
+
+
+def test_an_action_dim_that_does_not_fit_the_env_is_refused_naming_both_sides(tmp_path):
+    from pipeline.config import ConfigError, load_config
+    from pipeline.runner import plan_run
+
+    server = Server()  # 7-d actions; the fake marker env takes 2-d ones
+    try:
+        overrides = [*_remote_overrides(server.port), "backbone.params.action_dim=7"]
+        cfg = load_config(ROOT / "conf" / "smoke.yaml", overrides)
+        with pytest.raises(
+            ConfigError, match=r"env takes 2-d actions, but the policy server ws://"
+        ):
+            plan_run(cfg, tmp_path / "run")
+        # undeclared, a reply of another size than declared is the episode's error, named
+        backbone = RemoteBackbone(port=server.port, key_map=KEYS, action_dim=2)
+        with pytest.raises(RemoteBackboneError, match="answered 7-d actions but declared 2"):
+            backbone.predict_chunk(_obs()[1])
+    finally:
+        server.stop()

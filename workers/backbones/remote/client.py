@@ -33,6 +33,7 @@ import numpy as np
 
 from workers.backbones.base import Observation
 from workers.backbones.remote import codec
+from workers.io_spec import PolicyIO
 
 log = logging.getLogger(__name__)
 RECONNECT_S = 0.25  # between tries to connect to a server that is not up (restarting)
@@ -108,6 +109,7 @@ class RemoteBackbone:
         self.server_takes_noise = bool(idr.get("noise", False))
         self.chunk_len = int(chunk_len or self.metadata.get("action_horizon") or 0)
         self.action_dim = int(action_dim or self.metadata.get("action_dim") or 0)
+        self.declared_action_dim = self.action_dim  # 0: known from the first reply
         self.noise_shape = tuple(noise_shape or idr.get("noise_shape") or ())
         if self.server_takes_noise and not self.noise_shape:
             raise ValueError(
@@ -241,9 +243,32 @@ class RemoteBackbone:
                     f"the policy server answered actions {chunks[0].shape}; expected (T, D)"
                 )
             actions = np.stack(chunks)
+        if self.declared_action_dim and actions.shape[2] != self.declared_action_dim:
+            raise RemoteBackboneError(
+                f"the policy server answered {actions.shape[2]}-d actions but declared "
+                f"{self.declared_action_dim} (its metadata action_dim, or backbone.params.action_dim)"
+            )
         if self.chunk_len == 0:  # known from the first reply
             self.chunk_len, self.action_dim = actions.shape[1], actions.shape[2]
         return actions
+
+    @classmethod
+    def describe(cls, params: Mapping[str, Any]) -> PolicyIO | None:
+        """What the server declares (its metadata's ``action_dim`` / ``action_horizon``, or
+        these params), for the pre-flight's check against the env; None when it declares no
+        action dim (the first reply is then checked)."""
+        probe = cls(**{**params, "timeout_s": min(float(params.get("timeout_s", 30.0)), 10.0)})
+        probe.close()
+        if not probe.declared_action_dim:
+            return None
+        return PolicyIO(
+            images={},  # the server resizes what it gets; the key map names the cameras
+            state_dim=None,
+            action_dim=probe.declared_action_dim,
+            chunk_len=probe.chunk_len or 1,
+            resizes_images=True,
+            source=f"the policy server ws://{probe.host}:{probe.port}",
+        )
 
     @classmethod
     def check_params(cls, params: Mapping[str, Any]) -> None:
