@@ -190,6 +190,25 @@ def describe_backbone(kind: str, params: dict[str, Any]) -> PolicyIO | None:
     return None if describe is None else describe(params)
 
 
+def _check_intervention_spaces(cfg: RunConfig) -> None:
+    """Normalized-space interventions only where the backbone applies them itself (refused
+    here, before any actor, not as an error row of every episode)."""
+    from workers.backbones.factory import backbone_class
+
+    cls = backbone_class(cfg.backbone.kind)
+    native = getattr(cls, "native_intervention_spaces", frozenset())
+    spaces = {
+        (n, getattr(c.intervention, n)) for c in cfg.cells() for n in ("image_space", "state_space")
+    }
+    for name, space in sorted(spaces):
+        if space != "raw" and space not in native:
+            raise ConfigError(
+                f"intervention.{name}={space!r}: backbone {cfg.backbone.kind!r} applies no "
+                f"interventions in that space itself (it does in {sorted(native) or 'none'}); "
+                f"use intervention.{name}=raw"
+            )
+
+
 def fit_config(cfg: RunConfig) -> tuple[RunConfig, Fit]:
     """The config with what the pre-flight settled filled in (replan steps; camera map and
     image size where the checkpoint decides them), and the fit itself."""
@@ -203,6 +222,7 @@ def fit_config(cfg: RunConfig) -> tuple[RunConfig, Fit]:
         raise ConfigError(
             f"backbone.params.camera_map must map env camera -> image key, got {camera_map!r}"
         )
+    _check_intervention_spaces(cfg)
     if env is None and policy is not None:  # an env without describe: its class's action dim
         from workers.envs.factory import env_class
 
@@ -213,6 +233,16 @@ def fit_config(cfg: RunConfig) -> tuple[RunConfig, Fit]:
                 f"({policy.action_dim},); use a policy trained on this env's action space"
             )
     fit = fit_backbone_to_env(env, policy, cfg.backbone.replan_steps, camera_map)
+    if env is not None:  # a served model: one trial answer on an observation shaped like the env's
+        from workers.backbones.base import backbone_member
+        from workers.backbones.factory import backbone_class
+
+        dry_run = backbone_member(backbone_class(cfg.backbone.kind), "dry_run")
+        if dry_run is not None:
+            try:
+                dry_run(dict(cfg.backbone.params), env)
+            except ValueError as e:
+                raise ConfigError(str(e)) from None
     backbone = dict(cfg.backbone.params)
     if fit.camera_map is not None and any(k != v for k, v in fit.camera_map.items()):
         backbone["camera_map"] = fit.camera_map  # same names need none (the adapter's default)

@@ -97,6 +97,12 @@ OPTIONAL_BACKBONE_MEMBERS: dict[str, tuple[Any, str]] = {
         "classmethod(params) raising ValueError: checks of its own before any actor starts "
         "(a checkpoint that does not exist or cannot fit the env); None: none",
     ),
+    "dry_run": (
+        None,
+        "classmethod(params, env: workers.io_spec.EnvIO) -> None: one trial inference on an "
+        "observation shaped like the env's (a served model), raising ValueError naming both "
+        "sides when the answer does not fit the env; the pre-flight calls it; None: no trial",
+    ),
     "describe": (
         None,
         "classmethod(params) -> workers.io_spec.PolicyIO | None: the cameras, image shapes, "

@@ -283,3 +283,48 @@ def test_an_action_dim_that_does_not_fit_the_env_is_refused_naming_both_sides(tm
             backbone.predict_chunk(_obs()[1])
     finally:
         server.stop()
+
+
+@needs_openpi
+@pytest.mark.slow
+def test_the_tabletop_through_the_real_openpi_server_with_its_dry_run(tmp_path):
+    """The CLI's pre-flight sends a dry run shaped like the tabletop's observation (two 96 px
+    cameras, 8-d state): a 2-d answer is refused naming both sides; a 7-d one runs, and IDR's
+    effects are in the rows."""
+    from pipeline.config import ConfigError, load_config
+    from pipeline.runner import execute, plan_run
+    from pipeline.store import RunStore
+
+    def cfg(port: int):
+        return load_config(
+            ROOT / "conf" / "default.yaml",
+            [
+                "tracking.enabled=false",
+                "executor.kind=inline",
+                "env.tasks=[pick_color]",
+                "episodes_per_task=1",
+                "grid=[{mode: [E]}]",
+                "idr.tau=7.0",
+                "intervention.state_space=raw",  # a served model: interventions on our side
+                "backbone.kind=remote",
+                "backbone.replan_steps=4",
+                f"backbone.params={{port: {port}, key_map: openpi_libero}}",
+            ],
+        )
+
+    wrong = Server("--action-dim", "2", real=True)
+    try:
+        with pytest.raises(
+            ConfigError, match=r"env takes 7-d actions, but the policy server .* \(4, 2\)"
+        ):
+            plan_run(cfg(wrong.port), tmp_path / "wrong")
+    finally:
+        wrong.stop()
+    server = Server(real=True)
+    try:
+        summary = execute(plan_run(cfg(server.port), tmp_path / "run"))
+    finally:
+        server.stop()
+    eps = RunStore(tmp_path / "run").episodes().to_pandas()
+    assert summary.stored == 1 and summary.errors == 0 and eps.error.isna().all()
+    assert eps.e_img_mean.iloc[0] > 0 and eps.steps.iloc[0] > 0

@@ -33,7 +33,7 @@ import numpy as np
 
 from workers.backbones.base import Observation
 from workers.backbones.remote import codec
-from workers.io_spec import PolicyIO
+from workers.io_spec import EnvIO, PolicyIO
 
 log = logging.getLogger(__name__)
 RECONNECT_S = 0.25  # between tries to connect to a server that is not up (restarting)
@@ -269,6 +269,40 @@ class RemoteBackbone:
             resizes_images=True,
             source=f"the policy server ws://{probe.host}:{probe.port}",
         )
+
+    @classmethod
+    def dry_run(cls, params: Mapping[str, Any], env: EnvIO) -> None:
+        """One request shaped like the env's observation (zeros, its cameras at their sizes,
+        its state dim); the reply's actions must be (T, env.action_dim)."""
+        import torch
+
+        probe = cls(**{**params, "timeout_s": min(float(params.get("timeout_s", 30.0)), 10.0)})
+        try:
+            missing = [c for c in probe.cameras if c not in env.cameras]
+            if missing:
+                raise ValueError(
+                    f"backbone.params.key_map sends cameras {missing} the env does not render "
+                    f"(env cameras: {list(env.cameras)})"
+                )
+            obs = Observation(
+                images={
+                    c: torch.zeros(1, 3, env.size_of(c), env.size_of(c)) for c in probe.cameras
+                },
+                state=torch.zeros(1, env.state_dim),
+                instruction=["dry run"],
+            )
+            try:
+                actions = probe.predict_chunk(obs, probe.make_noise(1, 0))
+            except RemoteBackboneError as e:
+                raise ValueError(f"dry run on an observation shaped like the env's: {e}") from None
+            if actions.shape[2] != env.action_dim:
+                raise ValueError(
+                    f"action: the env takes {env.action_dim}-d actions, but the policy server "
+                    f"ws://{probe.host}:{probe.port} answered a dry run with actions "
+                    f"{tuple(actions.shape[1:])} (T, D)"
+                )
+        finally:
+            probe.close()
 
     @classmethod
     def check_params(cls, params: Mapping[str, Any]) -> None:
