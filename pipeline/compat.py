@@ -191,22 +191,17 @@ def describe_backbone(kind: str, params: dict[str, Any]) -> PolicyIO | None:
 
 
 def _check_intervention_spaces(cfg: RunConfig) -> None:
-    """Normalized-space interventions only where the backbone applies them itself (refused
-    here, before any actor, not as an error row of every episode)."""
+    """The wrapper's own check (normalized-space interventions only where the backbone applies
+    them), for every cell, here before any actor rather than as an error row per episode."""
     from workers.backbones.factory import backbone_class
+    from workers.idr_policy import check_intervention_spaces
 
     cls = backbone_class(cfg.backbone.kind)
-    native = getattr(cls, "native_intervention_spaces", frozenset())
-    spaces = {
-        (n, getattr(c.intervention, n)) for c in cfg.cells() for n in ("image_space", "state_space")
-    }
-    for name, space in sorted(spaces):
-        if space != "raw" and space not in native:
-            raise ConfigError(
-                f"intervention.{name}={space!r}: backbone {cfg.backbone.kind!r} applies no "
-                f"interventions in that space itself (it does in {sorted(native) or 'none'}); "
-                f"use intervention.{name}=raw"
-            )
+    try:
+        for cell in cfg.cells():
+            check_intervention_spaces(cls, cfg.backbone.kind, cell.intervention)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
 
 
 def fit_config(cfg: RunConfig) -> tuple[RunConfig, Fit]:

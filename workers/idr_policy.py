@@ -46,6 +46,19 @@ def _repeat3(noise: Any) -> Any:
     return np.concatenate([noise, noise, noise], axis=0)
 
 
+def check_intervention_spaces(backbone: Any, name: str, intervention: InterventionConfig) -> None:
+    """Normalized-space interventions only where ``backbone`` (an instance or its class)
+    applies them itself; raw-space ones the wrapper applies for any backbone."""
+    native = getattr(backbone, "native_intervention_spaces", frozenset())
+    for field_name in ("image_space", "state_space"):
+        space = getattr(intervention, field_name)
+        if space != "raw" and space not in native:
+            raise ValueError(
+                f"intervention.{field_name}={space!r} is not supported by backbone {name!r} "
+                f"(it applies interventions in {sorted(native) or 'no'} space itself); use 'raw'"
+            )
+
+
 class IDRPolicy:
     """A backbone wrapped by the IDR refiner; ``infer`` returns an :class:`IDRStep`."""
 
@@ -66,15 +79,7 @@ class IDRPolicy:
         self.batched = can_batch if batched is None else batched
 
     def _check_spaces(self, intervention: InterventionConfig) -> None:
-        native = getattr(self.backbone, "native_intervention_spaces", frozenset())
-        for field_name in ("image_space", "state_space"):
-            space = getattr(intervention, field_name)
-            if space != "raw" and space not in native:
-                raise ValueError(
-                    f"intervention.{field_name}={space!r} is not supported by backbone "
-                    f"{self.backbone.name!r} (it applies interventions in "
-                    f"{sorted(native) or 'no'} space itself); use 'raw'"
-                )
+        check_intervention_spaces(self.backbone, self.backbone.name, intervention)
 
     def set_config(self, cfg: IDRConfig, intervention: InterventionConfig | None = None) -> None:
         """Switch the IDR cell without reloading the backbone."""

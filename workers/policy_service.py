@@ -85,14 +85,14 @@ def infer_many(policy: IDRPolicy, requests: list[InferRequest]) -> list[IDRStep]
             policy.set_config(req.idr, req.intervention)
             out.append(policy.infer(req.obs, req.step_seed))
         return out
+
+    def forward_group(pair: tuple[int, InferRequest]) -> str:  # "" : raw-space, all together
+        iv = pair[1].intervention
+        return repr(iv) if _native(iv) else ""
+
     answers: dict[int, IDRStep] = {}
-    indexed = sorted(
-        enumerate(requests),
-        key=lambda p: repr(p[1].intervention) if _native(p[1].intervention) else "",
-    )
-    for _, group in groupby(
-        indexed, key=lambda p: repr(p[1].intervention) if _native(p[1].intervention) else ""
-    ):
+    indexed = sorted(enumerate(requests), key=forward_group)
+    for _, group in groupby(indexed, key=forward_group):
         answers.update(_one_forward(policy, list(group)))
     return [answers[i] for i in range(len(requests))]
 

@@ -131,3 +131,22 @@ def test_an_env_without_a_protocol_logs_none_and_same_names_need_no_note() -> No
     assert lerobot.notes == (
         "camera_map {'agentview': 'image', 'wrist': 'image2'} by the checkpoint's camera names",
     )
+
+
+@pytest.mark.parametrize(
+    "where", ["intervention.state_space=normalized", "grid=[{image_space: [raw, normalized]}]"]
+)
+def test_a_space_the_backbone_cannot_intervene_in_is_refused_before_work(tmp_path, where):
+    """The wrapper's check, for every cell, in the pre-flight (was an error row per episode)."""
+    from pathlib import Path
+
+    from pipeline.config import load_config
+    from pipeline.runner import plan_run
+
+    conf = Path(__file__).resolve().parents[2] / "conf" / "smoke.yaml"
+    cfg = load_config(conf, [where, "tracking.enabled=false"])
+    with pytest.raises(
+        ConfigError, match=r"_space='normalized' is not supported by backbone 'fake_marker'"
+    ):
+        plan_run(cfg, tmp_path / "run")
+    assert not (tmp_path / "run").exists()
