@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import logging
 import os
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 # Arrow's buffers from the system allocator, which hands large freed blocks back to the OS at
 # once; Arrow's default (mimalloc) keeps them: a report over 5 M step rows peaked at 2.3-2.6 GB
@@ -18,7 +18,8 @@ from pipeline.config import ConfigError
 from pipeline.errors import RunError, is_disk_full
 from pipeline.signals import RunInterrupted, stop_on_signals
 
-LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1")
+if TYPE_CHECKING:
+    from pipeline.config import RunConfig
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -28,13 +29,16 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config, args.overrides)
     run_dir = Path(args.out) if args.out else Path(cfg.output_root) / cfg.name
+    _import_logging_libraries(cfg)
     plan = plan_run(
         cfg, run_dir, yes=args.yes, adopt=args.adopt, allow_code_change=args.allow_code_change
     )
-    n_cells = len(plan.specs.cells) + len(plan.calibrated.cells)
+    cells = [c.cell_id for c in (*plan.specs.cells, *plan.calibrated.cells)]
     print(
-        f"run {plan.run_id}: {len(plan.all_specs())} episodes ({n_cells} cells x {len(plan.tasks)} tasks "
-        f"x {cfg.episodes_per_task}) -> {run_dir}"
+        f"run {plan.run_id}: {len(plan.all_specs())} episodes = {len(cells)} cells "
+        f"({', '.join(cells[:8])}{', ...' if len(cells) > 8 else ''}) x {len(plan.tasks)} tasks "
+        f"({', '.join(t.task_id for t in plan.tasks[:6])}{', ...' if len(plan.tasks) > 6 else ''})"
+        f" x {cfg.episodes_per_task} episodes -> {run_dir} (logs in {run_dir / 'logs'})"
     )
     if plan.fit is not None:
         if plan.fit.protocol:
@@ -57,7 +61,32 @@ def _cmd_run(args: argparse.Namespace) -> int:
         f"{summary.actors_replaced} actors replaced, {summary.timeouts} timeouts"
     )
     print((run_dir / "report.md").read_text())
+    print(_ui_hint(run_dir))
     return 0
+
+
+def _import_logging_libraries(cfg: RunConfig) -> None:
+    """Import Ray and MLflow now, where the run uses them, and send their log records to the
+    run's log (pipeline.run_log): each installs its own terminal handler when imported."""
+    from pipeline.run_log import RUN_LOG
+
+    if cfg.executor.kind == "ray":
+        import ray  # noqa: F401
+    if cfg.tracking.enabled:
+        import mlflow  # noqa: F401
+    RUN_LOG.route_libraries()
+
+
+def _ui_hint(run_dir: Path) -> str:
+    """Where the run's cells are side by side in the MLflow UI (or why they are not)."""
+    from pipeline.mlflow_ui import select, ui_base
+
+    try:
+        sel = select([run_dir])
+    except ConfigError as e:
+        return f"MLflow: {e}"
+    start = "" if sel.uri.startswith("http") else f"`idr-eval ui {run_dir}`, then open "
+    return f"MLflow: the {len(sel.runs)} cells side by side: {start}{sel.compare_url(ui_base(sel.uri))}"
 
 
 def _cmd_compact(args: argparse.Namespace) -> int:
@@ -86,9 +115,13 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
-    from pipeline.compare import compare
+    from pipeline.compare import TablesRefused, compare
 
-    text, _ = compare(args.run_dirs, out=args.out, n_boot=args.bootstrap)
+    try:
+        text, _ = compare(args.run_dirs, out=args.out, n_boot=args.bootstrap)
+    except TablesRefused as e:  # no table, but the UI can still show the runs side by side
+        print(e.ui_text)
+        raise
     print(text)
     if args.out:
         print(f"written to {Path(args.out) / 'compare.md'}")
@@ -96,61 +129,68 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
 
 def _cmd_ui(args: argparse.Namespace) -> int:
-    """Start the MLflow UI for a run's store (bound to 127.0.0.1 unless --host says otherwise)."""
-    import json
+    """Start the MLflow UI for the run dirs' store (127.0.0.1 unless --host says otherwise),
+    printing the Compare URL of their cells (``--open``: opened in a browser)."""
     import subprocess
 
-    from pipeline.tracking import TRACKING_FILE, default_uri
+    from pipeline.mlflow_ui import LOCAL_HOSTS, check_store, remote_ui_help, select, ui_base
+    from pipeline.tracking import default_uri
 
-    if args.run_dir:
-        state = Path(args.run_dir) / TRACKING_FILE
-        if not state.is_file():
-            raise ConfigError(
-                f"{args.run_dir} has no {TRACKING_FILE}: was it run with tracking.enabled=false?"
-            )
-        uri = json.loads(state.read_text())["uri"]
+    sel = None
+    if args.run_dirs:
+        sel = select([Path(p) for p in args.run_dirs])
+        uri = sel.uri
     else:
         uri = default_uri(Path("runs") / "_")
     if not uri.startswith("sqlite:"):
-        print(_remote_ui_help(uri))
+        print(remote_ui_help(uri))
+        if sel is not None:
+            print(f"the cells side by side: {sel.compare_url(ui_base(uri))}")
         return 0
-    cmd = [
-        sys.executable,
-        "-m",
-        "mlflow",
-        "ui",
-        "--backend-store-uri",
-        uri,
-        "--host",
-        args.host,
-        "--port",
-        str(args.port),
-    ]
-    print(f"MLflow UI for {uri} on http://{args.host}:{args.port} (Ctrl-C to stop)")
-    if args.host not in LOCAL_HOSTS:
+    check_store(uri)
+    base = ui_base(uri, args.host, args.port)
+    cmd = [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", uri]
+    cmd += ["--host", args.host, "--port", str(args.port), "--workers", str(args.workers)]
+    print(f"MLflow UI for {uri} on {base} (Ctrl-C to stop)")
+    if args.host in LOCAL_HOSTS:
+        print(
+            f"it listens on {args.host} only: this machine; from another one, tunnel "
+            f"(ssh -N -L {args.port}:127.0.0.1:{args.port} USER@THIS_HOST) or pass --host 0.0.0.0"
+        )
+    else:
         print(
             f"idr-eval: warning: --host {args.host} makes the MLflow UI (no authentication) "
             "reachable from the network; prefer 127.0.0.1 and an SSH tunnel",
             file=sys.stderr,
         )
-    return subprocess.call(cmd)
+    url = sel.compare_url(base) if sel is not None and sel.runs else base
+    if sel is not None and sel.runs:
+        print(f"the {len(sel.runs)} cells side by side: {url}")
+    proc = subprocess.Popen(cmd)
+    if args.open:
+        _open_when_up(base, url, proc)
+    try:
+        return proc.wait()
+    except KeyboardInterrupt:
+        proc.terminate()
+        return proc.wait()
 
 
-def _remote_ui_help(uri: str) -> str:
-    """How to open the UI of a tracking server (it serves its own UI; nothing to start here)."""
-    from urllib.parse import urlsplit
+def _open_when_up(base: str, url: str, proc: object) -> None:
+    """Open ``url`` in the user's browser once the UI answers (up to 60 s)."""
+    import time
+    import urllib.request
+    import webbrowser
 
-    parts = urlsplit(uri)
-    host, port = parts.hostname or "SERVER", parts.port or (443 if parts.scheme == "https" else 80)
-    if host in LOCAL_HOSTS:
-        return f"{uri} is a tracking server on this machine: open {uri} in a browser."
-    return (
-        f"{uri} is a tracking server: it serves its own UI, nothing to start here. Open {uri} in "
-        "a browser if it is reachable from here; otherwise (it listens on a cluster's private "
-        f"network) tunnel to it and open http://127.0.0.1:{port}:\n"
-        f"  ssh -N -L {port}:{host}:{port} USER@HEAD_NODE        # a VM cluster (ray up)\n"
-        f"  kubectl port-forward svc/{host.split('.')[0]} {port}:{port}   # Kubernetes (KubeRay)"
-    )
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and proc.poll() is None:  # type: ignore[attr-defined]
+        try:
+            with urllib.request.urlopen(f"{base}/health", timeout=2):
+                break
+        except OSError:
+            time.sleep(0.5)
+    if not webbrowser.open(url):
+        print(f"no browser to open here: open {url}")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -194,12 +234,19 @@ def build_parser() -> argparse.ArgumentParser:
     cmp.add_argument("--out", help="folder for compare.md and the R_img heatmap across runs")
     cmp.add_argument("--bootstrap", type=int, default=2000, help="bootstrap resamples for the CI")
     cmp.set_defaults(func=_cmd_compare)
-    ui = sub.add_parser("ui", help="MLflow UI for a run dir's store (default: runs/mlflow.db)")
-    ui.add_argument("run_dir", nargs="?")
+    ui = sub.add_parser(
+        "ui",
+        help="MLflow UI for run dirs' store (default: runs/mlflow.db), at their cells' Compare page",
+    )
+    ui.add_argument("run_dirs", nargs="*", metavar="RUN_DIR")
+    ui.add_argument("--open", action="store_true", help="open the Compare page in a browser")
     ui.add_argument(
         "--host", default="127.0.0.1", help="bind address (default 127.0.0.1: local only)"
     )
     ui.add_argument("--port", type=int, default=5000)
+    ui.add_argument(
+        "--workers", type=int, default=1, help="server processes (MLflow's default 4; one user: 1)"
+    )
     ui.set_defaults(func=_cmd_ui)
     return p
 
@@ -212,11 +259,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.command != "run" or any("=" not in e for e in extra):
             parser.error(f"unrecognized arguments: {' '.join(extra)}")
         args.overrides = [*args.overrides, *extra]
-    logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.INFO,
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-        datefmt="%H:%M:%S",
-    )
+    from pipeline.run_log import RUN_LOG
+
+    RUN_LOG.install(verbose=args.verbose)
     try:
         return args.func(args)
     except ConfigError as e:

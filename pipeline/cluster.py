@@ -117,19 +117,20 @@ def init_ray(
 
     if ray.is_initialized():
         return
+    # the actors write their output to the run dir (workers.worker_log), not to this terminal
     env = {"RAY_DEDUP_LOGS": "1"}
     for k, v in env.items():
         os.environ.setdefault(k, v)
     try:
         if address:
-            ray.init(address=address, log_to_driver=True)
+            ray.init(address=address, log_to_driver=False)
         else:
             ray.init(
                 num_cpus=num_cpus,
                 num_gpus=num_gpus,
                 resources=resources,
                 include_dashboard=False,
-                log_to_driver=True,
+                log_to_driver=False,
             )
     except (RuntimeError, ConnectionError, TimeoutError) as e:
         where = f"join the Ray cluster at {address}" if address else "start a local Ray"

@@ -9,13 +9,13 @@ the same backbone, suites and seeds that has one (its episodes have the same key
 states). Runs must cover the same tasks: anything else is refused before any number is
 computed, naming the tasks that differ.
 
-It also prints the MLflow search filter that selects the compared cells' runs, so the UI's
-run comparison shows them side by side.
+It also prints the MLflow Compare URL of the compared cells (and the runs-table filter that
+selects them), also when the tasks differ and the table is refused: the UI can still show the
+runs side by side.
 """
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,7 +25,6 @@ import pandas as pd
 from pipeline import aggregate as agg
 from pipeline.config import ConfigError
 from pipeline.store import RunStore
-from pipeline.tracking import TRACKING_FILE
 
 PAIR_KEY = ["suite", "task_id", "episode_index"]
 #: The paper's column order for LIBERO (Spatial, Object, Goal, Long); other suites by name.
@@ -227,21 +226,39 @@ def render(table: pd.DataFrame, suites: list[str]) -> str:
     return "\n".join(lines)
 
 
-def mlflow_selection(runs: list[RunEpisodes]) -> tuple[str | None, str]:
-    """(tracking URI, UI search filter selecting every compared cell's child run); the URI is
-    None, and the text says why, when a run was not tracked or the runs use different stores."""
-    uris, ids = set(), []
-    for r in runs:
-        path = (r.run_dir or Path()) / TRACKING_FILE
-        if not path.is_file():
-            return None, f"{r.label} was run with tracking.enabled=false"
-        state = json.loads(path.read_text())
-        uris.add(state["uri"])
-        cells = set(r.episodes["cell_id"])
-        ids += [rid for cell, rid in state.get("children", {}).items() if cell in cells]
-    if len(uris) != 1:
-        return None, f"the runs are in different MLflow stores: {sorted(uris)}"
-    return uris.pop(), "attributes.run_id IN (" + ", ".join(f"'{i}'" for i in ids) + ")"
+class TablesRefused(ConfigError):
+    """The runs cannot share a table; ``ui_text`` still says how to see them in MLflow."""
+
+    def __init__(self, message: str, ui_text: str) -> None:
+        super().__init__(message)
+        self.ui_text = ui_text
+
+
+def mlflow_lines(runs: list[RunEpisodes], ui: str | None = None) -> list[str]:
+    """How to see the compared cells in the MLflow UI: the Compare page's URL (of ``idr-eval
+    ui``'s address, or the tracking server's) and the runs-table filter; or why there is none."""
+    from pipeline.mlflow_ui import select, ui_base
+
+    dirs = [r.run_dir for r in runs if r.run_dir is not None]
+    try:
+        sel = select(dirs, {r.run_dir: set(r.episodes["cell_id"]) for r in runs if r.run_dir})
+    except ConfigError as e:
+        return [f"No MLflow selection: {e}."]
+    base = ui or ui_base(sel.uri)
+    start = (
+        ""
+        if sel.uri.startswith(("http://", "https://"))
+        else f" (start it with `idr-eval ui {' '.join(str(d) for d in dirs)}`)"
+    )
+    return [
+        f"MLflow ({sel.uri}): the {len(sel.runs)} cells side by side in the UI{start}:",
+        "",
+        f"    {sel.compare_url(base)}",
+        "",
+        "or paste this into the runs table's search box:",
+        "",
+        f"    {sel.search_filter}",
+    ]
 
 
 def compare(
@@ -250,7 +267,11 @@ def compare(
     """Validate, build the table (and with ``out`` write OUT/compare.md plus the R_img heatmap
     across runs); returns (markdown, table)."""
     runs = load_runs(run_dirs)
-    check_same_tasks(runs)  # before any work
+    ui_lines = mlflow_lines(runs)
+    try:
+        check_same_tasks(runs)  # before any work
+    except ConfigError as e:
+        raise TablesRefused(str(e), "\n".join(ui_lines) + "\n") from None
     table = compare_table(runs, n_boot=n_boot)
     suites = suite_columns(runs)
     parts = [
@@ -261,16 +282,7 @@ def compare(
         "",
         render(table, suites),
     ]
-    uri, flt = mlflow_selection(runs)
-    if uri is not None:
-        parts += [
-            "",
-            f"MLflow ({uri}): paste this into the UI's run search box, select all, Compare:",
-            "",
-            f"    {flt}",
-        ]
-    else:
-        parts += ["", f"No MLflow selection: {flt}."]
+    parts += ["", *ui_lines]
     if out is not None:
         from pipeline.figures import FIGURES_DIR, rimg_heatmap, rimg_matrix, runs_effects, save
 

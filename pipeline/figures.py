@@ -494,6 +494,48 @@ def build_figures(data: RunData, bins: int = 10) -> Figures:
     return Figures(built, skipped)
 
 
+def cell_figures(data: RunData, cell: str, bins: int = 10) -> Figures:
+    """One cell's figures (its MLflow child run's): R_img over progress, the cell against the
+    run's reference diagnose cell, and the cell's gate rate over progress if it refines."""
+    built: dict[str, Figure] = {}
+    skipped: dict[str, str] = {}
+    ok = data.episodes[data.episodes["error"].isna()]
+    per_cell = ok.groupby("cell_id")[["mode", "strategy", "alpha"]].first()
+    if cell not in per_cell.index:
+        return Figures({}, {"rimg_progress": "no episodes without error"})
+    mode = str(per_cell.loc[cell, "mode"])
+    if mode == "baseline":
+        skipped["rimg_progress"] = "a baseline cell runs no counterfactual passes"
+    else:
+        ref = reference_diagnose(per_cell.reset_index())
+        lines = [(cell, cell)]
+        if ref is not None and ref != cell:
+            lines.insert(0, (ref, f"baseline ({ref}: executes a_base)"))
+        ref_steps = data.steps[data.steps["cell_id"] == (ref or cell)]
+        built["rimg_progress"] = rimg_progress(data.steps, lines, gripper_events(ref_steps), bins)
+    if mode in REFINING:
+        built["gate_progress"] = gate_progress(data.steps, [cell], bins)
+    return Figures(built, skipped)
+
+
+def progress_curves(data: RunData, bins: int = 10) -> dict[str, dict[str, list[tuple[int, float]]]]:
+    """Per cell: the mean R_img (and for a refining cell the gate rate) per progress bin as
+    (step, value) pairs, step =
+    the bin's centre in percent of the episode (5, 15, ..., 95): MLflow line charts of
+    step-indexed metrics overlay cells on one progress axis."""
+    out: dict[str, dict[str, list[tuple[int, float]]]] = {}
+    modes = data.steps.groupby("cell_id", observed=True)["mode"].first()
+    refining = sorted(str(c) for c, m in modes.items() if m in REFINING)
+    for column, name, cells in (("r_img", "r_img", None), ("gate", "gate_rate", refining)):
+        if cells == []:
+            continue
+        b = binned(data.steps, column, bins, cells)
+        for r in b.itertuples():
+            step = round(100 * float(r.x))
+            out.setdefault(str(r.cell_id), {}).setdefault(name, []).append((step, float(r.mean)))
+    return out
+
+
 def save(fig: Figure, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.tmp.png")

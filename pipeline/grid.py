@@ -46,6 +46,10 @@ SHORT_NAMES = {
 }
 
 
+#: Parameters a refining mode's ablation leaves unused (workers/idr.py): D has no gate, A no
+#: stabilizer term, B no clip of the stabilizer.
+_UNUSED_BY_MODE = {"D": {"tau"}, "A": {"beta", "lam"}, "B": {"lam"}}
+
 CALIBRATED = "calibrated"
 #: Parameters a diagnose cell keeps in its id: those that change what it measures.
 DIAGNOSE_KEYS = frozenset((*INTERVENTION_KEYS, "eps"))
@@ -138,6 +142,33 @@ class Cell:
         if self.calibrated_tau is not None:
             out["tau"] = self.calibrated_tau.text
         return out
+
+    @property
+    def role(self) -> str:
+        """``baseline`` (backbone only), ``diagnose`` (measures, executes a_base) or ``idr``
+        (a refining mode, A-F): what the cell is, for filters in tables and in the UI."""
+        if self.idr.mode in ("baseline", "diagnose"):
+            return self.idr.mode
+        return "idr"
+
+    def meaningful_params(self) -> dict[str, Any]:
+        """``params()`` less what the cell's mode does not use, so that a comparison never
+        places a cell at a value it ignores: a baseline runs no counterfactual passes (no
+        IDR or intervention parameter applies); a diagnose cell measures the effects (its
+        intervention settings and eps apply) but never refines (alpha, beta, lam, tau and
+        guidance do not); a refining mode uses all of them except what its ablation drops
+        (D: no gate, so no tau; A: no stabilizer, so no beta or lam; B: no clip, so no
+        lam). ``noise_scale`` only with the gaussian intervention."""
+        params = self.params()
+        if self.role == "baseline":
+            keep = {"mode"}
+        elif self.role == "diagnose":
+            keep = {"mode", *DIAGNOSE_KEYS}
+        else:
+            keep = set(params) - _UNUSED_BY_MODE.get(self.idr.mode, set())
+        if self.intervention.strategy != "gaussian":
+            keep.discard("noise_scale")  # the std of the gaussian intervention only
+        return {k: v for k, v in params.items() if k in keep}
 
     def calibration_source(self, cells: list[Cell]) -> Cell | None:
         """The diagnose cell whose measurements calibrate this cell's tau: the one with the

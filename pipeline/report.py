@@ -133,14 +133,32 @@ def _protocol(run_dir: Path) -> list[str]:
 
 
 def build_report(
-    run_dir: str | Path, figures: tuple[dict[str, Path], dict[str, str]] | str | None = None
+    run_dir: str | Path,
+    figures: tuple[dict[str, Path], dict[str, str]] | str | None = None,
+    *,
+    focus: str | None = None,
+    episodes: pd.DataFrame | None = None,
 ) -> str:
-    """The report text; ``figures``: what ``write_figures`` returned (or why it failed)."""
+    """The report text; ``figures``: what ``write_figures`` returned (or why it failed).
+
+    ``focus``: one cell's slice (its MLflow child run's report): the main table holds the cell
+    and the reference it is paired with, every other table the cell alone. ``episodes``: the
+    run's episodes where the caller has them read already."""
     run_dir = Path(run_dir)
     store = RunStore(run_dir, read_only=True)
-    episodes = store.episodes().to_pandas()
-    parts = [f"# IDR evaluation report: `{run_dir.name}`", "", *_protocol(run_dir)]
-    files = _file_health(store)
+    if episodes is None:
+        episodes = store.episodes().to_pandas()
+    title = (
+        f"# Cell `{focus}` of run `{run_dir.name}`"
+        if focus
+        else f"# IDR evaluation report: `{run_dir.name}`"
+    )
+    parts = [title, "", *_protocol(run_dir)]
+    files = [] if focus else _file_health(store)
+    if focus is not None:
+        ref = agg.reference_cell(set(episodes["cell_id"]))
+        paired = episodes[episodes["cell_id"].isin({focus, ref})]
+        episodes = episodes[episodes["cell_id"] == focus]
     if episodes.empty:
         return "\n".join([*parts, "No episodes stored yet.", *files]) + "\n"
     n_err = int(episodes["error"].notna().sum())
@@ -151,7 +169,7 @@ def build_report(
         "",
         "## Success rate (%) by suite, with the paired difference against baseline",
         "",
-        main_table(episodes),
+        main_table(paired if focus is not None else episodes),
         "",
         "## Success by task (%, Wilson 95% interval)",
         "",
@@ -243,7 +261,7 @@ def build_report(
             ],
         )
     )
-    parts += calibration_section(run_dir)
+    parts += [] if focus else calibration_section(run_dir)
     parts += figures_section(figures)
     errs = agg.errors(episodes)
     if not errs.empty:
@@ -267,7 +285,7 @@ def build_report(
 
 
 def write_report(run_dir: str | Path, figures: bool = True) -> Path:
-    """Write RUN_DIR/report.md (and, with ``figures``, RUN_DIR/figures/*.png)."""
+    """Write RUN_DIR/report.md and report.html (and, with ``figures``, RUN_DIR/figures/*.png)."""
     run_dir = Path(run_dir)
     drawn: tuple[dict[str, Path], dict[str, str]] | str | None = None
     if figures and RunStore(run_dir, read_only=True).stored_count():
@@ -283,4 +301,10 @@ def write_report(run_dir: str | Path, figures: bool = True) -> Path:
     tmp = path.with_suffix(".md.tmp")
     tmp.write_text(text)
     tmp.replace(path)
+    try:  # report.html: the same, its figures embedded (what MLflow's artifact viewer shows)
+        from pipeline.ui_artifacts import write_report_html
+
+        write_report_html(path)
+    except Exception as e:
+        log.warning("report.html not written: %s: %s", type(e).__name__, e)
     return path

@@ -29,6 +29,7 @@ from pipeline.plan import CellPlan, Chain, SpecGrid
 from pipeline.progress import Progress
 from pipeline.provenance import check_resume, checkpoint_path, checkpoint_record
 from pipeline.report import FIGURES_DIR, write_report
+from pipeline.run_log import LOGS_DIR, RUN_LOG
 from pipeline.scheduler import RunSummary, Scheduler
 from pipeline.signals import critical_section
 from pipeline.store import RunStore
@@ -261,6 +262,7 @@ def plan_run(
         cfg.backbone.batched,
         server,
         envs_per_worker=cfg.executor.envs_per_worker,
+        log_dir=str((run_dir / LOGS_DIR).resolve()),
     )
     return RunPlan(
         cfg,
@@ -380,6 +382,8 @@ def _execute(plan: RunPlan) -> RunSummary:
 
         connect(cfg.executor)
     _write_meta(plan)
+    (plan.run_dir / LOGS_DIR).mkdir(exist_ok=True)  # the actors' output (workers.worker_log)
+    RUN_LOG.attach(plan.run_dir)  # the CLI's log, from now on in RUN_DIR/logs/driver.log
     store = RunStore(plan.run_dir)
     if store.quarantined:  # unreadable batches moved aside on open: said in run.json too
         meta_path = plan.run_dir / RUN_META
@@ -437,7 +441,8 @@ def _execute(plan: RunPlan) -> RunSummary:
                     episodes = store.episodes().to_pandas()
                     figures = sorted((plan.run_dir / FIGURES_DIR).glob("*.png"))
                     extra = [plan.run_dir / "config.yaml", plan.run_dir / CALIBRATION_FILE]
-                    tracker.finish(episodes, [report, *extra, *figures], status)
+                    page = report.with_suffix(".html")
+                    tracker.finish(episodes, [report, page, *extra, *figures], status)
                 except Exception as e:
                     _after_stop(status, f"marking the MLflow runs {status}", e)
     if all_failed:
@@ -507,7 +512,12 @@ def run_episodes(
     ex = plan.cfg.executor
     store = store if store is not None else RunStore(plan.run_dir)
     executor = executor if executor is not None else make_executor(plan.worker_spec, ex)
-    progress = Progress(len(plan.all_specs()))
+    per_task: dict[str, int] = {}  # episodes per task, for the ETA (no spec is built)
+    for grid in (plan.specs, plan.calibrated):
+        for task in grid.tasks:
+            n = len(grid.cells) * grid.episodes_per_task
+            per_task[task.task_id] = per_task.get(task.task_id, 0) + n
+    progress = Progress(len(plan.all_specs()), per_task, ex.workers * ex.envs_per_worker)
     # what the run dir holds now must still be there at each flush
     markers = tuple(n for n in RUN_DIR_MARKERS if (plan.run_dir / n).exists())
     writer = BatchWriter(

@@ -112,6 +112,8 @@ class Scheduler:
             if not self.writer.holds(spec.key):
                 return spec
             self.summary.skipped += 1
+            if self.progress is not None:
+                self.progress.eta.skipped(spec.task_id)
         return None
 
     # -- policy --------------------------------------------------------------------------------
@@ -141,6 +143,8 @@ class Scheduler:
         self.summary.errors += int(result.is_error)
         self.summary.successes += int(result.episode.success and not result.is_error)
         self.writer.add(result)
+        if self.progress is not None:
+            self.progress.eta.finished(spec.task_id, result.episode.wall_seconds)
 
     def _lost(self, spec: EpisodeSpec, reason: str) -> None:
         """The worker died or timed out under this episode: retry, or store an error row."""

@@ -6,13 +6,24 @@ root share one store and can be compared side by side in the UI; ``tracking.uri`
 other store (a tracking server for a cluster). Run ids are kept in ``RUN_DIR/tracking.json`` so
 a resumed run logs into the same MLflow runs.
 
-Children carry the cell's parameters as params and as ``idr.*`` tags, so the UI's run
-comparison shows the cells side by side; metrics are logged when the run finishes (and a
-progress counter on the parent as batches land). Every run of every RUN_DIR has the same param
-and tag keys (``backbone``, ``suite``, ``cell.alpha`` ..., ``idr.role`` = run | cell), so cells of
-several runs line up in one comparison (``idr-eval compare`` prints the UI search filter that
-selects them). A calibrated tau is logged as its spelling (``cell.tau = calibrated*2``) and,
-once measured, as metrics ``tau`` / ``tau/<suite>``.
+What the UI shows, and why:
+
+- A child run carries only the parameters its cell's mode uses (``cell.alpha`` ... on refining
+  cells; none of them on a baseline cell, the intervention settings on a diagnose cell), so a
+  scatter or parallel-coordinates plot never places a cell at a value it ignores. The role
+  (``idr.cell_role`` = baseline | diagnose | idr) and mode (``idr.mode``) are tags to filter on.
+  The tau a cell used is the numeric param ``cell.tau_value`` (per suite
+  ``cell.tau_value/<suite>`` when a run spans several); a calibrated tau's spelling stays in
+  ``cell.tau``.
+- Per-cell numbers live on the children: success in percent (the unit of the report and of
+  ``idr-eval compare``), Avg Len, times, diagnostics, Δ vs baseline in percentage points, all
+  rounded to 4 significant figures; R_img and the gate rate per progress bin are step-indexed
+  metrics (``progress/r_img``, ``progress/gate_rate``; step = % of the episode), so MLflow's
+  line charts overlay cells. Each child has its slice of the report (Markdown and HTML with
+  its figures embedded), its figures and its per-task table as artifacts.
+- The parent keeps run-level metrics only (episodes stored, errors, the calibrated tau) and the
+  whole report (also as HTML), the figures, and the per-cell table ``tables/cells.csv``.
+- The experiment is tagged as model development, so the UI opens in its ML view, not GenAI.
 """
 
 from __future__ import annotations
@@ -49,8 +60,23 @@ def resolve_uri(uri: str | None, run_dir: Path) -> str:
     return uri or default_uri(run_dir)
 
 
+#: Significant figures of every logged metric: a success of 36.666666666666664 % shows whole
+#: in the UI's narrow columns as 36.67 (counts are kept exact).
+SIG_FIGS = 4
+#: The experiment tag MLflow's UI reads to choose its view (ML, not GenAI).
+EXPERIMENT_KIND = ("mlflow.experimentKind", "custom_model_development")
+#: Metrics in percent (success and its differences): the unit of report.md and compare.
+PERCENT_METRICS = ("success", "delta_")
+
+
+def rounded(value: float) -> float:
+    """``value`` to SIG_FIGS significant figures; integers (counts) unchanged."""
+    value = float(value)
+    return value if value.is_integer() else float(f"{value:.{SIG_FIGS}g}")
+
+
 def _finite(metrics: dict[str, float]) -> dict[str, float]:
-    return {k: float(v) for k, v in metrics.items() if v is not None and math.isfinite(float(v))}
+    return {k: rounded(v) for k, v in metrics.items() if v is not None and math.isfinite(float(v))}
 
 
 def _metric_key(*parts: str) -> str:
@@ -121,12 +147,15 @@ class Tracker:
                     experiment, artifact_location=self._artifact_location()
                 )
             )
+            if exp is None or EXPERIMENT_KIND[0] not in exp.tags:  # a user's choice stands
+                self.client.set_experiment_tag(self.experiment_id, *EXPERIMENT_KIND)
         except Exception as e:
             raise RuntimeError(
                 f"MLflow store {uri} is not usable: {type(e).__name__}: {e}"
             ) from None
         self.parent_id: str | None = None
         self.children: dict[str, str] = {}
+        self._uses_tau: set[str] = set()
         self._done = 0
 
     def _artifact_location(self) -> str | None:
@@ -154,32 +183,42 @@ class Tracker:
                 self.experiment_id, run_name=run_name, tags=tags
             ).info.run_id
             self._log_params(self.parent_id, params)
+        self._uses_tau = {c.cell_id for c in cells if "tau" in c.meaningful_params()}
         for cell in cells:
             if cell.cell_id in self.children:
                 self.client.update_run(self.children[cell.cell_id], status="RUNNING")
                 continue
+            meaningful = cell.meaningful_params()
             tags = {
                 "mlflow.parentRunId": self.parent_id,
                 "idr.run_id": run_id,
                 "idr.cell": cell.cell_id,
                 "idr.role": "cell",
+                "idr.cell_role": cell.role,
                 "idr.run_name": run_name,
                 "idr.run_dir": str(self.run_dir.resolve()),
                 "idr.varied": ", ".join(f"{k}={_plain(v)}" for k, v in cell.varied),
                 **{f"idr.{k}": str(params[k]) for k in ("backbone", "suite") if k in params},
-                **{f"idr.{k}": str(v) for k, v in cell.params().items()},
+                **{f"idr.{k}": str(v) for k, v in meaningful.items()},
             }
             child = self.client.create_run(
                 self.experiment_id, run_name=f"{run_name}/{cell.cell_id}", tags=tags
             )
             self.children[cell.cell_id] = child.info.run_id
-            self._log_params(
-                child.info.run_id, {**params, **{f"cell.{k}": v for k, v in cell.params().items()}}
-            )
+            cell_params = {f"cell.{k}": v for k, v in meaningful.items()}
+            if "tau" in meaningful and cell.calibrated_tau is None:
+                cell_params["cell.tau_value"] = cell.idr.tau  # calibrated: logged once measured
+            self._log_params(child.info.run_id, {**params, **cell_params})
         tmp = path.with_name(f".{TRACKING_FILE}.tmp")
         tmp.write_text(
             json.dumps(
-                {"uri": self.uri, "parent": self.parent_id, "children": self.children}, indent=2
+                {
+                    "uri": self.uri,
+                    "experiment_id": self.experiment_id,
+                    "parent": self.parent_id,
+                    "children": self.children,
+                },
+                indent=2,
             )
         )
         tmp.replace(path)
@@ -199,6 +238,20 @@ class Tracker:
         for i in range(0, len(items), 500):
             self.client.log_batch(run_id, metrics=items[i : i + 500])
 
+    def _log_series(self, run_id: str, series: dict[str, list[tuple[int, float]]]) -> None:
+        """Step-indexed metrics ``progress/<name>`` in one batch."""
+        from mlflow.entities import Metric
+
+        now = int(time.time() * 1000)
+        items = [
+            Metric(_metric_key("progress", name), rounded(v), now, step)
+            for name, points in series.items()
+            for step, v in points
+            if math.isfinite(v)
+        ]
+        for i in range(0, len(items), 500):
+            self.client.log_batch(run_id, metrics=items[i : i + 500])
+
     def log_calibration(self, result: dict[str, Any]) -> None:
         """The calibrated tau on the parent and on every child that uses it."""
         self._call(lambda: self._log_calibration(result))
@@ -207,19 +260,23 @@ class Tracker:
         self._log_params(
             self.parent_id, {"tau_calibrated": result["tau"], "tau_source": result["source_cell"]}
         )
-        parent = {"tau_calibrated": float(result["tau"])}
-        for g in result.get("groups", []):
-            key = _metric_key("e_img_mean", g["source_cell"], g["suite"])
-            parent[key] = g["e_img_mean"]
-        self._log_metrics(self.parent_id, parent)
+        self._log_metrics(self.parent_id, {"tau_calibrated": float(result["tau"])})
+        for g in result.get("groups", []):  # the statistic, on the diagnose cell it measured
+            rid = self.children.get(g["source_cell"])
+            if rid is not None:
+                self._log_metrics(rid, {_metric_key("e_img_mean", g["suite"]): g["e_img_mean"]})
         for cell_id, c in result.get("cells", {}).items():
             rid = self.children.get(cell_id)
             if rid is None:
                 continue
             metrics = {_metric_key("tau", suite): tau for suite, tau in c["tau"].items()}
+            params = {_metric_key("cell.tau_value", s): rounded(t) for s, t in c["tau"].items()}
             if len(c["tau"]) == 1:
                 metrics["tau"] = next(iter(c["tau"].values()))
+                params = {"cell.tau_value": rounded(metrics["tau"])}
             self._log_metrics(rid, metrics)
+            if cell_id in self._uses_tau:  # mode D has no gate: no tau to plot it at
+                self._log_params(rid, params)
             value = ", ".join(f"{suite}={tau:.4g}" for suite, tau in c["tau"].items())
             self.client.set_tag(rid, "idr.tau_value", value)
 
@@ -317,17 +374,25 @@ class Tracker:
     def _finish(self, episodes: pd.DataFrame, artifacts: list[Path], status: str) -> None:
         if not episodes.empty:
             chains = agg.chain_metrics(episodes)  # bootstrapped once, for both below
+            per_cell = cell_metrics(episodes, chains)
             with tempfile.TemporaryDirectory() as tmp:
-                for path in task_tables(episodes, Path(tmp), chains):
+                paths = task_tables(episodes, Path(tmp), chains)
+                paths.append(Path(tmp) / "cells.csv")
+                cells_table(per_cell).to_csv(paths[-1], index=False)
+                for path in paths:
                     self.client.log_artifact(self.parent_id, str(path), "tables")
-            for cell_id, metrics in cell_metrics(episodes, chains).items():
+            for cell_id, metrics in per_cell.items():
                 if cell_id in self.children:
                     self._log_metrics(self.children[cell_id], metrics)
-            overall = agg.success_overall(episodes)
             self._log_metrics(
                 self.parent_id,
-                {_metric_key("success", r.cell_id): r.success_rate for r in overall.itertuples()},
+                {
+                    "episodes": len(episodes),
+                    "errors": int(episodes["error"].notna().sum()),
+                    "cells": int(episodes["cell_id"].nunique()),
+                },
             )
+            self._log_cell_views()
         for p in artifacts:
             if p.exists():
                 folder = "figures" if p.suffix == ".png" else None
@@ -335,6 +400,31 @@ class Tracker:
         for rid in self.children.values():
             self.client.set_terminated(rid, status=status)
         self.client.set_terminated(self.parent_id, status=status)
+
+    def _log_cell_views(self) -> None:
+        """Each child's slice of the report (and its figures, its per-task table) as artifacts,
+        and its progress curves as step-indexed metrics. A failure here (a figure) is logged
+        and never costs the run its metrics or its status."""
+        from pipeline.figures import load_run, progress_curves
+        from pipeline.ui_artifacts import write_cell_slice
+
+        try:
+            data = load_run(self.run_dir)
+            curves = progress_curves(data)
+            for cell_id, rid in self.children.items():
+                if not (data.episodes["cell_id"] == cell_id).any():
+                    continue
+                with tempfile.TemporaryDirectory() as tmp:
+                    write_cell_slice(self.run_dir, data, cell_id, Path(tmp))
+                    self.client.log_artifacts(rid, tmp)
+                self._log_series(rid, curves.get(cell_id, {}))
+        except Exception as e:
+            log.warning(
+                "the cells' report slices for MLflow failed: %s: %s",
+                type(e).__name__,
+                e,
+                exc_info=True,
+            )
 
 
 def _plain(value: Any) -> str:
@@ -348,7 +438,10 @@ def task_tables(
     numbers the UI shows as the parent run's artifacts, one file whatever the grid's size.
     ``chains``: ``agg.chain_metrics(episodes)`` where the caller has it already."""
     paths = [out / "success_by_task.csv"]
-    agg.success_by_task(episodes).to_csv(paths[0], index=False)
+    by_task = agg.success_by_task(episodes)
+    for c in ("success_rate", "ci_low", "ci_high"):  # percent, as everywhere
+        by_task[c] = 100.0 * by_task[c]
+    by_task.to_csv(paths[0], index=False)
     chains = agg.chain_metrics(episodes) if chains is None else chains
     if not chains.empty:
         paths.append(out / "chains_by_task.csv")
@@ -364,23 +457,23 @@ def _avg_len(chains: pd.DataFrame) -> float:
 def cell_metrics(
     episodes: pd.DataFrame, chains: pd.DataFrame | None = None
 ) -> dict[str, dict[str, float]]:
-    """Per cell: success overall and per suite, Avg Len overall and per suite, completion times,
-    diagnostics, Δ vs baseline, failed episodes by cause. Names are bounded by the number of
+    """Per cell: success (%) overall and per suite, Avg Len overall and per suite, completion
+    times, diagnostics, Δ vs baseline (percentage points), failed episodes by cause. Names are bounded by the number of
     suites and failure causes, never by tasks or episodes (see ``task_tables``)."""
     out: dict[str, dict[str, float]] = {c: {} for c in episodes["cell_id"].unique()}
     for r in agg.success_overall(episodes).itertuples():
         out[r.cell_id].update(
-            success=r.success_rate,
-            success_ci_low=r.ci_low,
-            success_ci_high=r.ci_high,
+            success=100 * r.success_rate,
+            success_ci_low=100 * r.ci_low,
+            success_ci_high=100 * r.ci_high,
             episodes=r.n,
             errors=r.errors,
         )
     suites = agg.success_by_suite(episodes)
     for r in suites.itertuples():
-        out[r.cell_id][_metric_key("success", r.suite)] = r.success_rate
+        out[r.cell_id][_metric_key("success", r.suite)] = 100 * r.success_rate
     for cell, g in suites.groupby("cell_id"):  # the paper's Avg: the mean of the suites' rates
-        out[cell]["success_avg"] = float(g["success_rate"].mean())
+        out[cell]["success_avg"] = 100 * float(g["success_rate"].mean())
     # per task: in the parent's tables/ artifacts and the report, not as metrics (a metric
     # name per task would grow with the benchmark: 130 for LIBERO, thousands of sequences)
     chains = agg.chain_metrics(episodes) if chains is None else chains
@@ -403,9 +496,16 @@ def cell_metrics(
             out[cell][_metric_key("failures", cause)] = float(g[cause].sum())
     for d in agg.paired_vs_baseline(episodes):
         out[d.cell_id].update(
-            delta_vs_baseline=d.diff,
-            delta_ci_low=d.ci_low,
-            delta_ci_high=d.ci_high,
+            delta_vs_baseline=100 * d.diff,  # percentage points
+            delta_ci_low=100 * d.ci_low,
+            delta_ci_high=100 * d.ci_high,
             delta_p_value=d.p_value,
         )
     return out
+
+
+def cells_table(per_cell: dict[str, dict[str, float]]) -> pd.DataFrame:
+    """``cell_metrics`` as one table, a row per cell (the parent run's ``tables/cells.csv``):
+    the per-cell numbers in one artifact rather than metric names that grow with the grid."""
+    rows = [{"cell": c, **{k: rounded(v) for k, v in m.items()}} for c, m in per_cell.items()]
+    return pd.DataFrame(rows).sort_values("cell", kind="stable")

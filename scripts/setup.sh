@@ -14,15 +14,22 @@ die() { printf '[setup] error: %s\n' "$*" >&2; exit 1; }
 
 . scripts/find_python.sh
 
-# --- system libraries for headless rendering (OSMesa; EGL comes with GPU drivers) ---------
+# --- system packages: headless rendering (OSMesa; EGL comes with GPU drivers), and Debian's
+# chromium for the MLflow UI test (driven by Playwright; no browser is downloaded) -----------
 have_lib() { ldconfig -p 2>/dev/null | grep -q "$1"; }
-if ! have_lib 'libOSMesa.so'; then
+apt_missing=()
+have_lib 'libOSMesa.so' || apt_missing+=(libosmesa6)
+# IDR_SKIP_BROWSER=1: no browser (the Docker images, which run episodes, not the UI test)
+[ "${IDR_SKIP_BROWSER:-0}" = 1 ] || command -v chromium >/dev/null || apt_missing+=(chromium)
+if [ ${#apt_missing[@]} -gt 0 ]; then
     if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
-        log "installing libosmesa6 (headless OpenGL for MuJoCo without a GPU)"
+        log "installing ${apt_missing[*]} (headless OpenGL for MuJoCo; the browser of the UI test)"
         apt-get update -qq >/dev/null
-        DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends libosmesa6 >/dev/null
-    else
+        DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${apt_missing[@]}" >/dev/null
+    elif [[ " ${apt_missing[*]} " == *" libosmesa6 "* ]]; then
         die "libOSMesa is missing: install Debian/Ubuntu package libosmesa6 (sudo apt-get install libosmesa6)"
+    else
+        log "chromium is not installed (sudo apt-get install chromium): the MLflow UI browser test will skip"
     fi
 fi
 

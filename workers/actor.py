@@ -63,7 +63,9 @@ class EpisodeWorker:
 
     def __init__(self, spec: WorkerSpec) -> None:
         from workers.rendering import configure_rendering
+        from workers.worker_log import log_to_file
 
+        log_to_file(spec.log_dir, "worker")  # its output in the run dir, not on the terminal
         self.spec = spec
         self.render_backend = configure_rendering()
         # Imported after the rendering backend is set: env modules may import MuJoCo.

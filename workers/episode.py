@@ -40,6 +40,7 @@ class WorkerSpec:
     # None: the actor holds the backbone itself
     policy_actor: Any = None
     envs_per_worker: int = 1  # envs an actor holds (> 1 only with a shared policy)
+    log_dir: str | None = None  # where a Ray actor writes its output (workers.worker_log)
 
 
 @dataclass(frozen=True)

@@ -41,7 +41,11 @@ class BatchingPolicyActor:
         batched: bool | None,
         max_batch: int,
         batch_wait_ms: float,
+        log_dir: str | None = None,
     ) -> None:
+        from workers.worker_log import log_to_file
+
+        log_to_file(log_dir, "policy")  # its output in the run dir, not on the terminal
         self.worker = PolicyWorker(kind, params, batched)
         self.max_batch = max_batch
         self.wait_s = batch_wait_ms / 1e3

@@ -164,6 +164,7 @@ class RayActorPool:
                 spec.batched,
                 ex.max_batch,
                 ex.batch_wait_ms,
+                log_dir=spec.log_dir,
             )
             for _ in range(ex.policy_actors)
         ]

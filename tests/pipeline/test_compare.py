@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
+from urllib.parse import parse_qs
 
 import pandas as pd
 import pytest
@@ -111,7 +113,7 @@ def test_cli_compare_refuses_before_work_and_writes_on_success(tmp_path, capsys)
     rc = cli.main(["compare", str(tmp_path / "a"), "--out", str(tmp_path / "cmp")])
     out = capsys.readouterr().out
     assert rc == 0 and "| a | E | 75.00 | 75.00 | 75.00 |" in out
-    assert "No MLflow selection: a was run with tracking.enabled=false" in out
+    assert "No MLflow selection:" in out and "tracking.enabled=false" in out
     assert (tmp_path / "cmp" / "compare.md").read_text().startswith("# Comparison of 1 runs")
 
 
@@ -132,16 +134,44 @@ def test_mlflow_selection_shows_the_same_numbers_side_by_side(tmp_path) -> None:
     client = MlflowClient(uri)
     exp = client.get_experiment_by_name("cmp")
     runs = client.search_runs([exp.experiment_id], flt)
+    # the Compare URL names the same runs, and the experiment, and no parent run
+    url = next(w for w in text.split() if "#/compare-runs?" in w)
+    assert url.startswith("http://127.0.0.1:5000/#/compare-runs?runs=")
+    query = parse_qs(url.split("?", 1)[1])
+    assert set(json.loads(query["runs"][0])) == {r.info.run_id for r in runs}
+    assert json.loads(query["experiments"][0]) == [exp.experiment_id]
     got = {(Path(r.data.tags["idr.run_dir"]).name, r.data.tags["idr.cell"]): r for r in runs}
     assert set(got) == {("r1", "baseline"), ("r1", "E"), ("r2", "baseline"), ("r2", "F")}
-    # the same param and tag keys on every cell, so the UI's comparison lines them up
-    assert len({frozenset(r.data.params) for r in runs}) == 1
+    # the same param and tag keys on every cell of one mode, so the UI's comparison lines
+    # them up; a baseline carries none of the IDR parameters it ignores
+    refining = [r for r in runs if r.data.tags["idr.cell_role"] == "idr"]
+    assert len(refining) == 2 and len({frozenset(r.data.params) for r in refining}) == 1
     for r in runs:
         assert r.data.tags["idr.role"] == "cell" and r.data.tags["idr.suite"] == "fake_marker"
-        assert {"cell.alpha", "cell.mode", "cell.tau", "suite", "backbone"} <= set(r.data.params)
-    for row in table.to_dict("records"):
+        assert {"cell.mode", "suite", "backbone"} <= set(r.data.params)
+        has_alpha = "cell.alpha" in r.data.params
+        assert has_alpha == (r.data.tags["idr.cell_role"] == "idr")
+    for row in table.to_dict("records"):  # one unit: percent (points for Δ), 4 figures
         m = got[(row["run"], row["cell"])].data.metrics
-        assert m["success/fake_marker"] == pytest.approx(row["fake_marker"])
-        assert m["success_avg"] == pytest.approx(row["avg"])
+        assert m["success/fake_marker"] == pytest.approx(100 * row["fake_marker"], rel=1e-3)
+        assert m["success_avg"] == pytest.approx(100 * row["avg"], rel=1e-3)
         if not pd.isna(row.get("diff")):
-            assert m["delta_vs_baseline"] == pytest.approx(row["diff"])
+            assert m["delta_vs_baseline"] == pytest.approx(100 * row["diff"], rel=1e-3, abs=1e-9)
+
+
+def test_compare_of_different_tasks_still_prints_the_ui_selection(tmp_path, capsys) -> None:
+    """The table is refused (different tasks), and the UI still gets the runs side by side."""
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    common = ["executor.kind=inline", f"tracking.uri={uri}", "episodes_per_task=1"]
+    for name, tasks in (("r1", "[reach]"), ("r2", "[reach_chain]")):
+        cfg = load_config(CONF / "smoke.yaml", [*common, f"env.tasks={tasks}"])
+        execute(plan_run(cfg, tmp_path / name))
+    rc = cli.main(["compare", str(tmp_path / "r1"), str(tmp_path / "r2")])
+    captured = capsys.readouterr()
+    assert rc == 2 and "cover different tasks" in captured.err
+    url = next(w for w in captured.out.split() if "#/compare-runs?" in w)
+    ids = json.loads(parse_qs(url.split("?", 1)[1])["runs"][0])
+    assert len(ids) == 4  # 2 cells x 2 runs
+    client = MlflowClient(uri)
+    cells = {client.get_run(i).data.tags["idr.cell"] for i in ids}
+    assert cells == {"baseline", "E"}
