@@ -1,10 +1,11 @@
 """MLflow at grid scale: a 100-cell grid over LIBERO's 40 tasks, logged to a local sqlite store.
 
 Times what a run does with MLflow: ``Tracker.start`` (the parent run and one child per cell,
-with their params) and ``Tracker.finish`` (per-cell metrics, the per-task tables, the runs
-ended), on synthetic episodes (100 cells x 40 tasks x 5 episodes, 4 suites). Counts the metric
-names per child, which must not grow with tasks: the per-task numbers go to the parent's
-``tables/`` artifacts.
+with their params) and ``Tracker.finish`` (per-cell metrics, the per-task tables, each child's
+report slice with its figures and its progress curves, the runs ended), on synthetic episodes
+(100 cells x 40 tasks x 5 episodes, 4 suites, 10 inferences each) stored in a real run dir.
+Counts the metric names per child, which must not grow with tasks: the per-task numbers go to
+the parent's ``tables/`` artifacts.
 
 Writes ``benchmarks/results/tracking_scale.json``. Usage:
 ``python benchmarks/bench_tracking_scale.py [--cells 100] [--tasks-per-suite 10]``
@@ -21,7 +22,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -37,13 +37,14 @@ def _config(cells: int):
     return load_config(ROOT / "conf" / "smoke.yaml", [grid, "max_cells=1000"])
 
 
-def _episodes(cell_ids: list[str], tasks_per_suite: int, per_task: int) -> pd.DataFrame:
-    from pipeline.store import EPISODE_SCHEMA, rows_to_table
-    from workers.episode import EpisodeRow
+def _episodes(modes: dict[str, str], tasks_per_suite: int, per_task: int, run_dir: Path):
+    """The synthetic episodes (a frame), also written with 10 inferences each to ``run_dir``."""
+    from pipeline.store import EPISODE_SCHEMA, RunStore, rows_to_table
+    from workers.episode import EpisodeResult, EpisodeRow, StepRow
 
     rng = np.random.default_rng(0)
     rows = []
-    for cell in cell_ids:
+    for cell, mode in modes.items():
         for suite in SUITES:
             for t in range(tasks_per_suite):
                 for e in range(per_task):
@@ -52,7 +53,7 @@ def _episodes(cell_ids: list[str], tasks_per_suite: int, per_task: int) -> pd.Da
                         EpisodeRow(
                             run_id="bench",
                             cell_id=cell,
-                            mode="E",
+                            mode=mode,
                             guidance="visual",
                             strategy="zero",
                             alpha=0.08,
@@ -81,6 +82,27 @@ def _episodes(cell_ids: list[str], tasks_per_suite: int, per_task: int) -> pd.Da
                             r_img_mean=0.7,
                         )
                     )
+
+    def steps(row: EpisodeRow) -> list[StepRow]:
+        e = rng.random((10, 2)) * 10
+        return [
+            StepRow(
+                "bench",
+                row.cell_id,
+                row.task_id,
+                row.episode_index,
+                i,
+                i * row.steps // 10,
+                e_img=float(e[i, 0]),
+                e_prop=float(e[i, 1]),
+                r_img=float(e[i, 0] / (e[i].sum() + 1e-6)),
+                gate=None if row.mode in ("baseline",) else float(e[i, 0] < 5),
+                gripper=float(i % 2),
+            )
+            for i in range(10)
+        ]
+
+    RunStore(run_dir).write(EpisodeResult(r, steps(r)) for r in rows)
     return rows_to_table(rows, EPISODE_SCHEMA).to_pandas()
 
 
@@ -97,10 +119,11 @@ def main() -> None:
 
     cfg = _config(args.cells)
     cells = cfg.cells()
-    episodes = _episodes([c.cell_id for c in cells], args.tasks_per_suite, args.episodes_per_task)
+    modes = {c.cell_id: c.idr.mode for c in cells}
     with tempfile.TemporaryDirectory() as tmp:
         run_dir = Path(tmp) / "run"
         run_dir.mkdir()
+        episodes = _episodes(modes, args.tasks_per_suite, args.episodes_per_task, run_dir)
         uri = f"sqlite:///{Path(tmp) / 'mlflow.db'}"
         t0 = time.perf_counter()
         tracker = Tracker(uri, "bench", run_dir)
@@ -115,7 +138,15 @@ def main() -> None:
         t0 = time.perf_counter()
         assert tracker.finish(episodes, [], "FINISHED")
         t_finish = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        tracker._log_cell_views()  # again, alone: the children's report slices and curves
+        t_views = time.perf_counter() - t0
         client = MlflowClient(uri)
+        slices = sum(
+            1
+            for rid in tracker.children.values()
+            if any(a.path == "report.html" for a in client.list_artifacts(rid))
+        )
         counts = [len(client.get_run(rid).data.metrics) for rid in tracker.children.values()]
         tables = [a.path for a in client.list_artifacts(tracker.parent_id, "tables")]
     out = {
@@ -127,6 +158,8 @@ def main() -> None:
         "start_s": round(t_start, 2),
         "finish_s": round(t_finish, 2),
         "finish_of_which_aggregation_s": round(t_compute, 2),
+        "finish_of_which_cell_views_s": round(t_views, 2),
+        "children_with_report_slice": slices,
         "metrics_per_child_max": max(counts),
         "metrics_per_child_min": min(counts),
         "parent_tables": tables,

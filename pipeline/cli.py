@@ -166,7 +166,9 @@ def _cmd_ui(args: argparse.Namespace) -> int:
     url = sel.compare_url(base) if sel is not None and sel.runs else base
     if sel is not None and sel.runs:
         print(f"the {len(sel.runs)} cells side by side: {url}")
-    proc = subprocess.Popen(cmd)
+    # the job runner MLflow starts beside its UI serves GenAI jobs: not needed here
+    env = {"MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false", **os.environ}
+    proc = subprocess.Popen(cmd, env=env)
     if args.open:
         _open_when_up(base, url, proc)
     try:

@@ -165,3 +165,17 @@ class SlowMarkerEnv(FakeMarkerEnv):
         while time.perf_counter() < end:
             pass
         return super().step(action)
+
+
+class ChattyMarkerEnv(FakeMarkerEnv):
+    """FakeMarkerEnv that talks as simulators do when built: a Python print, a library's
+    logging warning and a C-level write to fd 2 (what robosuite and MuJoCo print)."""
+
+    def __init__(self, image_size: int = 32) -> None:
+        import logging
+        import os
+
+        super().__init__(image_size=image_size)
+        print("chatty: python stdout line", flush=True)
+        logging.getLogger("chatty_lib").warning("chatty: library warning")
+        os.write(2, b"chatty: C-level stderr line\n")

@@ -120,20 +120,3 @@ def test_config_name_cannot_escape_the_output_root(tmp_path, capsys, fault_log) 
         "refused before any work, one error naming the field; no pickle is ever loaded",
         {"refused": True, "files_written": 0},
     )
-
-
-@pytest.mark.parametrize(
-    ("args", "host", "warned"), [([], "127.0.0.1", False), (["--host", "0.0.0.0"], "0.0.0.0", True)]
-)
-def test_mlflow_ui_binds_to_localhost_unless_asked(
-    tmp_path, monkeypatch, capsys, args, host, warned
-):
-    import subprocess
-
-    (tmp_path / "tracking.json").write_text(json.dumps({"uri": f"sqlite:///{tmp_path}/m.db"}))
-    calls = []
-    monkeypatch.setattr(subprocess, "call", lambda cmd: calls.append(cmd) or 0)
-    assert cli.main(["ui", str(tmp_path), *args]) == 0
-    cmd = calls[0]
-    assert cmd[cmd.index("--host") + 1] == host
-    assert ("reachable from the network" in capsys.readouterr().err) == warned

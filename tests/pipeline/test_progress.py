@@ -1,0 +1,47 @@
+"""The progress line's ETA: measured per task, none before the first episode."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+
+from pipeline.progress import EtaModel, Progress
+
+
+def test_eta_weights_each_task_by_its_own_episode_time() -> None:
+    # 10 short episodes (1 s) then 10 long ones (10 s) on 2 slots
+    eta = EtaModel({"short": 10, "long": 10}, slots=2)
+    assert eta.seconds() is None  # nothing measured yet: no guess
+    for _ in range(10):
+        eta.finished("short", 1.0)
+    # the long task is unseen: the overall mean stands in for it
+    assert eta.seconds() == pytest.approx(10 * 1.0 / 2)
+    eta.finished("long", 10.0)
+    # 9 long episodes left at 10 s each over 2 slots; a count-based rate would say ~5 s
+    assert eta.seconds() == pytest.approx(9 * 10.0 / 2)
+
+
+def test_eta_of_a_resume_counts_stored_episodes_as_done() -> None:
+    eta = EtaModel({"t": 4}, slots=4)
+    for _ in range(3):
+        eta.skipped("t")
+    eta.finished("t", 8.0)
+    assert eta.seconds() == 0.0
+    # fewer episodes left than slots: they do not run faster than one each
+    eta = EtaModel({"t": 3}, slots=8)
+    eta.finished("t", 6.0)
+    assert eta.seconds() == pytest.approx(6.0)
+
+
+def test_log_lines_say_when_there_is_no_eta_and_end_once(caplog) -> None:
+    caplog.set_level(logging.INFO, logger="idr_eval.progress")
+    p = Progress(3, {"t": 3}, slots=1)
+    p.update(1, 1, 0)  # an episode stored by an earlier run: nothing timed yet
+    p.eta.finished("t", 2.0)
+    p.update(3, 2, 0)
+    p.update(3, 2, 0)
+    lines = [r.getMessage() for r in caplog.records]
+    assert lines[0].endswith("eta: after the first episode")
+    assert [line for line in lines if line.startswith("episodes 3/3")] == [lines[-1]]
+    assert "nan" not in " ".join(lines)
