@@ -87,16 +87,16 @@ def _episodes(modes: dict[str, str], tasks_per_suite: int, per_task: int, run_di
         e = rng.random((10, 2)) * 10
         return [
             StepRow(
-                "bench",
-                row.cell_id,
-                row.task_id,
-                row.episode_index,
-                i,
-                i * row.steps // 10,
+                run_id="bench",
+                cell_id=row.cell_id,
+                task_id=row.task_id,
+                episode_index=row.episode_index,
+                inference_index=i,
+                step=i * row.steps // 10,
                 e_img=float(e[i, 0]),
                 e_prop=float(e[i, 1]),
                 r_img=float(e[i, 0] / (e[i].sum() + 1e-6)),
-                gate=None if row.mode in ("baseline",) else float(e[i, 0] < 5),
+                gate=None if row.mode == "baseline" else float(e[i, 0] < 5),
                 gripper=float(i % 2),
             )
             for i in range(10)

@@ -101,6 +101,20 @@ def success_by_suite(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
     return _rate_rows(_frame(episodes), ["cell_id", "suite"])
 
 
+def with_perturbation(df: pd.DataFrame) -> pd.DataFrame:
+    """``df`` with a ``perturbation`` column read off its task ids (``none`` for plain ones)."""
+    from workers.envs.perturbations import perturbation_of
+
+    out = df.copy()
+    out["perturbation"] = out["task_id"].map(perturbation_of)
+    return out
+
+
+def success_by_perturbation(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
+    """Success per cell and perturbation (over the tasks and suites the perturbation spans)."""
+    return _rate_rows(with_perturbation(_frame(episodes)), ["cell_id", "perturbation"])
+
+
 def success_overall(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
     return _rate_rows(_frame(episodes), ["cell_id"])
 

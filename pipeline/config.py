@@ -71,6 +71,27 @@ class EnvConfig(_Model):
         description="env server: a start or a request taking longer is killed (an actor-level "
         "fault: the server is restarted and the episode run again)",
     )
+    perturbations: list[Any] = Field(
+        default_factory=lambda: ["none"],
+        description="every task crossed with these: none (the task as it is) or KIND:SEVERITY "
+        "(or {kind, severity}), e.g. [none, camera_shift:0.12, image_noise:0.3]; a task of "
+        "env.tasks may name its own: pick_color@light_dim:0.4",
+    )
+
+    @field_validator("perturbations")
+    @classmethod
+    def _perturbations(cls, values: list[Any]) -> list[str]:
+        from workers.envs.perturbations import parse
+
+        if not values:
+            raise ValueError("give at least one (none: the tasks as they are)")
+        out = []
+        for v in values:
+            p = parse(v)
+            out.append("none" if p is None else p.text)
+        if len(set(out)) != len(out):
+            raise ValueError(f"{out} lists a perturbation twice")
+        return out
 
 
 class InterventionSettings(_Model):
@@ -312,6 +333,8 @@ class RunConfig(_Model):
                 "env": {"python", "server_timeout_s"},
             }
         )
+        if keep["env"].get("perturbations") == ["none"]:  # the default: as before it existed
+            del keep["env"]["perturbations"]
         return hashlib.sha256(json.dumps(keep, sort_keys=True, default=str).encode()).hexdigest()[
             :16
         ]

@@ -64,6 +64,38 @@ def main_table(episodes: pd.DataFrame) -> str:
     return _md(headers, rows)
 
 
+def perturbation_section(episodes: pd.DataFrame) -> list[str]:
+    """Success per cell x perturbation (%, with the paired Δ against the reference on the
+    same perturbed tasks) where the run's tasks are perturbed; nothing otherwise."""
+    from workers.envs.perturbations import SEP
+
+    if not episodes["task_id"].str.contains(SEP, regex=False).any():
+        return []
+    tagged = agg.with_perturbation(episodes)
+    rates = agg.success_by_perturbation(tagged)
+    perts = sorted(rates["perturbation"].unique(), key=lambda p: (p != "none", p))
+    cells = sorted(rates["cell_id"].unique())
+    diffs: dict[tuple[str, str], str] = {}
+    for pert, g in tagged.groupby("perturbation"):
+        for d in agg.paired_vs_baseline(g):
+            diffs[(d.cell_id, str(pert))] = f" ({100 * d.diff:+.1f})"
+    rows = []
+    for cell in cells:
+        r = [cell]
+        for pert in perts:
+            m = rates[(rates["cell_id"] == cell) & (rates["perturbation"] == pert)]
+            r.append(
+                _pct(m["success_rate"].iloc[0]) + diffs.get((cell, pert), "") if len(m) else "–"
+            )
+        rows.append(r)
+    return [
+        "",
+        "## Success rate (%) by perturbation (Δ vs the reference cell on the same tasks, pp)",
+        "",
+        _md(["cell", *perts], rows),
+    ]
+
+
 def calibration_section(run_dir: Path) -> list[str]:
     calib = read_calibration(run_dir)
     if not calib or not calib.get("cells"):
@@ -170,6 +202,7 @@ def build_report(
         "## Success rate (%) by suite, with the paired difference against baseline",
         "",
         main_table(paired if focus is not None else episodes),
+        *perturbation_section(paired if focus is not None else episodes),
         "",
         "## Success by task (%, Wilson 95% interval)",
         "",

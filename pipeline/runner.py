@@ -35,8 +35,8 @@ from pipeline.signals import critical_section
 from pipeline.store import RunStore
 from pipeline.writer import BatchWriter
 from workers.backbones.factory import check_backbone
-from workers.envs.base import TaskSpec
-from workers.envs.factory import check_suite, suite_tasks
+from workers.envs.base import TaskSpec, env_member
+from workers.envs.factory import check_suite, env_class, suite_tasks
 from workers.envs.remote import ServerSpec
 from workers.episode import EpisodeResult, WorkerSpec
 
@@ -91,16 +91,51 @@ def _check_names(cfg: RunConfig) -> None:
 
 
 def _select_tasks(cfg: RunConfig, server: ServerSpec | None = None) -> list[TaskSpec]:
+    """The run's tasks: env.tasks (all of the suite's by default), each crossed with
+    env.perturbations unless it names its own (``pick_color@light_dim:0.4``); a perturbation
+    the suite cannot apply is refused here, before any work."""
+    from workers.envs.perturbations import IMAGE_KINDS, SEP, parse, perturbed_task, split_task
+
     tasks = suite_tasks(cfg.env.suite, cfg.env.params, server)
-    if cfg.env.tasks is None:
-        return tasks
     by_id = {t.task_id: t for t in tasks}
-    unknown = [t for t in cfg.env.tasks if t not in by_id]
+    crossed = [parse(p) for p in cfg.env.perturbations]
+    names = cfg.env.tasks if cfg.env.tasks is not None else list(by_id)
+    out: dict[str, TaskSpec] = {}
+    unknown = []
+    for name in names:
+        try:
+            base, own = split_task(name)
+        except ValueError as e:
+            raise ConfigError(f"env.tasks: {name!r}: {e}") from None
+        if base not in by_id:
+            unknown.append(name)
+            continue
+        for p in [own] if SEP in name else crossed:
+            task = perturbed_task(by_id[base], p)
+            out.setdefault(task.task_id, task)
     if unknown:
         raise ConfigError(
             f"env.tasks: {unknown} not in suite {cfg.env.suite!r}; known: {sorted(by_id)}"
         )
-    return [by_id[t] for t in cfg.env.tasks]
+    kinds = env_member(env_class(cfg.env.suite), "perturbation_kinds")
+    scene = {p.kind for t in out for p in [split_task(t)[1]] if p is not None and p.scene}
+    if bad := sorted(scene - set(kinds)):
+        can = ", ".join(kinds) if kinds else "no scene perturbation"
+        raise ConfigError(
+            f"env.perturbations: suite {cfg.env.suite!r} cannot apply {bad} (it applies {can}); "
+            f"the image kinds ({', '.join(IMAGE_KINDS)}) work with any suite"
+        )
+    return list(out.values())
+
+
+def _perturbations_of(tasks: list[TaskSpec]) -> tuple[str, ...]:
+    """The perturbations the tasks name (``none`` for plain ones); () when none is named, so
+    that an unperturbed run's env is not wrapped at all."""
+    from workers.envs.perturbations import SEP, perturbation_of
+
+    if not any(SEP in t.task_id for t in tasks):
+        return ()
+    return tuple(dict.fromkeys(perturbation_of(t.task_id) for t in tasks))
 
 
 def _check_executor(cfg: RunConfig) -> None:
@@ -263,6 +298,7 @@ def plan_run(
         server,
         envs_per_worker=cfg.executor.envs_per_worker,
         log_dir=str((run_dir / LOGS_DIR).resolve()),
+        perturbations=_perturbations_of(tasks),
     )
     return RunPlan(
         cfg,

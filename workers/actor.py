@@ -86,13 +86,15 @@ class EpisodeWorker:
             self.backbone = make_backbone(spec.backbone_kind, spec.backbone_params)
             self.policy = IDRPolicy(self.backbone, batched=spec.batched)
             self.cameras = backbone_member(self.backbone, "cameras")  # None: all the env has
-        self.env = make_env(spec.env_suite, spec.env_params, spec.env_server)
+        self.env = make_env(spec.env_suite, spec.env_params, spec.env_server, spec.perturbations)
         # shared policy: more envs, each episode on one of them in its own thread (Ray runs up
         # to envs_per_worker calls at once), so one env steps while another's request is away
         self._envs: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._all_envs = [self.env]
         for _ in range(spec.envs_per_worker - 1):
-            self._all_envs.append(make_env(spec.env_suite, spec.env_params, spec.env_server))
+            self._all_envs.append(
+                make_env(spec.env_suite, spec.env_params, spec.env_server, spec.perturbations)
+            )
         for env in self._all_envs:
             self._envs.put(env)
         # an env with its own renderer (PyBullet...) says so; MuJoCo envs use the worker's

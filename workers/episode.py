@@ -41,6 +41,8 @@ class WorkerSpec:
     policy_actor: Any = None
     envs_per_worker: int = 1  # envs an actor holds (> 1 only with a shared policy)
     log_dir: str | None = None  # where a Ray actor writes its output (workers.worker_log)
+    # the run's perturbations (``none`` / ``kind:severity``): the env's tasks crossed with them
+    perturbations: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)

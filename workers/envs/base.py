@@ -161,6 +161,16 @@ OPTIONAL_ENV_MEMBERS: dict[str, tuple[Any, str]] = {
         "action dims and protocol, without a simulator (the pre-flight matches a checkpoint "
         "against them); None: no check",
     ),
+    "perturbation_kinds": (
+        (),
+        "tuple[str, ...]: the scene perturbations the env applies (workers/envs/perturbations.py; "
+        "image kinds need nothing of the env)",
+    ),
+    "set_perturbation": (
+        None,
+        "method(Perturbation | None): the scene perturbation of the next reset (None: the "
+        "unperturbed scene, to the bit); with perturbation_kinds",
+    ),
 }
 
 

@@ -58,11 +58,23 @@ def suite_tasks(
     return [t if t.suite else replace(t, suite=default) for t in tasks]
 
 
-def make_env(suite: str, params: dict[str, Any], server: ServerSpec | None = None) -> Env:
+def make_env(
+    suite: str,
+    params: dict[str, Any],
+    server: ServerSpec | None = None,
+    perturbations: tuple[str, ...] = (),
+) -> Env:
     """The env of ``suite``: in this process, or behind an env server started from
-    ``server.python`` (``env.python``)."""
+    ``server.python`` (``env.python``); with ``perturbations`` (``none`` and ``kind:severity``
+    texts), its tasks crossed with them (workers/envs/perturbations.py)."""
     if server is not None:
         from workers.envs.remote import RemoteEnv
 
-        return RemoteEnv(env_entry(suite), params, server)
-    return env_class(suite)(**params)
+        env: Env = RemoteEnv(env_entry(suite), params, server)
+    else:
+        env = env_class(suite)(**params)
+    if perturbations:
+        from workers.envs.perturbations import PerturbedEnv, parse
+
+        return PerturbedEnv(env, [parse(p) for p in perturbations])  # type: ignore[return-value]
+    return env

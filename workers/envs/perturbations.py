@@ -158,3 +158,151 @@ class PerturbedImages(Mapping[str, np.ndarray]):
 
     def __len__(self) -> int:
         return len(self._images)
+
+
+def perturbed_task(task: Any, p: Perturbation | None) -> Any:
+    """``task`` (a TaskSpec) under ``p``: its id names the perturbation; None: unchanged."""
+    from dataclasses import replace
+
+    if p is None:
+        return task
+    return replace(task, task_id=join_task(task.task_id, p), name=f"{task.name} [{p.text}]")
+
+
+# -- in a MuJoCo simulator --------------------------------------------------------------------
+
+
+class MujocoScenePerturber:
+    """Scene kinds on a MuJoCo model: each reset restores what the model had when it was built,
+    then applies one perturbation, so that ``none`` after any perturbed episode is the
+    unperturbed scene to the bit.
+
+    ``camera``: the main camera (moved or pitched); ``table_geoms``: names of the geoms whose
+    colour ``table_color`` blends. Lights: every light of the model and the headlight."""
+
+    DARK = np.array([0.25, 0.15, 0.08])  # table_color's target: dark brown
+
+    def __init__(self, model: Any, camera: str, table_geoms: list[str]) -> None:
+        import mujoco
+
+        self.model = model
+        self.cam = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
+        if self.cam < 0:
+            raise ValueError(f"perturbations: the scene has no camera {camera!r}")
+        self.geoms = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, g) for g in table_geoms]
+        if not self.geoms or min(self.geoms) < 0:
+            raise ValueError(f"perturbations: the scene lacks a table geom of {table_geoms}")
+        self._saved = self._read()
+
+    def _read(self) -> dict[str, np.ndarray]:
+        m = self.model
+        return {
+            "cam_pos": m.cam_pos.copy(),
+            "cam_quat": m.cam_quat.copy(),
+            "light_diffuse": m.light_diffuse.copy(),
+            "light_ambient": m.light_ambient.copy(),
+            "light_specular": m.light_specular.copy(),
+            "head_diffuse": m.vis.headlight.diffuse.copy(),
+            "head_ambient": m.vis.headlight.ambient.copy(),
+            "head_specular": m.vis.headlight.specular.copy(),
+            "geom_rgba": m.geom_rgba.copy(),
+        }
+
+    def restore(self) -> None:
+        m, s = self.model, self._saved
+        m.cam_pos[:], m.cam_quat[:] = s["cam_pos"], s["cam_quat"]
+        m.light_diffuse[:], m.light_ambient[:] = s["light_diffuse"], s["light_ambient"]
+        m.light_specular[:] = s["light_specular"]
+        m.vis.headlight.diffuse[:] = s["head_diffuse"]
+        m.vis.headlight.ambient[:] = s["head_ambient"]
+        m.vis.headlight.specular[:] = s["head_specular"]
+        m.geom_rgba[:] = s["geom_rgba"]
+
+    def apply(self, p: Perturbation, data: Any) -> None:
+        """``p`` (a scene kind other than init_jitter, which the env applies to its layout)
+        on the restored model; camera and light positions recomputed for the next render."""
+        import mujoco
+
+        m = self.model
+        if p.kind == "camera_shift":  # sideways: along the world y axis (the table's width)
+            m.cam_pos[self.cam, 1] += p.severity
+        elif p.kind == "camera_pitch":  # about the camera's own x axis: the view tilts down
+            half = np.deg2rad(p.severity) / 2
+            turn = np.array([np.cos(half), np.sin(half), 0.0, 0.0])
+            out = np.zeros(4)
+            mujoco.mju_mulQuat(out, m.cam_quat[self.cam].copy(), turn)
+            m.cam_quat[self.cam] = out
+        elif p.kind == "light_dim":
+            k = 1.0 - p.severity
+            m.light_diffuse[:] *= k
+            m.light_ambient[:] *= k
+            m.light_specular[:] *= k
+            m.vis.headlight.diffuse[:] *= k
+            m.vis.headlight.ambient[:] *= k
+            m.vis.headlight.specular[:] *= k
+        elif p.kind == "table_color":
+            for g in self.geoms:
+                rgb = m.geom_rgba[g, :3]
+                m.geom_rgba[g, :3] = (1 - p.severity) * rgb + p.severity * self.DARK
+        elif p.kind != "init_jitter":
+            raise ValueError(f"{p.kind} is not a scene perturbation of a MuJoCo model")
+        mujoco.mj_camlight(m, data)
+
+
+class PerturbedEnv:
+    """An env whose tasks are crossed with perturbations (ids ``task@kind:severity``).
+
+    Scene kinds go to the env (its optional ``set_perturbation``, before its reset); image
+    kinds are applied here to every image the env renders, lazily, seeded per (seed, task,
+    episode, perturbation, step, camera). Everything else is the wrapped env's."""
+
+    def __init__(self, env: Any, perturbations: list[Perturbation | None]) -> None:
+        self._env = env
+        self._perturbations = list(perturbations) or [None]
+        self._p: Perturbation | None = None
+        self._episode: tuple[str, int, int] = ("", 0, 0)
+
+    def __getattr__(self, name: str) -> Any:  # the env's members (optional ones included)
+        return getattr(self._env, name)
+
+    def tasks(self) -> list[Any]:
+        return [perturbed_task(t, p) for t in self._env.tasks() for p in self._perturbations]
+
+    def reset(self, task_id: str, episode_index: int, seed: int) -> Any:
+        from workers.envs.base import env_member
+
+        base, p = split_task(task_id)
+        setter = env_member(self._env, "set_perturbation")
+        if p is not None and p.scene:
+            if setter is None or p.kind not in env_member(self._env, "perturbation_kinds"):
+                raise ValueError(
+                    f"{task_id}: suite {getattr(self._env, 'suite', '?')!r} cannot apply "
+                    f"{p.kind}; image kinds ({', '.join(IMAGE_KINDS)}) work with any suite"
+                )
+            setter(p)
+        elif setter is not None:
+            setter(None)
+        obs = self._env.reset(base, episode_index, seed)
+        self._p, self._episode = p, (task_id, episode_index, seed)
+        return self._wrap(obs)
+
+    def step(self, action: np.ndarray) -> Any:
+        return self._wrap(self._env.step(action))
+
+    def _wrap(self, obs: Any) -> Any:
+        from dataclasses import replace
+
+        p = self._p
+        if p is None or p.scene:
+            return obs
+        task_id, episode, seed = self._episode
+        step = int(self._env.steps)
+
+        def rng_for(camera: str) -> np.random.Generator:
+            return p.rng(seed, task_id, episode, step, zlib.crc32(camera.encode()))
+
+        return replace(obs, images=PerturbedImages(obs.images, p, rng_for))
+
+    @property
+    def task(self) -> Any:
+        return perturbed_task(self._env.task, self._p)

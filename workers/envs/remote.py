@@ -244,6 +244,7 @@ class RemoteEnv:
         self._server: ServerProcess | None = None
         self._status: dict[str, Any] | None = None
         self._generation = 0
+        self._perturbation: Any = None
         self._start()
 
     def _start(self) -> None:
@@ -261,6 +262,7 @@ class RemoteEnv:
         self.gripper_index: int | None = info["gripper_index"]
         self.render_backend: str | None = info["render_backend"]
         self.policy_reset_per_subtask: bool = info["policy_reset_per_subtask"]
+        self.perturbation_kinds: tuple[str, ...] = tuple(info.get("perturbation_kinds", ()))
         self._tasks = [TaskSpec(**t) for t in info["tasks"]]
         self._status = None
         self._generation += 1  # observations of the old server are stale
@@ -293,8 +295,16 @@ class RemoteEnv:
         if not self.alive:  # health check: a server that died between episodes is replaced
             log.warning("env server %s is gone; starting a new one", self.pid)
             self.restart()
-        reply = self._call("reset", task_id=task_id, episode_index=episode_index, seed=seed)
-        return self._observation(reply)
+        args: dict[str, Any] = {"task_id": task_id, "episode_index": episode_index, "seed": seed}
+        if self._perturbation is not None or self.perturbation_kinds:
+            args["perturbation"] = self._perturbation.text if self._perturbation else "none"
+        return self._observation(self._call("reset", **args))
+
+    def set_perturbation(self, p: Any) -> None:
+        """The scene perturbation of the next reset, applied by the env in the server."""
+        if p is not None and p.kind not in self.perturbation_kinds:
+            raise ValueError(f"the env cannot apply {p.kind}; it applies {self.perturbation_kinds}")
+        self._perturbation = p
 
     def step(self, action: np.ndarray) -> EnvObservation:
         return self._observation(self._call("step", action=np.asarray(action)))

@@ -44,6 +44,7 @@ def env_info(env: Any) -> dict[str, Any]:
         "gripper_index": env_member(env, "gripper_index"),
         "render_backend": env_member(env, "render_backend"),
         "policy_reset_per_subtask": bool(env_member(env, "policy_reset_per_subtask")),
+        "perturbation_kinds": list(env_member(env, "perturbation_kinds")),
         "tasks": [asdict(t) for t in env.tasks()],
     }
 
@@ -98,7 +99,12 @@ class EnvServer:
         return env_info(self.env)
 
     def op_reset(self, req: dict[str, Any]) -> dict[str, Any]:
-        self.obs = self._env().reset(req["task_id"], int(req["episode_index"]), int(req["seed"]))
+        env = self._env()
+        if "perturbation" in req:  # a scene perturbation (only sent where one applies)
+            from workers.envs.perturbations import parse
+
+            env.set_perturbation(parse(req["perturbation"]))
+        self.obs = env.reset(req["task_id"], int(req["episode_index"]), int(req["seed"]))
         return self._observation()
 
     def op_step(self, req: dict[str, Any]) -> dict[str, Any]:

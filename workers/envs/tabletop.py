@@ -79,6 +79,9 @@ class TabletopEnv:
     state_dim = 8
     gripper_index = 6
 
+    #: scene perturbations this suite applies (workers/envs/perturbations.py)
+    perturbation_kinds = ("camera_shift", "camera_pitch", "light_dim", "table_color", "init_jitter")
+
     TASK_COLORS: ClassVar[dict[str, tuple[str, ...]]] = {
         "pick_color": ("red", "green", "blue"),
         "stack_color": ("red", "green", "blue"),
@@ -114,6 +117,8 @@ class TabletopEnv:
         self.fast_render = fast_render  # no MSAA/reflections/skybox/shadows: ~3x cheaper on OSMesa
         self._scenes: dict[str, Any] = {}
         self._renderers: dict[str, Any] = {}
+        self._perturbers: dict[str, Any] = {}
+        self._perturbation: Any = None  # for the next reset (set_perturbation)
         self._ep: _Episode | None = None
 
     @staticmethod
@@ -165,6 +170,23 @@ class TabletopEnv:
             self._renderers[task_id] = FastRenderer(scene, cams, self.image_size, self.fast_render)
         return self._scenes[task_id]
 
+    def set_perturbation(self, p: Any) -> None:
+        """The scene perturbation of the next reset (None: the unperturbed scene)."""
+        if p is not None and p.kind not in self.perturbation_kinds:
+            raise ValueError(
+                f"tabletop cannot apply {p.kind}; it applies {self.perturbation_kinds}"
+            )
+        self._perturbation = p
+
+    def _perturber(self, task_id: str, scene: Any) -> Any:
+        if task_id not in self._perturbers:
+            from workers.envs.perturbations import MujocoScenePerturber
+
+            self._perturbers[task_id] = MujocoScenePerturber(
+                scene.sim.model._model, CAMERAS["agentview"], ["table_visual"]
+            )
+        return self._perturbers[task_id]
+
     # -- episode -----------------------------------------------------------------------------
     def _new_episode(self, task_id: str, episode_index: int, seed: int) -> _Episode:
         task_index = list(DEFAULT_MAX_STEPS).index(task_id)
@@ -203,8 +225,19 @@ class TabletopEnv:
         self._spec(task_id)
         ep = self._new_episode(task_id, episode_index, seed)
         scene = self._scene(task_id)
+        p = self._perturbation
+        if self._perturbers or p is not None:  # a perturbed episode ran here: undo it first
+            self._perturber(task_id, scene).restore()
+        if p is not None and p.kind == "init_jitter":  # each cube moved by up to severity
+            from workers.envs.perturbations import join_task
+
+            rng = p.rng(seed, join_task(task_id, p), episode_index)
+            ep.cube_xy = ep.cube_xy + rng.uniform(-p.severity, p.severity, ep.cube_xy.shape)
+            ep.init_state_id = join_task(ep.init_state_id, p)
         scene.place_cubes(ep.cube_xy)
         self._last_obs = scene.reset()
+        if p is not None and p.kind != "init_jitter":
+            self._perturber(task_id, scene).apply(p, scene.sim.data._data)
         mujoco_instability(scene.sim.data._data)  # clear what earlier episodes left
         self._ep = ep
         return self._observe()
