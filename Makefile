@@ -30,6 +30,7 @@ bench: setup
 	$(VENV)/bin/python benchmarks/bench_engine.py
 	$(VENV)/bin/python benchmarks/bench_cluster.py
 	$(VENV)/bin/python benchmarks/bench_tabletop_env.py
+	$(VENV)/bin/python benchmarks/bench_perturbations.py
 	$(VENV)/bin/python benchmarks/bench_libero_env.py
 	$(VENV)/bin/python benchmarks/bench_env_server.py
 	$(VENV)/bin/python benchmarks/bench_calvin_env.py
