@@ -261,6 +261,24 @@ def mlflow_lines(runs: list[RunEpisodes], ui: str | None = None) -> list[str]:
     ]
 
 
+def perturbation_lines(runs: list[RunEpisodes]) -> list[str]:
+    """Success (%) per (run, cell) x perturbation where the runs' tasks are perturbed."""
+    from workers.envs.perturbations import SEP
+
+    if not any(r.episodes["task_id"].str.contains(SEP, regex=False).any() for r in runs):
+        return []
+    rows = pd.concat(
+        [agg.success_by_perturbation(r.episodes).assign(run=r.label) for r in runs],
+        ignore_index=True,
+    )
+    perts = sorted(rows["perturbation"].unique(), key=lambda p: (p != "none", p))
+    lines = ["| run | cell | " + " | ".join(perts) + " |", "|" + "---|" * (len(perts) + 2)]
+    for (run, cell), g in rows.groupby(["run", "cell_id"], sort=False):
+        rate = g.set_index("perturbation")["success_rate"]
+        lines.append(f"| {run} | {cell} | " + " | ".join(_pct(rate.get(p)) for p in perts) + " |")
+    return ["", "Success rate (%) by perturbation:", "", *lines]
+
+
 def compare(
     run_dirs: list[str | Path], out: str | Path | None = None, n_boot: int = 2000
 ) -> tuple[str, pd.DataFrame]:
@@ -282,6 +300,7 @@ def compare(
         "",
         render(table, suites),
     ]
+    parts += perturbation_lines(runs)
     parts += ["", *ui_lines]
     if out is not None:
         from pipeline.figures import FIGURES_DIR, rimg_heatmap, rimg_matrix, runs_effects, save

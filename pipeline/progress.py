@@ -33,6 +33,8 @@ class EtaModel:
         self.slots = max(int(slots), 1)
         self._sum: dict[str, float] = {}
         self._n: dict[str, int] = {}
+        self._warm: tuple[dict[str, float], dict[str, int]] = ({}, {})
+        self._timed = 0
 
     def skipped(self, task: str) -> None:
         """An episode stored by an earlier run (resume): no time measured, none left."""
@@ -40,18 +42,26 @@ class EtaModel:
 
     def finished(self, task: str, wall_seconds: float | None) -> None:
         self.left[task] = max(self.left.get(task, 0) - 1, 0)
-        if wall_seconds is not None and wall_seconds >= 0:
-            self._sum[task] = self._sum.get(task, 0.0) + wall_seconds
-            self._n[task] = self._n.get(task, 0) + 1
+        if wall_seconds is None or wall_seconds < 0:
+            return
+        # the first episode of each slot also pays its worker's start (scene build, model
+        # warm-up): kept apart, used only while nothing else is measured
+        into = self._warm if self._timed < self.slots else (self._sum, self._n)
+        self._timed += 1
+        into[0][task] = into[0].get(task, 0.0) + wall_seconds
+        into[1][task] = into[1].get(task, 0) + 1
 
     def seconds(self) -> float | None:
         """Seconds to the end; None before any episode was timed."""
-        n = sum(self._n.values())
+        if not sum(self.left.values()):
+            return 0.0
+        sums, counts = (self._sum, self._n) if self._n else self._warm
+        n = sum(counts.values())
         if n == 0:
             return None
-        overall = sum(self._sum.values()) / n
+        overall = sum(sums.values()) / n
         work = sum(
-            left * (self._sum[t] / self._n[t] if self._n.get(t) else overall)
+            left * (sums[t] / counts[t] if counts.get(t) else overall)
             for t, left in self.left.items()
         )
         parallel = min(self.slots, max(sum(self.left.values()), 1))

@@ -371,6 +371,7 @@ def run_params(plan: RunPlan) -> dict[str, object]:
         "suite": cfg.env.suite,
         "env_params": json.dumps(cfg.env.params, sort_keys=True),
         "tasks": ",".join(t.task_id for t in plan.tasks),
+        "perturbations": ",".join(cfg.env.perturbations),
         "max_steps": json.dumps({t.task_id: t.max_steps for t in plan.tasks}),
         "episodes_per_task": cfg.episodes_per_task,
         "seed": cfg.seed,

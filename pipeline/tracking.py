@@ -474,6 +474,11 @@ def cell_metrics(
         out[r.cell_id][_metric_key("success", r.suite)] = 100 * r.success_rate
     for cell, g in suites.groupby("cell_id"):  # the paper's Avg: the mean of the suites' rates
         out[cell]["success_avg"] = 100 * float(g["success_rate"].mean())
+    if episodes["task_id"].str.contains("@", regex=False).any():  # perturbed tasks
+        for r in agg.success_by_perturbation(episodes).itertuples():
+            out[r.cell_id][_metric_key("success", "perturbation", r.perturbation)] = (
+                100 * r.success_rate
+            )
     # per task: in the parent's tables/ artifacts and the report, not as metrics (a metric
     # name per task would grow with the benchmark: 130 for LIBERO, thousands of sequences)
     chains = agg.chain_metrics(episodes) if chains is None else chains

@@ -3,6 +3,7 @@ apply, results broken down by perturbation, and the default unchanged."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pandas as pd
@@ -71,3 +72,38 @@ def test_a_run_crosses_tasks_with_perturbations_and_pairs_within_each(tmp_path) 
     a = eps[eps.task_id == "reach"][cols].sort_values(cols[:2]).reset_index(drop=True)
     b = other[cols].sort_values(cols[:2]).reset_index(drop=True)
     pd.testing.assert_frame_equal(a, b, check_dtype=False)
+
+
+def test_mlflow_and_compare_break_results_down_by_perturbation(tmp_path) -> None:
+    from mlflow import MlflowClient
+
+    from pipeline.compare import compare
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    cfg = load_config(
+        CONF / "smoke.yaml",
+        [
+            "executor.kind=inline",
+            "episodes_per_task=2",
+            f"tracking.uri={uri}",
+            "env.tasks=[reach]",
+            "env.perturbations=[none, image_blur:1.5]",
+        ],
+    )
+    execute(plan_run(cfg, tmp_path / "r"))
+    eps = RunStore(tmp_path / "r").episodes().to_pandas()
+    client = MlflowClient(uri)
+    state = (tmp_path / "r" / "tracking.json").read_text()
+    children = json.loads(state)["children"]
+    for cell, rid in children.items():
+        m = client.get_run(rid).data.metrics
+        blurred = eps[(eps.cell_id == cell) & (eps.task_id == "reach@image_blur:1.5")]
+        assert m["success/perturbation/image_blur_1.5"] == pytest.approx(
+            100 * blurred.success.mean(), rel=1e-3
+        )
+        assert m["success/perturbation/none"] == 100.0
+    parent = client.get_run(json.loads(state)["parent"]).data.params
+    assert parent["perturbations"] == "none,image_blur:1.5"
+    text, _ = compare([tmp_path / "r"], n_boot=100)
+    assert "Success rate (%) by perturbation:" in text
+    assert "| run | cell | none | image_blur:1.5 |" in text

@@ -13,8 +13,11 @@ def test_eta_weights_each_task_by_its_own_episode_time() -> None:
     # 10 short episodes (1 s) then 10 long ones (10 s) on 2 slots
     eta = EtaModel({"short": 10, "long": 10}, slots=2)
     assert eta.seconds() is None  # nothing measured yet: no guess
-    for _ in range(10):
-        eta.finished("short", 1.0)
+    eta.finished("short", 30.0)  # each slot's first episode pays the worker's start
+    assert eta.seconds() == pytest.approx(19 * 30.0 / 2)  # all there is, for now
+    eta.finished("short", 30.0)
+    for _ in range(8):
+        eta.finished("short", 1.0)  # from now on the warm-up ones are left out
     # the long task is unseen: the overall mean stands in for it
     assert eta.seconds() == pytest.approx(10 * 1.0 / 2)
     eta.finished("long", 10.0)

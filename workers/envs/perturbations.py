@@ -46,6 +46,7 @@ KINDS: dict[str, Kind] = {
     "init_jitter": Kind(
         0.0, 0.02, "m", True, "each object's start moved by up to SEVERITY m in x and y"
     ),
+    "distractors": Kind(0.0, 4.0, "objects", True, "SEVERITY extra grey cubes on the table"),
     "image_noise": Kind(0.0, 1.0, "fraction of 255", False, "Gaussian pixel noise, std SEVERITY"),
     "image_blur": Kind(0.0, 5.0, "px", False, "Gaussian blur of std SEVERITY px"),
 }
@@ -99,6 +100,8 @@ def parse(value: Any) -> Perturbation | None:
     except (TypeError, ValueError):
         raise ValueError(f"perturbation {value!r}: severity must be a number; {SYNTAX}") from None
     k = KINDS[kind]
+    if k.unit == "objects" and not sev.is_integer():
+        raise ValueError(f"perturbation {kind}:{sev:g}: a count of objects is a whole number")
     if not (k.low < sev <= k.high):
         raise ValueError(
             f"perturbation {kind}:{sev:g}: severity out of range, {k.low:g} < severity <= "
@@ -244,7 +247,7 @@ class MujocoScenePerturber:
             for g in self.geoms:
                 rgb = m.geom_rgba[g, :3]
                 m.geom_rgba[g, :3] = (1 - p.severity) * rgb + p.severity * self.DARK
-        elif p.kind != "init_jitter":
+        elif p.kind not in ("init_jitter", "distractors"):  # the env's layout, not the model
             raise ValueError(f"{p.kind} is not a scene perturbation of a MuJoCo model")
         mujoco.mj_camlight(m, data)
 

@@ -51,6 +51,11 @@ class _Episode:
     failed: str | None = None  # why the episode ended early (text)
     failed_cause: str | None = None  # the same as a stable code: wrong_order | subtask_budget
     init_state_id: str = ""
+    scene_key: str = ""  # which scene: the task's, or the task's with distractors
+
+    def __post_init__(self) -> None:
+        self.scene_key = self.scene_key or self.task_id
+
     placed: set[int] = field(default_factory=set)
 
 
@@ -70,6 +75,23 @@ def _sample_xy(
     raise RuntimeError("could not place the cubes apart; widen the placement range")
 
 
+def _free_spots(rng: np.random.Generator, taken: np.ndarray, n: int, with_bin: bool) -> np.ndarray:
+    """n (x, y) spots on the table at least a cube's spacing from the task's cubes, each
+    other and (organize) the bin: where the distractors go."""
+    spots: list[np.ndarray] = []
+    for _ in range(10_000):
+        if len(spots) == n:
+            return np.array(spots)
+        xy = np.array([rng.uniform(-0.15, 0.15), rng.uniform(-0.28, 0.14)])
+        others = [*taken, *spots]
+        if min(np.linalg.norm(np.asarray(others) - xy, axis=1)) < 0.07:
+            continue
+        if with_bin and np.abs(xy - BIN_CENTER).max() < BIN_INNER_HALF + 0.06:
+            continue
+        spots.append(xy)
+    raise RuntimeError(f"could not place {n} distractors apart from the task's cubes")
+
+
 class TabletopEnv:
     """The tabletop suite behind the Env protocol (one robosuite scene per task, reused)."""
 
@@ -80,7 +102,14 @@ class TabletopEnv:
     gripper_index = 6
 
     #: scene perturbations this suite applies (workers/envs/perturbations.py)
-    perturbation_kinds = ("camera_shift", "camera_pitch", "light_dim", "table_color", "init_jitter")
+    perturbation_kinds = (
+        "camera_shift",
+        "camera_pitch",
+        "light_dim",
+        "table_color",
+        "init_jitter",
+        "distractors",
+    )
 
     TASK_COLORS: ClassVar[dict[str, tuple[str, ...]]] = {
         "pick_color": ("red", "green", "blue"),
@@ -160,15 +189,20 @@ class TabletopEnv:
         return self.suite_tasks(self._max_steps)
 
     # -- scenes ----------------------------------------------------------------------------
-    def _scene(self, task_id: str) -> Any:
-        if task_id not in self._scenes:
+    def _scene(self, key: str) -> Any:
+        """The scene of a task (``pick_color``), or of a task with n distractor cubes
+        (``pick_color+d2``: a scene of its own, so that the task's own scene never has them)."""
+        if key not in self._scenes:
             from workers.envs.tabletop_sim import FastRenderer, make_scene
 
-            scene = make_scene(self.TASK_COLORS[task_id], with_bin=task_id == "organize")
-            self._scenes[task_id] = scene
+            task_id, _, n = key.partition("+d")
+            scene = make_scene(
+                self.TASK_COLORS[task_id], with_bin=task_id == "organize", n_distractors=int(n or 0)
+            )
+            self._scenes[key] = scene
             cams = {c: CAMERAS[c] for c in self.cameras}
-            self._renderers[task_id] = FastRenderer(scene, cams, self.image_size, self.fast_render)
-        return self._scenes[task_id]
+            self._renderers[key] = FastRenderer(scene, cams, self.image_size, self.fast_render)
+        return self._scenes[key]
 
     def set_perturbation(self, p: Any) -> None:
         """The scene perturbation of the next reset (None: the unperturbed scene)."""
@@ -224,20 +258,26 @@ class TabletopEnv:
     def reset(self, task_id: str, episode_index: int, seed: int) -> EnvObservation:
         self._spec(task_id)
         ep = self._new_episode(task_id, episode_index, seed)
-        scene = self._scene(task_id)
         p = self._perturbation
+        if p is not None and p.kind == "distractors":
+            ep.scene_key = f"{task_id}+d{int(p.severity)}"
+        scene = self._scene(ep.scene_key)
         if self._perturbers or p is not None:  # a perturbed episode ran here: undo it first
-            self._perturber(task_id, scene).restore()
-        if p is not None and p.kind == "init_jitter":  # each cube moved by up to severity
+            self._perturber(ep.scene_key, scene).restore()
+        distractor_xy = None
+        if p is not None and p.kind in ("init_jitter", "distractors"):  # the layout changes
             from workers.envs.perturbations import join_task
 
             rng = p.rng(seed, join_task(task_id, p), episode_index)
-            ep.cube_xy = ep.cube_xy + rng.uniform(-p.severity, p.severity, ep.cube_xy.shape)
+            if p.kind == "init_jitter":  # each cube moved by up to severity
+                ep.cube_xy = ep.cube_xy + rng.uniform(-p.severity, p.severity, ep.cube_xy.shape)
+            else:
+                distractor_xy = _free_spots(rng, ep.cube_xy, int(p.severity), task_id == "organize")
             ep.init_state_id = join_task(ep.init_state_id, p)
-        scene.place_cubes(ep.cube_xy)
+        scene.place_cubes(ep.cube_xy, distractor_xy)
         self._last_obs = scene.reset()
-        if p is not None and p.kind != "init_jitter":
-            self._perturber(task_id, scene).apply(p, scene.sim.data._data)
+        if p is not None and p.kind not in ("init_jitter", "distractors"):
+            self._perturber(ep.scene_key, scene).apply(p, scene.sim.data._data)
         mujoco_instability(scene.sim.data._data)  # clear what earlier episodes left
         self._ep = ep
         return self._observe()
@@ -252,7 +292,7 @@ class TabletopEnv:
             raise RuntimeError("step() after the episode is done; call reset()")
         if not np.isfinite(action).all():
             raise ValueError(f"non-finite action {action.tolist()}")
-        scene = self._scenes[self._ep.task_id]
+        scene = self._scenes[self._ep.scene_key]
         data = scene.sim.data._data
         self._last_obs, _, _, _ = scene.step(np.clip(action, -1.0, 1.0))
         self._ep.steps += 1
@@ -313,7 +353,7 @@ class TabletopEnv:
         def current() -> bool:
             return self._ep is ep and ep.steps == steps
 
-        images = LazyImages(self.cameras, self._renderers[ep.task_id].render_one, current)
+        images = LazyImages(self.cameras, self._renderers[ep.scene_key].render_one, current)
         return EnvObservation(
             images=images, state=state, privileged=LazyState(self.privileged, current)
         )
@@ -321,7 +361,7 @@ class TabletopEnv:
     def privileged(self) -> dict[str, Any]:
         """Simulator state for the scripted experts (never for learned policies)."""
         ep = self._ep
-        scene = self._scenes[ep.task_id]
+        scene = self._scenes[ep.scene_key]
         return {
             "task_id": ep.task_id,
             "cube_pos": scene.cube_positions(),

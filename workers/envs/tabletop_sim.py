@@ -31,9 +31,13 @@ from workers.envs.tabletop_layout import (
 class TabletopScene(SingleArmEnv):
     """Panda at a table with ``colors`` cubes (free) and, optionally, a bin (fixed)."""
 
-    def __init__(self, colors: tuple[str, ...], with_bin: bool, **kwargs: object) -> None:
+    def __init__(
+        self, colors: tuple[str, ...], with_bin: bool, n_distractors: int = 0, **kwargs: object
+    ) -> None:
         self.colors = colors
         self.with_bin = with_bin
+        self.n_distractors = n_distractors  # grey cubes (the distractors perturbation)
+        self._pending_distractor_xy: np.ndarray | None = None
         self.table_full_size = (0.8, 0.8, 0.05)
         self.table_offset = np.array((0.0, 0.0, TABLE_TOP_Z))
         self._pending_cube_xy: np.ndarray | None = None
@@ -52,7 +56,13 @@ class TabletopScene(SingleArmEnv):
             BoxObject(name=f"cube_{c}", size=[CUBE_HALF] * 3, rgba=list(COLORS[c]), density=200)
             for c in self.colors
         ]
-        objects: list = list(self.cubes)
+        self.distractors = [
+            BoxObject(
+                name=f"distractor_{i}", size=[CUBE_HALF] * 3, rgba=[0.6, 0.6, 0.6, 1.0], density=200
+            )
+            for i in range(self.n_distractors)
+        ]
+        objects: list = [*self.cubes, *self.distractors]
         if self.with_bin:
             objects += self._bin_parts()
         self.model = ManipulationTask(
@@ -86,9 +96,11 @@ class TabletopScene(SingleArmEnv):
         self.cube_body_ids = [self.sim.model.body_name2id(c.root_body) for c in self.cubes]
 
     # -- placement -----------------------------------------------------------------------
-    def place_cubes(self, xy: np.ndarray) -> None:
-        """Positions for the next reset (one (x, y) per cube), resting on the table."""
+    def place_cubes(self, xy: np.ndarray, distractor_xy: np.ndarray | None = None) -> None:
+        """Positions for the next reset (one (x, y) per cube, and per distractor), resting on
+        the table."""
         self._pending_cube_xy = np.asarray(xy, dtype=float)
+        self._pending_distractor_xy = distractor_xy
 
     def _reset_internal(self) -> None:
         super()._reset_internal()
@@ -102,7 +114,18 @@ class TabletopScene(SingleArmEnv):
             xy = np.stack(
                 [np.full(len(self.cubes), -0.1), np.linspace(-0.25, 0.05, len(self.cubes))], 1
             )
-        for cube, (x, y) in zip(self.cubes, xy, strict=True):
+        dxy = self._pending_distractor_xy
+        if self.distractors and dxy is None:  # while constructing: out of the way, in a row
+            dxy = np.stack(
+                [
+                    np.full(len(self.distractors), 0.3),
+                    np.linspace(-0.3, 0.3, len(self.distractors)),
+                ],
+                1,
+            )
+        cubes = [*self.cubes, *self.distractors]
+        xys = [*xy, *(dxy if self.distractors else [])]
+        for cube, (x, y) in zip(cubes, xys, strict=True):
             qpos = np.array([x, y, TABLE_TOP_Z + CUBE_HALF + 0.001, 1.0, 0.0, 0.0, 0.0])
             self.sim.data.set_joint_qpos(cube.joints[0], qpos)
 
@@ -122,11 +145,12 @@ class TabletopScene(SingleArmEnv):
         return False
 
 
-def make_scene(colors: tuple[str, ...], with_bin: bool) -> TabletopScene:
+def make_scene(colors: tuple[str, ...], with_bin: bool, n_distractors: int = 0) -> TabletopScene:
     """A scene with OSC_POSE control at 20 Hz and no robosuite rendering (we render ourselves)."""
     return TabletopScene(
         colors=colors,
         with_bin=with_bin,
+        n_distractors=n_distractors,
         robots="Panda",
         controller_configs=robosuite.load_controller_config(default_controller="OSC_POSE"),
         gripper_types="default",

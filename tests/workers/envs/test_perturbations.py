@@ -78,18 +78,19 @@ def test_tabletop_scene_kinds_and_bit_identical_none() -> None:
     fresh = TabletopEnv(image_size=48)
     plain = episode(fresh, "pick_color")
     fresh.close()
-    kinds = [k for k, v in KINDS.items() if v.scene]
-    env = PerturbedEnv(TabletopEnv(image_size=48), [None, *[parse(f"{k}:0.02") for k in kinds]])
-    assert {t.task_id for t in env.tasks()} >= {f"pick_color@{k}:0.02" for k in kinds}
-    for kind in kinds:
-        perturbed = episode(env, f"pick_color@{kind}:0.02")
+    cases = [f"{k}:{1 if k == 'distractors' else 0.02}" for k, v in KINDS.items() if v.scene]
+    env = PerturbedEnv(TabletopEnv(image_size=48), [None, *[parse(c) for c in cases]])
+    assert {t.task_id for t in env.tasks()} >= {f"pick_color@{c}" for c in cases}
+    for case in cases:
+        kind = case.split(":")[0]
+        perturbed = episode(env, f"pick_color@{case}")
         view, _, state = perturbed[0]
-        if kind == "init_jitter":  # the cubes moved: the robot starts where it always does
+        if kind in ("init_jitter", "distractors"):  # the layout changed, the robot's start not
             assert np.array_equal(state, plain[0][2]) and not np.array_equal(view, plain[0][0])
         else:  # camera, light, table: pixels only; the physics is untouched
             assert all(np.array_equal(p[2], q[2]) for p, q in zip(perturbed, plain, strict=True))
             assert not np.array_equal(view, plain[0][0]), kind
-        again = episode(env, f"pick_color@{kind}:0.02")  # seeded: the same twice
+        again = episode(env, f"pick_color@{case}")  # seeded: the same twice
         assert all(
             np.array_equal(x, y)
             for p, q in zip(again, perturbed, strict=True)
