@@ -17,17 +17,23 @@ die() { printf '[setup] error: %s\n' "$*" >&2; exit 1; }
 # --- system packages: headless rendering (OSMesa; EGL comes with GPU drivers), and Debian's
 # chromium for the MLflow UI test (driven by Playwright; no browser is downloaded) -----------
 have_lib() { ldconfig -p 2>/dev/null | grep -q "$1"; }
-apt_missing=()
-have_lib 'libOSMesa.so' || apt_missing+=(libosmesa6)
-# IDR_SKIP_BROWSER=1: no browser (the Docker images, which run episodes, not the UI test)
-[ "${IDR_SKIP_BROWSER:-0}" = 1 ] || command -v chromium >/dev/null || apt_missing+=(chromium)
-if [ ${#apt_missing[@]} -gt 0 ]; then
-    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
-        log "installing ${apt_missing[*]} (headless OpenGL for MuJoCo; the browser of the UI test)"
-        apt-get update -qq >/dev/null
-        DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${apt_missing[@]}" >/dev/null
-    elif [[ " ${apt_missing[*]} " == *" libosmesa6 "* ]]; then
-        die "libOSMesa is missing: install Debian/Ubuntu package libosmesa6 (sudo apt-get install libosmesa6)"
+can_apt() { [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; }
+apt_updated=0
+apt_install() {
+    [ "$apt_updated" = 1 ] || { apt-get update -qq >/dev/null && apt_updated=1; } || return 1
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "$@" >/dev/null
+}
+if ! have_lib 'libOSMesa.so'; then
+    can_apt || die "libOSMesa is missing: install Debian/Ubuntu package libosmesa6 (sudo apt-get install libosmesa6)"
+    log "installing libosmesa6 (headless OpenGL for MuJoCo without a GPU)"
+    apt_install libosmesa6 || die "could not install libosmesa6 with apt-get"
+fi
+# IDR_SKIP_BROWSER=1: no browser (the Docker images, which run episodes, not the UI test). A
+# browser that cannot be installed is not fatal: the one test that needs it skips, saying why.
+if [ "${IDR_SKIP_BROWSER:-0}" != 1 ] && ! command -v chromium >/dev/null; then
+    if can_apt; then
+        log "installing chromium (the MLflow UI test's browser, ~20 s)"
+        apt_install chromium || log "could not install chromium: the MLflow UI browser test will skip"
     else
         log "chromium is not installed (sudo apt-get install chromium): the MLflow UI browser test will skip"
     fi
