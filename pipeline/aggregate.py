@@ -27,6 +27,10 @@ Z95 = 0.95
 MULTINOMIAL_MAX_DISTINCT = 64  # bootstrap by counts per distinct value up to this many values
 
 
+#: The rate columns of the success tables (``_rate_rows``).
+RATE_COLUMNS = ("success_rate", "ci_low", "ci_high")
+
+
 def wilson(successes: int, n: int, confidence: float = Z95) -> tuple[float, float]:
     """Wilson score interval of successes / n (without continuity correction)."""
     if n == 0:
@@ -99,6 +103,23 @@ def success_by_task(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
 
 def success_by_suite(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
     return _rate_rows(_frame(episodes), ["cell_id", "suite"])
+
+
+def any_perturbed(task_ids: pd.Series) -> bool:
+    """Whether any task id names a perturbation (``task@kind:severity``)."""
+    from workers.envs.perturbations import SEP
+
+    return bool(task_ids.astype(str).str.contains(SEP, regex=False).any())
+
+
+def as_percent(df: pd.DataFrame, columns: tuple[str, ...] = RATE_COLUMNS) -> pd.DataFrame:
+    """A copy of ``df`` with its rate ``columns`` in percent (the unit of success everywhere:
+    report, MLflow, compare)."""
+    df = df.copy()
+    for c in columns:
+        if c in df:
+            df[c] = 100.0 * df[c]
+    return df
 
 
 def with_perturbation(df: pd.DataFrame) -> pd.DataFrame:

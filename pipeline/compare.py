@@ -263,9 +263,7 @@ def mlflow_lines(runs: list[RunEpisodes], ui: str | None = None) -> list[str]:
 
 def perturbation_lines(runs: list[RunEpisodes]) -> list[str]:
     """Success (%) per (run, cell) x perturbation where the runs' tasks are perturbed."""
-    from workers.envs.perturbations import SEP
-
-    if not any(r.episodes["task_id"].str.contains(SEP, regex=False).any() for r in runs):
+    if not any(agg.any_perturbed(r.episodes["task_id"]) for r in runs):
         return []
     rows = pd.concat(
         [agg.success_by_perturbation(r.episodes).assign(run=r.label) for r in runs],

@@ -184,12 +184,10 @@ def rimg_matrix(effects: pd.DataFrame) -> pd.DataFrame:
     """backbone x suite table of R_img = mean E_img / (mean E_img + mean E_prop + eps) (the
     paper's ratio of time averages, not the average of per-step ratios)."""
     effects = effects.dropna(subset=["e_img", "e_prop"])
-    if "task_id" in effects and effects["task_id"].str.contains("@", regex=False).any():
+    if "task_id" in effects and agg.any_perturbed(effects["task_id"]):
         # perturbed tasks: a column per suite x perturbation (the paper's observation 2)
-        from workers.envs.perturbations import perturbation_of
-
-        pert = effects["task_id"].map(perturbation_of)
-        effects = effects.assign(suite=effects["suite"].astype(str) + "\n" + pert)
+        tagged = agg.with_perturbation(effects)
+        effects = tagged.assign(suite=tagged["suite"].astype(str) + "\n" + tagged["perturbation"])
     g = effects.groupby(["backbone", "suite"])
     m = g[["e_img", "e_prop"]].mean()
     ratio = m["e_img"] / (m["e_img"] + m["e_prop"] + EPS)

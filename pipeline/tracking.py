@@ -438,10 +438,7 @@ def task_tables(
     numbers the UI shows as the parent run's artifacts, one file whatever the grid's size.
     ``chains``: ``agg.chain_metrics(episodes)`` where the caller has it already."""
     paths = [out / "success_by_task.csv"]
-    by_task = agg.success_by_task(episodes)
-    for c in ("success_rate", "ci_low", "ci_high"):  # percent, as everywhere
-        by_task[c] = 100.0 * by_task[c]
-    by_task.to_csv(paths[0], index=False)
+    agg.as_percent(agg.success_by_task(episodes)).to_csv(paths[0], index=False)
     chains = agg.chain_metrics(episodes) if chains is None else chains
     if not chains.empty:
         paths.append(out / "chains_by_task.csv")
@@ -474,7 +471,7 @@ def cell_metrics(
         out[r.cell_id][_metric_key("success", r.suite)] = 100 * r.success_rate
     for cell, g in suites.groupby("cell_id"):  # the paper's Avg: the mean of the suites' rates
         out[cell]["success_avg"] = 100 * float(g["success_rate"].mean())
-    if episodes["task_id"].str.contains("@", regex=False).any():  # perturbed tasks
+    if agg.any_perturbed(episodes["task_id"]):
         for r in agg.success_by_perturbation(episodes).itertuples():
             out[r.cell_id][_metric_key("success", "perturbation", r.perturbation)] = (
                 100 * r.success_rate

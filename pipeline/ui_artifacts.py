@@ -16,8 +16,6 @@ import html
 import re
 from pathlib import Path
 
-import pandas as pd
-
 from pipeline import aggregate as agg
 from pipeline.figures import RunData, cell_figures, save
 from pipeline.report import FIGURES_DIR, build_report
@@ -73,16 +71,5 @@ def write_cell_slice(run_dir: Path, data: RunData, cell: str, out: Path) -> list
     tables = out / "tables"
     tables.mkdir(parents=True, exist_ok=True)
     by_task = agg.success_by_task(data.episodes[data.episodes["cell_id"] == cell])
-    _percent(by_task, ("success_rate", "ci_low", "ci_high")).to_csv(
-        tables / "success_by_task.csv", index=False
-    )
+    agg.as_percent(by_task).to_csv(tables / "success_by_task.csv", index=False)
     return [md, write_report_html(md), *paths.values(), tables / "success_by_task.csv"]
-
-
-def _percent(df: pd.DataFrame, columns: tuple[str, ...]) -> pd.DataFrame:
-    """Rates as percentages (the unit of success everywhere: report, MLflow, compare)."""
-    df = df.copy()
-    for c in columns:
-        if c in df:
-            df[c] = 100.0 * df[c]
-    return df

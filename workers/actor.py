@@ -286,13 +286,12 @@ def remote_worker_class(
 def current_node() -> str:
     """Where this worker runs: ``HOSTNAME/RAY_NODE_ID`` inside a Ray actor (several nodes can
     share a host), the hostname elsewhere (the inline executor)."""
+    from workers.worker_log import in_ray_actor
+
     host = socket.gethostname()
-    ray = sys.modules.get("ray")
-    if ray is not None and ray.is_initialized():
+    if in_ray_actor():
         try:
-            ctx = ray.get_runtime_context()
-            if ctx.get_actor_id() is not None:
-                return f"{host}/{ctx.get_node_id()}"
+            return f"{host}/{sys.modules['ray'].get_runtime_context().get_node_id()}"
         except Exception:  # an old or partial Ray: the hostname still says where
             pass
     return host
