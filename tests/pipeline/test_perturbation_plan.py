@@ -28,6 +28,11 @@ def test_bad_perturbations_are_refused_naming_the_allowed_values(tmp_path) -> No
     with pytest.raises(ConfigError, match=r"suite 'fake_marker' cannot apply \['camera_shift'\]"):
         plan_run(cfg, tmp_path / "r")
     assert not (tmp_path / "r").exists()
+    # LIBERO applies the camera, light, table and jitter kinds; distractors are tabletop-only
+    cfg = load_config(CONF / "libero_smoke.yaml", [*INLINE, "env.perturbations=[distractors:2]"])
+    with pytest.raises(ConfigError, match=r"'libero' cannot apply \['distractors'\] \(it applies "):
+        plan_run(cfg, tmp_path / "r")
+    assert not (tmp_path / "r").exists()
     cfg = load_config(CONF / "smoke.yaml", [*INLINE, "env.tasks=[nope@image_noise:0.1]"])
     with pytest.raises(ConfigError, match=r"env.tasks: \['nope@image_noise:0.1'\] not in suite"):
         plan_run(cfg, tmp_path / "r")

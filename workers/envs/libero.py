@@ -138,6 +138,26 @@ def _init_states(bench: Any, index: int) -> np.ndarray:
     return load_numpy_array(path)
 
 
+def _table_geoms(model: Any) -> list[str | int]:
+    """The geoms ``table_color`` tints: the visible (group 1) geoms of the scene's table, named
+    by the geom or its body (``table_visual`` and legs; the living room's unnamed mesh on
+    ``living_room_table_col``), else the floor (LIBERO-Object's scenes have no table)."""
+    import mujoco
+
+    def name(kind: Any, i: int) -> str:
+        return mujoco.mj_id2name(model, kind, i) or ""
+
+    table: list[str | int] = [
+        g
+        for g in range(model.ngeom)
+        if model.geom_group[g] == 1
+        and "table"
+        in name(mujoco.mjtObj.mjOBJ_GEOM, g)
+        + name(mujoco.mjtObj.mjOBJ_BODY, int(model.geom_bodyid[g]))
+    ]
+    return table or ["floor"]
+
+
 def _list_tasks(protocol: LiberoProtocol) -> list[TaskSpec]:
     ensure_config_env()  # every time: the suite tables below are cached per process
     return [
@@ -173,6 +193,10 @@ class LiberoEnv:
     action_dim = 7
     state_dim = 8
     gripper_index = 6  # -1 open, +1 close
+    #: scene perturbations this suite applies (workers/envs/perturbations.py): the main
+    #: camera is ``agentview``; ``table_color`` tints the table (the floor in scenes without,
+    #: see ``_table_geoms``)
+    perturbation_kinds = ("camera_shift", "camera_pitch", "light_dim", "table_color", "init_jitter")
 
     def __init__(
         self,
@@ -218,6 +242,9 @@ class LiberoEnv:
         self._init_states: np.ndarray | None = None
         self._task: TaskSpec | None = None
         self._init_index = 0
+        self._perturbation: Any = None  # for the next reset (set_perturbation)
+        self._perturber: Any = None  # MujocoScenePerturber of the model last perturbed
+        self._init_suffix = ""  # the layout perturbation, in init_state_id
         self._steps = 0
         self._success = False
 
@@ -318,6 +345,7 @@ class LiberoEnv:
 
     def _close_sim(self) -> None:
         self._snapshots.clear()
+        self._perturber = None
         sim, self._sim, self._sim_task = self._sim, None, None
         if sim is not None:
             sim.close()
@@ -339,11 +367,57 @@ class LiberoEnv:
         self._init_index = episode_index % len(self._init_states)
         self._sim.seed(self.protocol.reset_seed(seed, episode_index))
         self._sim.reset()
+        p, self._init_suffix = self._perturbation, ""
+        self._perturb_scene(p)
         raw = self._sim.set_init_state(self._init_states[self._init_index])
+        if p is not None and p.kind == "init_jitter":
+            raw = self._jitter(p, task_id, episode_index, seed)
         for _ in range(self.protocol.num_noops):
             raw, _, _, _ = self._sim.step(list(NOOP_ACTION))
         self._task, self._steps, self._success = spec, 0, False
         return self._observe(raw)
+
+    # -- perturbations (workers/envs/perturbations.py) ---------------------------------------
+
+    def set_perturbation(self, p: Any) -> None:
+        """The scene perturbation of the next reset (None: the unperturbed scene)."""
+        if p is not None and p.kind not in self.perturbation_kinds:
+            raise ValueError(f"libero cannot apply {p.kind}; it applies {self.perturbation_kinds}")
+        self._perturbation = p
+
+    def _perturb_scene(self, p: Any) -> None:
+        """Camera, light and table kinds on the model ``reset`` left; before the init state is
+        set, whose forward pass places camera and lights. LIBERO's hard reset builds a new
+        model each time; a model that outlived a perturbed episode is restored first."""
+        model = self._sim.env.sim.model._model
+        if self._perturber is not None and self._perturber.model is model:
+            self._perturber.restore()
+        if p is None or p.kind == "init_jitter":
+            return
+        if self._perturber is None or self._perturber.model is not model:
+            from workers.envs.perturbations import MujocoScenePerturber
+
+            self._perturber = MujocoScenePerturber(
+                model, CAMERAS["agentview"][0], _table_geoms(model)
+            )
+        self._perturber.apply(p, self._sim.env.sim.data._data)
+
+    def _jitter(self, p: Any, task_id: str, episode_index: int, seed: int) -> Any:
+        """Every free object (the robot has a fixed base) moved by up to the severity in x and
+        y from its fixed init state, seeded; the no-ops that follow let it settle."""
+        import mujoco
+
+        from workers.envs.perturbations import join_task
+
+        sim = self._sim.env.sim
+        model, qpos = sim.model._model, sim.data._data.qpos
+        rng = p.rng(seed, join_task(task_id, p), episode_index)
+        for j in range(model.njnt):
+            if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE:
+                adr = model.jnt_qposadr[j]
+                qpos[adr : adr + 2] += rng.uniform(-p.severity, p.severity, 2)
+        self._init_suffix = join_task("", p)
+        return self._sim.set_init_state(self._sim.get_sim_state())
 
     def step(self, action: np.ndarray) -> EnvObservation:
         a = np.asarray(action, dtype=np.float64)
@@ -412,7 +486,7 @@ class LiberoEnv:
     @property
     def init_state_id(self) -> str:
         """Which fixed init state this episode started from, e.g. ``libero_spatial/0/init3``."""
-        return f"{self.task.task_id}/init{self._init_index}"
+        return f"{self.task.task_id}/init{self._init_index}{self._init_suffix}"
 
     @property
     def success(self) -> bool:

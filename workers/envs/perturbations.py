@@ -11,7 +11,7 @@ report breaks results down by perturbation for free.
 Image kinds (``image_noise``, ``image_blur``) act at the sensor, on every camera's rendered
 image, for any suite (:class:`PerturbedEnv` applies them). Scene kinds act on the simulator
 after its reset and before the first observation, in suites that say they can
-(``perturbation_kinds``: the tabletop and LIBERO, both MuJoCo). Every random draw is seeded by
+(``perturbation_kinds``: the tabletop and LIBERO, both MuJoCo; distractors: the tabletop). Every random draw is seeded by
 (seed, task, episode, perturbation): an episode is the same wherever and whenever it runs.
 """
 
@@ -38,7 +38,7 @@ class Kind:
 
 KINDS: dict[str, Kind] = {
     "camera_shift": Kind(0.0, 0.3, "m", True, "the main camera moved sideways by SEVERITY m"),
-    "camera_pitch": Kind(0.0, 30.0, "deg", True, "the main camera pitched down by SEVERITY deg"),
+    "camera_pitch": Kind(0.0, 30.0, "deg", True, "the main camera pitched up by SEVERITY deg"),
     "light_dim": Kind(0.0, 1.0, "fraction", True, "every light's intensity scaled by 1 - SEVERITY"),
     "table_color": Kind(
         0.0, 1.0, "fraction", True, "the table's colour blended toward dark brown by SEVERITY"
@@ -180,19 +180,25 @@ class MujocoScenePerturber:
     then applies one perturbation, so that ``none`` after any perturbed episode is the
     unperturbed scene to the bit.
 
-    ``camera``: the main camera (moved or pitched); ``table_geoms``: names of the geoms whose
-    colour ``table_color`` blends. Lights: every light of the model and the headlight."""
+    ``camera``: the main camera (moved or pitched); ``table_geoms``: names (or ids) of the geoms
+    whose colour ``table_color`` blends (a textured geom's material colour, which tints its
+    texture). Lights: every light of the model and the headlight. A simulator that rebuilds
+    its model at every reset (LIBERO's hard reset) needs a new perturber per model."""
 
     DARK = np.array([0.25, 0.15, 0.08])  # table_color's target: dark brown
+    DEFAULT_RGBA = np.array([0.5, 0.5, 0.5, 1.0])  # a geom's rgba when its XML sets none
 
-    def __init__(self, model: Any, camera: str, table_geoms: list[str]) -> None:
+    def __init__(self, model: Any, camera: str, table_geoms: list[str | int]) -> None:
         import mujoco
 
         self.model = model
         self.cam = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
         if self.cam < 0:
             raise ValueError(f"perturbations: the scene has no camera {camera!r}")
-        self.geoms = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, g) for g in table_geoms]
+        self.geoms = [
+            g if isinstance(g, int) else mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, g)
+            for g in table_geoms
+        ]
         if not self.geoms or min(self.geoms) < 0:
             raise ValueError(f"perturbations: the scene lacks a table geom of {table_geoms}")
         self._saved = self._read()
@@ -209,7 +215,18 @@ class MujocoScenePerturber:
             "head_ambient": m.vis.headlight.ambient.copy(),
             "head_specular": m.vis.headlight.specular.copy(),
             "geom_rgba": m.geom_rgba.copy(),
+            "mat_rgba": m.mat_rgba.copy(),
         }
+
+    def _colour_of(self, geom: int) -> tuple[tuple[str, int], np.ndarray]:
+        """The rgba the renderer shows for ``geom``, as (key, a view into the model): its
+        material's when it has one and its own rgba is MuJoCo's default (textured tables:
+        LIBERO's), else its own."""
+        m = self.model
+        mat = int(m.geom_matid[geom])
+        if mat >= 0 and np.allclose(m.geom_rgba[geom], self.DEFAULT_RGBA):
+            return ("material", mat), m.mat_rgba[mat]
+        return ("geom", geom), m.geom_rgba[geom]
 
     def restore(self) -> None:
         m, s = self.model, self._saved
@@ -220,6 +237,7 @@ class MujocoScenePerturber:
         m.vis.headlight.ambient[:] = s["head_ambient"]
         m.vis.headlight.specular[:] = s["head_specular"]
         m.geom_rgba[:] = s["geom_rgba"]
+        m.mat_rgba[:] = s["mat_rgba"]
 
     def apply(self, p: Perturbation, data: Any) -> None:
         """``p`` (a scene kind other than init_jitter, which the env applies to its layout)
@@ -229,7 +247,7 @@ class MujocoScenePerturber:
         m = self.model
         if p.kind == "camera_shift":  # sideways: along the world y axis (the table's width)
             m.cam_pos[self.cam, 1] += p.severity
-        elif p.kind == "camera_pitch":  # about the camera's own x axis: the view tilts down
+        elif p.kind == "camera_pitch":  # about the camera's own x axis: the view tilts up
             half = np.deg2rad(p.severity) / 2
             turn = np.array([np.cos(half), np.sin(half), 0.0, 0.0])
             out = np.zeros(4)
@@ -244,9 +262,8 @@ class MujocoScenePerturber:
             m.vis.headlight.ambient[:] *= k
             m.vis.headlight.specular[:] *= k
         elif p.kind == "table_color":
-            for g in self.geoms:
-                rgb = m.geom_rgba[g, :3]
-                m.geom_rgba[g, :3] = (1 - p.severity) * rgb + p.severity * self.DARK
+            for rgba in dict(map(self._colour_of, self.geoms)).values():  # a material once
+                rgba[:3] = (1 - p.severity) * rgba[:3] + p.severity * self.DARK
         elif p.kind not in ("init_jitter", "distractors"):  # the env's layout, not the model
             raise ValueError(f"{p.kind} is not a scene perturbation of a MuJoCo model")
         mujoco.mj_camlight(m, data)

@@ -306,3 +306,37 @@ def test_episode_follows_the_protocol(env, task_id) -> None:
     if suite != "libero_spatial":  # switching task closed the previous simulator
         assert len(env.built) == len(before) + 1
         assert not hasattr(before[-1], "env")  # LIBERO's close() drops its inner env
+
+
+@pytest.mark.slow
+@pytest.mark.sim
+def test_scene_perturbations_and_bit_identical_none(env) -> None:
+    """Scene kinds on LIBERO: the table (libero_10/0: the living room's unnamed table mesh) recoloured
+    through its material, the objects jittered; ``none`` right after them is the unperturbed
+    episode to the bit. Reuses the module's simulator (the last task above)."""
+    from workers.envs.perturbations import PerturbedEnv, parse
+
+    task = "libero_10/0"
+    kinds = ["table_color:0.8", "init_jitter:0.02"]
+    pe = PerturbedEnv(env, [None, *map(parse, kinds)])
+    assert {t.task_id for t in pe.tasks()} >= {task, *(f"{task}@{k}" for k in kinds)}
+
+    def episode(task_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        obs = pe.reset(task_id, 4, seed=7)
+        first = obs.images["agentview"].copy()
+        qpos = env._sim.env.sim.data.qpos.copy()
+        obs = pe.step(np.array([0.5, 0, 0, 0, 0, 0, -1], dtype=np.float32))
+        return first, obs.images["wrist"].copy(), obs.state.copy(), qpos
+
+    plain = episode(task)
+    tinted = episode(f"{task}@table_color:0.8")
+    assert np.array_equal(tinted[3], plain[3]) and np.array_equal(tinted[2], plain[2])
+    assert tinted[0].mean() < plain[0].mean() - 5  # the table darkened toward brown
+    jittered = episode(f"{task}@init_jitter:0.02")
+    assert pe.init_state_id == f"{task}/init4@init_jitter:0.02"
+    moved = np.abs(jittered[3] - plain[3])
+    assert 1e-4 < moved.max() < 0.05  # objects moved by centimetres, nothing flew
+    again = episode(task)
+    assert pe.init_state_id == f"{task}/init4"
+    for a, b in zip(again, plain, strict=True):
+        assert np.array_equal(a, b)
