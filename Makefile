@@ -4,7 +4,7 @@ VENV ?= .venv
 RUN_DIR ?= runs/default
 PYTEST_ARGS ?=
 
-.PHONY: setup setup-calvin run test lint bench clean
+.PHONY: setup setup-calvin setup-simpler run test lint bench clean
 
 setup:
 	@bash scripts/setup.sh
@@ -12,6 +12,11 @@ setup:
 # the CALVIN env server's Python 3.11 venv (.venv-calvin): only for configs with env.suite calvin
 setup-calvin:
 	@bash scripts/setup_calvin.sh
+
+# the SIMPLER env server's Python 3.11 venv (.venv-simpler) and, without a GPU, Vulkan on the CPU
+# (.vulkan-cpu: lavapipe + our layer): only for configs with env.suite simpler
+setup-simpler:
+	@bash scripts/setup_simpler.sh
 
 run: setup
 	$(VENV)/bin/idr-eval run conf/default.yaml --out $(RUN_DIR)

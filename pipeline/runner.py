@@ -125,6 +125,19 @@ def _select_tasks(cfg: RunConfig, server: ServerSpec | None = None) -> list[Task
             f"env.perturbations: suite {cfg.env.suite!r} cannot apply {bad} (it applies {can}); "
             f"the image kinds ({', '.join(IMAGE_KINDS)}) work with any suite"
         )
+    short = {t.task_id: t.episodes_total for t in out.values() if t.episodes_total is not None}
+    if short and cfg.episodes_per_task > (least := min(short.values())):
+        fewest = sorted(k for k, v in short.items() if v == least)
+        raise ConfigError(
+            f"episodes_per_task={cfg.episodes_per_task}: {fewest} have {least} episodes in their "
+            f"fixed list; set episodes_per_task <= {least}"
+        )
+    if (check := env_member(env_class(cfg.env.suite), "check_tasks")) is not None:
+        bases = list(dict.fromkeys(split_task(t)[0] for t in out))
+        try:
+            check(bases, cfg.episodes_per_task, **cfg.env.params)
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
     return list(out.values())
 
 

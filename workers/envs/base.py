@@ -28,6 +28,7 @@ class TaskSpec:
     subtasks_total: int = 1  # > 1 for chains: episode stops at the first failed subtask
     suite: str | None = None  # benchmark suite of this task when an env spans several (LIBERO)
     instruction: str | None = None  # fixed instruction, when known without a simulator
+    episodes_total: int | None = None  # a fixed list of episodes (CALVIN, SIMPLER); None: any
 
 
 class LazyImages(Mapping[str, np.ndarray]):
@@ -160,6 +161,12 @@ OPTIONAL_ENV_MEMBERS: dict[str, tuple[Any, str]] = {
         "classmethod(**params) -> workers.io_spec.EnvIO: cameras, image size, state and "
         "action dims and protocol, without a simulator (the pre-flight matches a checkpoint "
         "against them); None: no check",
+    ),
+    "check_tasks": (
+        None,
+        "classmethod(task_ids, episodes, **params) -> None: check, on the driver before any "
+        "episode, what the selected tasks' first ``episodes`` episodes need (SIMPLER: their "
+        "assets), raising ValueError naming the fix",
     ),
     "perturbation_kinds": (
         (),

@@ -283,6 +283,7 @@ class CalvinEnv:
             max_steps=NUM_SUBTASKS * subtask_steps,
             subtasks_total=NUM_SUBTASKS,
             suite=SUITE,
+            episodes_total=n,
         )
 
     @classmethod

@@ -16,6 +16,7 @@ ENVS: dict[str, str] = {
     "tabletop": "workers.envs.tabletop:TabletopEnv",
     "libero": "workers.envs.libero:LiberoEnv",
     "calvin": "workers.envs.calvin:CalvinEnv",  # in an env server: env.python (Python 3.11)
+    "simpler": "workers.envs.simpler:SimplerEnv",  # in an env server: env.python (Python 3.11)
 }
 
 
