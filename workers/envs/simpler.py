@@ -220,11 +220,17 @@ class SimplerEnv:
         if vk.resolve(p["renderer"], p["vulkan_cpu"]) == "lavapipe":
             vk.configure(p["vulkan_cpu"])  # before sapien: it links to libvulkan
         missing = []
-        for module in ("sapien", "gymnasium", "transforms3d", "cv2", "scipy"):
+        for module in ("sapien.core", "gymnasium", "transforms3d", "cv2", "scipy"):
             try:
                 __import__(module)
-            except ImportError:
-                missing.append(module)
+            except ImportError as exc:
+                if "libvulkan" in str(exc):  # installed, but no Vulkan loader on this machine
+                    raise ValueError(
+                        f"SAPIEN cannot load Vulkan here ({exc}): install a GPU's Vulkan driver "
+                        f"(libvulkan1), or use lavapipe: env.params.renderer=lavapipe or auto "
+                        f"after {vk.SETUP_HINT}"
+                    ) from None
+                missing.append(module.partition(".")[0])
         if missing:
             raise ValueError(
                 f"the SIMPLER env needs {missing} in Python {sys.version.split()[0]} "

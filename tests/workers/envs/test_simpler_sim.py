@@ -13,8 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from workers.envs import vulkan_cpu
 from workers.envs.base import check_env
-from workers.envs.remote import RemoteEnv, ServerSpec
+from workers.envs.remote import RemoteEnv, ServerSpec, probe_server
 
 ROOT = Path(__file__).resolve().parents[3]
 PYTHON = Path(os.environ.get("IDR_SIMPLER_PYTHON", ROOT / ".venv-simpler" / "bin" / "python"))
@@ -65,3 +66,11 @@ def test_an_official_episode_is_deterministic_and_moves_as_told(env):
         assert np.array_equal(ia, ib) and np.array_equal(sa, sb)
     assert a[-1][1][0] > a[0][1][0] + 0.02  # +x in the base frame: the TCP moved forward
     assert not env.success and not env.done and env.steps == 3
+
+
+def test_a_renderer_that_cannot_start_is_one_clear_error() -> None:
+    params = {"maniskill2_real2sim": CHECKOUT, "renderer": "gpu"}
+    if vulkan_cpu.gpu_icd() or Path("/usr/lib/x86_64-linux-gnu/libvulkan.so.1").exists():
+        pytest.skip("this machine has a system Vulkan: the gpu renderer may start")
+    with pytest.raises(Exception, match=r"SAPIEN cannot load Vulkan here .*renderer=lavapipe"):
+        probe_server(ServerSpec(str(PYTHON), 120), ENTRY, params)
