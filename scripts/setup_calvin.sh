@@ -9,29 +9,12 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 VENV=${IDR_CALVIN_VENV:-.venv-calvin}
-STAMP="$VENV/.idr-setup-stamp"
 log() { printf '[setup-calvin] %s\n' "$*"; }
 die() { printf '[setup-calvin] error: %s\n' "$*" >&2; exit 1; }
 
 . scripts/find_python.sh
 
-want=$(cat requirements-calvin.lock scripts/setup_calvin.sh scripts/find_python.sh | sha256sum | cut -d' ' -f1)
-if [ -x "$VENV/bin/python" ] && [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want" ]; then
-    log "$VENV is up to date"
-else
-    if [ ! -x "$VENV/bin/python" ]; then
-        py=$(PYTHON=${PYTHON311:-} find_python 3.11) || die "Python 3.11 not found (looked for python3.11 on PATH and in pyenv); install it (pyenv install 3.11) or set PYTHON311=/path/to/python3.11"
-        log "creating $VENV with $py"
-        "$py" -m venv "$VENV"
-    fi
-    "$VENV/bin/python" -c 'import sys; assert sys.version_info[:2] == (3, 11)' \
-        || die "$VENV is not Python 3.11: remove it and run again"
-    log "installing the pinned wheels (PyBullet, hydra, numpy...; about a minute)"
-    "$VENV/bin/python" -m pip install -q --disable-pip-version-check -r requirements-calvin.lock
-    site=$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
-    "$VENV/bin/python" -m compileall -q -j 0 "$site" >/dev/null 2>&1 || true
-    echo "$want" > "$STAMP"
-fi
+pinned_venv "$VENV" 3.11 requirements-calvin.lock "PyBullet, hydra, numpy..." scripts/setup_calvin.sh
 "$VENV/bin/python" -c 'import pybullet, msgpack, numpy, hydra' 2>/dev/null \
     || die "$VENV cannot import pybullet/msgpack/numpy/hydra: remove it and run again"
 log "ready: $VENV (Python $("$VENV/bin/python" -c 'import platform; print(platform.python_version())'))"

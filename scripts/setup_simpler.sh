@@ -12,27 +12,12 @@ cd "$(dirname "$0")/.."
 
 VENV=${IDR_SIMPLER_VENV:-.venv-simpler}
 VK=${IDR_VULKAN_CPU:-.vulkan-cpu}
-STAMP="$VENV/.idr-setup-stamp"
 log() { printf '[setup-simpler] %s\n' "$*"; }
 die() { printf '[setup-simpler] error: %s\n' "$*" >&2; exit 1; }
 
 . scripts/find_python.sh
 
-want=$(cat requirements-simpler.lock scripts/setup_simpler.sh scripts/find_python.sh | sha256sum | cut -d' ' -f1)
-if [ -x "$VENV/bin/python" ] && [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want" ]; then
-    log "$VENV is up to date"
-else
-    if [ ! -x "$VENV/bin/python" ]; then
-        py=$(PYTHON=${PYTHON311:-} find_python 3.11) || die "Python 3.11 not found (looked for python3.11 on PATH and in pyenv); install it (pyenv install 3.11) or set PYTHON311=/path/to/python3.11"
-        log "creating $VENV with $py"
-        "$py" -m venv "$VENV"
-    fi
-    "$VENV/bin/python" -c 'import sys; assert sys.version_info[:2] == (3, 11)' \
-        || die "$VENV is not Python 3.11: remove it and run again"
-    log "installing the pinned wheels (SAPIEN 2.2.2, gymnasium 0.29, numpy 1.26...; about a minute)"
-    "$VENV/bin/python" -m pip install -q --disable-pip-version-check -r requirements-simpler.lock
-    echo "$want" > "$STAMP"
-fi
+pinned_venv "$VENV" 3.11 requirements-simpler.lock "SAPIEN 2.2.2, gymnasium 0.29, numpy 1.26..." scripts/setup_simpler.sh
 "$VENV/bin/python" -c 'import importlib.util as u, sys; sys.exit(any(u.find_spec(m) is None for m in ("sapien", "gymnasium", "transforms3d", "msgpack")))' \
     || die "$VENV lacks sapien/gymnasium/transforms3d/msgpack: remove it and run again"
 

@@ -181,6 +181,21 @@ OPTIONAL_ENV_MEMBERS: dict[str, tuple[Any, str]] = {
 }
 
 
+def checked_action(action: Any, action_dim: int, started: bool, done: bool) -> np.ndarray:
+    """``action`` as float64 (action_dim,), or the error the Env protocol's ``step`` raises:
+    ValueError for a wrong shape or a NaN / inf, RuntimeError before reset or after done."""
+    a = np.asarray(action, dtype=np.float64)
+    if a.shape != (action_dim,):
+        raise ValueError(f"action must have shape ({action_dim},), got {a.shape}")
+    if not np.isfinite(a).all():
+        raise ValueError(f"action has NaN or inf: {a.tolist()}")
+    if not started:
+        raise RuntimeError("step() before reset()")
+    if done:
+        raise RuntimeError("step() after the episode is done; call reset()")
+    return a
+
+
 def env_member(env: Any, name: str) -> Any:
     """An optional member of ``env`` (see OPTIONAL_ENV_MEMBERS), or its documented default."""
     default, _ = OPTIONAL_ENV_MEMBERS[name]

@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from workers.envs.base import EnvObservation, LazyImages, TaskSpec
+from workers.envs.base import EnvObservation, LazyImages, TaskSpec, checked_action
 from workers.envs.libero_assets import LiberoSetupError, ensure_config_env
 from workers.envs.libero_protocol import (
     CAMERAS,
@@ -420,15 +420,7 @@ class LiberoEnv:
         return self._sim.set_init_state(self._sim.get_sim_state())
 
     def step(self, action: np.ndarray) -> EnvObservation:
-        a = np.asarray(action, dtype=np.float64)
-        if a.shape != (self.action_dim,):
-            raise ValueError(f"action must have shape ({self.action_dim},), got {a.shape}")
-        if not np.isfinite(a).all():
-            raise ValueError(f"action has NaN or inf: {a.tolist()}")
-        if self._task is None:
-            raise RuntimeError("step() before reset()")
-        if self.done:
-            raise RuntimeError("step() after the episode is done; call reset()")
+        a = checked_action(action, self.action_dim, self._task is not None, self.done)
         raw, _, goal_reached, _ = self._sim.step(a)
         self._steps += 1
         self._success = bool(goal_reached)  # hf-libero's done is its goal check

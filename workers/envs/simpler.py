@@ -40,7 +40,7 @@ import numpy as np
 
 from workers.envs import simpler_protocol as sp
 from workers.envs import vulkan_cpu as vk
-from workers.envs.base import EnvObservation, TaskSpec
+from workers.envs.base import EnvObservation, TaskSpec, checked_action
 from workers.io_spec import EnvIO
 
 SUITE = "simpler"
@@ -330,15 +330,7 @@ class SimplerEnv:
         return self._observe()
 
     def step(self, action: np.ndarray) -> EnvObservation:
-        a = np.asarray(action, dtype=np.float64)
-        if a.shape != (self.action_dim,):
-            raise ValueError(f"action must have shape ({self.action_dim},), got {a.shape}")
-        if not np.isfinite(a).all():
-            raise ValueError(f"action has NaN or inf: {a.tolist()}")
-        if self._task is None:
-            raise RuntimeError("step() before reset()")
-        if self.done:
-            raise RuntimeError("step() after the episode is done; call reset()")
+        a = checked_action(action, self.action_dim, self._task is not None, self.done)
         sim = sp.to_sim_action(a, self._robot.family, self.rotation, self.binarize)
         self._obs, _, _, _, info = self._env.step(sim)
         self._steps += 1
