@@ -40,7 +40,7 @@ import numpy as np
 
 from workers.envs import simpler_protocol as sp
 from workers.envs import vulkan_cpu as vk
-from workers.envs.base import EnvObservation, TaskSpec, checked_action
+from workers.envs.base import EnvObservation, LazyState, TaskSpec, checked_action
 from workers.io_spec import EnvIO
 
 SUITE = "simpler"
@@ -139,6 +139,7 @@ class SimplerEnv:
         self._success = False
         self._instruction = ""
         self._obs: dict[str, Any] = {}
+        self._generation = 0
 
     # -- params, without a simulator ---------------------------------------------------------
     @staticmethod
@@ -342,7 +343,36 @@ class SimplerEnv:
     def _observe(self) -> EnvObservation:
         obs = self._obs
         image = np.ascontiguousarray(obs["image"][self._robot.camera]["rgb"], dtype=np.uint8)
-        return EnvObservation(images={"image": image}, state=self._state())
+        self._generation += 1
+        generation = self._generation
+
+        def current() -> bool:  # the live simulator: valid until the next step or reset
+            return self._generation == generation
+
+        return EnvObservation(
+            images={"image": image},
+            state=self._state(),
+            privileged=LazyState(self.privileged, current),
+        )
+
+    def _in_base(self, pose: Any) -> np.ndarray:
+        """A SAPIEN pose's position in the robot base frame."""
+        from scipy.spatial.transform import Rotation
+
+        base = self._env.unwrapped.agent.robot.pose
+        inv = Rotation.from_quat(np.roll(base.q, -1)).inv()
+        return inv.apply(np.asarray(pose.p) - np.asarray(base.p))
+
+    def privileged(self) -> dict[str, Any]:
+        """Simulator state for scripted controllers in tests (never for learned policies): the
+        TCP and, in the drawer tasks, the target drawer's link origin, in the robot base frame,
+        and the drawer's opening (m)."""
+        out: dict[str, Any] = {"tcp_pos": self._state()[:3].astype(np.float64)}
+        u = self._env.unwrapped
+        if getattr(u, "drawer_obj", None) is not None:
+            out["drawer_pos"] = self._in_base(u.drawer_obj.pose)
+            out["drawer_qpos"] = float(u.art_obj.get_qpos()[u.joint_idx])
+        return out
 
     def _state(self) -> np.ndarray:
         """TCP pose in the robot base frame (position, axis-angle) and the two finger joints."""
@@ -353,7 +383,7 @@ class SimplerEnv:
         tcp = next(x for x in agent.robot.get_links() if x.name == link).pose
         base = agent.robot.pose  # SAPIEN poses: p, q = (w, x, y, z)
         inv = Rotation.from_quat(np.roll(base.q, -1)).inv()
-        pos = inv.apply(np.asarray(tcp.p) - np.asarray(base.p))
+        pos = self._in_base(tcp)
         rot = (inv * Rotation.from_quat(np.roll(tcp.q, -1))).as_rotvec()
         joints = agent.robot.get_active_joints()
         qpos = agent.robot.get_qpos()
