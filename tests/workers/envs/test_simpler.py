@@ -1,6 +1,6 @@
 """SIMPLER's official protocol without SAPIEN: the episode lists against the scripts' counts,
 the robot rotation, the action conventions, the asset pre-flight, and the adapter driving a fake
-ManiSkill2_real2sim (tests/doubles) in process and through an env server. The real simulator's
+ManiSkill2_real2sim (tests/doubles/fake_simpler_sim.py) in process and through an env server. The real simulator's
 tests are in test_simpler_sim.py (they need a checkout and Vulkan)."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from workers.envs import vulkan_cpu
 from workers.envs.simpler import SimplerEnv, missing_assets
 
 ROOT = Path(__file__).resolve().parents[3]
-FAKE = ROOT / "tests" / "doubles" / "fake_maniskill2_real2sim"
+FAKE = ROOT / "tests" / "doubles" / "fake_simpler_sim.py"
 DRAWER = "google_robot_open_top_drawer/visual_matching"
 
 
@@ -107,9 +107,13 @@ def test_action_conventions() -> None:
 
 
 def _checkout(tmp_path: Path, tasks: list[str]) -> Path:
-    """A fake checkout: the fake package and, under data/, every file these tasks need."""
+    """A fake checkout: the fake envs as its package and, under data/, every file these tasks
+    need."""
     root = tmp_path / "ManiSkill2_real2sim"
-    shutil.copytree(FAKE, root)
+    package = root / "mani_skill2_real2sim"
+    (package / "envs").mkdir(parents=True)
+    (package / "__init__.py").touch()
+    shutil.copyfile(FAKE, package / "envs" / "__init__.py")
     data = root / "data"
     keys = {"custom/info_pick_custom_v0.json": ["apple", "blue_plastic_bottle"]}
     for name in set(sp.MODEL_JSONS.values()) | set(keys):

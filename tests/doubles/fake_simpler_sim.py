@@ -1,6 +1,10 @@
 """Fake SIMPLER envs (tests only): registered under the official ids, recording every build,
 reset and step in ``LOG`` (and, when ``$FAKE_SIMPLER_LOG`` is set, as JSON lines in that file, so
-a test can read what an env server's fake did)."""
+a test can read what an env server's fake did). No SAPIEN, no assets.
+
+The SIMPLER adapter imports ``mani_skill2_real2sim.envs`` from the checkout it is pointed at;
+tests build a throwaway checkout whose ``mani_skill2_real2sim/envs/__init__.py`` is this file
+(tests/workers/envs/test_simpler.py), so nothing in the repository is named like the real one."""
 
 from __future__ import annotations
 
