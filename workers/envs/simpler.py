@@ -126,6 +126,7 @@ class SimplerEnv:
         self.renderer = vk.resolve(renderer, vulkan_cpu)
         self.driver = "gpu" if self.renderer == "gpu" else vk.configure(vulkan_cpu)
         self.shader, self.success_rule = shader, success_rule
+        self._shader = shader  # the one the current episode's env renders with (_build)
         self.rotation, self.binarize = rotation, bool(binarize_gripper)
         if str(self.checkout) not in sys.path:
             sys.path.insert(0, str(self.checkout))
@@ -163,6 +164,17 @@ class SimplerEnv:
             )
         if rotation not in sp.ROTATIONS:
             raise ValueError(f"env.params.rotation={rotation!r}: one of {list(sp.ROTATIONS)}")
+
+    @classmethod
+    def _checked(cls, params: dict[str, Any]) -> dict[str, Any]:
+        """The constructor's params with its defaults filled in, checked (no checkout yet)."""
+        bound = inspect.signature(cls).bind(**params)
+        bound.apply_defaults()
+        p = bound.arguments
+        cls._check_params(
+            p["maniskill2_real2sim"], p["renderer"], p["shader"], p["success_rule"], p["rotation"]
+        )
+        return p
 
     @classmethod
     def suite_tasks(cls, **_: Any) -> list[TaskSpec]:
@@ -211,12 +223,7 @@ class SimplerEnv:
     @classmethod
     def check_runtime(cls, **params: Any) -> None:
         """In the env server: the checkout, the packages, and a renderer that starts."""
-        bound = inspect.signature(cls).bind(**params)
-        bound.apply_defaults()
-        p = bound.arguments
-        cls._check_params(
-            p["maniskill2_real2sim"], p["renderer"], p["shader"], p["success_rule"], p["rotation"]
-        )
+        p = cls._checked(params)
         checkout(p["maniskill2_real2sim"])
         if vk.resolve(p["renderer"], p["vulkan_cpu"]) == "lavapipe":
             vk.configure(p["vulkan_cpu"])  # before sapien: it links to libvulkan
@@ -251,16 +258,9 @@ class SimplerEnv:
     def check_tasks(cls, task_ids: Sequence[str], episodes: int, **params: Any) -> None:
         """Before any episode, on the driver: the assets every episode of these tasks needs,
         and ray tracing refused on lavapipe."""
-        bound = inspect.signature(cls).bind(**params)
-        bound.apply_defaults()
-        p = bound.arguments
-        cls._check_params(
-            p["maniskill2_real2sim"], p["renderer"], p["shader"], p["success_rule"], p["rotation"]
-        )
-        root = checkout(params.get("maniskill2_real2sim"))
-        need: list[sp.Episode] = []
-        for task_id in task_ids:
-            need += _episodes(task_id)[:episodes]
+        p = cls._checked(params)
+        root = checkout(p["maniskill2_real2sim"])
+        need = [ep for task_id in task_ids for ep in _episodes(task_id)[:episodes]]
         if lost := missing_assets(root / "data", need):
             raise ValueError(
                 f"SIMPLER assets missing under {root / 'data'} (tasks {list(task_ids)}): "
@@ -268,10 +268,9 @@ class SimplerEnv:
                 "every episode fails quietly: complete the checkout (these files are >= 4 MiB "
                 "in the repository) or choose other tasks"
             )
-        shader = params.get("shader", "official")
+        shader = p["shader"]
         rt = any(ep.ray_tracing for ep in need) if shader == "official" else shader == "rt"
-        renderer = vk.resolve(params.get("renderer", "auto"), params.get("vulkan_cpu"))
-        if rt and renderer == "lavapipe":
+        if rt and vk.resolve(p["renderer"], p["vulkan_cpu"]) == "lavapipe":
             raise ValueError(f"env.params.shader={shader!r}: {RT_ON_CPU}")
 
     # -- episodes ----------------------------------------------------------------------------
@@ -310,8 +309,8 @@ class SimplerEnv:
             raise ValueError(
                 f"task_id={task_id!r} is not a SIMPLER task; valid: {list(self._specs)}"
             )
-        task, setup = sp.split_task_id(task_id)
-        episodes = task.setups[setup]
+        task, _ = sp.split_task_id(task_id)
+        episodes = _episodes(task_id)
         if not 0 <= episode_index < len(episodes):
             raise ValueError(
                 f"episode {episode_index}: {task_id} has {len(episodes)} official episodes "
@@ -349,25 +348,29 @@ class SimplerEnv:
         def current() -> bool:  # the live simulator: valid until the next step or reset
             return self._generation == generation
 
+        state = self._state()
         return EnvObservation(
             images={"image": image},
-            state=self._state(),
-            privileged=LazyState(self.privileged, current),
+            state=state,
+            privileged=LazyState(lambda: self.privileged(state), current),
         )
+
+    def _base_inv(self) -> Any:
+        """The world-to-robot-base rotation (SAPIEN quaternions are (w, x, y, z))."""
+        from scipy.spatial.transform import Rotation
+
+        return Rotation.from_quat(np.roll(self._env.unwrapped.agent.robot.pose.q, -1)).inv()
 
     def _in_base(self, pose: Any) -> np.ndarray:
         """A SAPIEN pose's position in the robot base frame."""
-        from scipy.spatial.transform import Rotation
-
         base = self._env.unwrapped.agent.robot.pose
-        inv = Rotation.from_quat(np.roll(base.q, -1)).inv()
-        return inv.apply(np.asarray(pose.p) - np.asarray(base.p))
+        return self._base_inv().apply(np.asarray(pose.p) - np.asarray(base.p))
 
-    def privileged(self) -> dict[str, Any]:
+    def privileged(self, state: np.ndarray) -> dict[str, Any]:
         """Simulator state for scripted controllers in tests (never for learned policies): the
-        TCP and, in the drawer tasks, the target drawer's link origin, in the robot base frame,
-        and the drawer's opening (m)."""
-        out: dict[str, Any] = {"tcp_pos": self._state()[:3].astype(np.float64)}
+        TCP (of the observation's ``state``) and, in the drawer tasks, the target drawer's link
+        origin, in the robot base frame, and the drawer's opening (m)."""
+        out: dict[str, Any] = {"tcp_pos": state[:3].astype(np.float64)}
         u = self._env.unwrapped
         if getattr(u, "drawer_obj", None) is not None:
             out["drawer_pos"] = self._in_base(u.drawer_obj.pose)
@@ -381,10 +384,8 @@ class SimplerEnv:
         agent = self._env.unwrapped.agent
         link = self._robot.tcp_link
         tcp = next(x for x in agent.robot.get_links() if x.name == link).pose
-        base = agent.robot.pose  # SAPIEN poses: p, q = (w, x, y, z)
-        inv = Rotation.from_quat(np.roll(base.q, -1)).inv()
         pos = self._in_base(tcp)
-        rot = (inv * Rotation.from_quat(np.roll(tcp.q, -1))).as_rotvec()
+        rot = (self._base_inv() * Rotation.from_quat(np.roll(tcp.q, -1))).as_rotvec()
         joints = agent.robot.get_active_joints()
         qpos = agent.robot.get_qpos()
         fingers = [qpos[i] for i, j in enumerate(joints) if "finger" in j.name][:2]
@@ -441,4 +442,4 @@ class SimplerEnv:
 
     @property
     def render_backend(self) -> str:
-        return f"sapien-vulkan-{self.driver}/{getattr(self, '_shader', self.shader)}"
+        return f"sapien-vulkan-{self.driver}/{self._shader}"
