@@ -22,13 +22,13 @@ run: setup
 	$(VENV)/bin/idr-eval run conf/default.yaml --out $(RUN_DIR)
 
 test: setup
-	$(VENV)/bin/ruff check pipeline workers training tests benchmarks
-	$(VENV)/bin/ruff format --check pipeline workers training tests benchmarks
+	$(VENV)/bin/ruff check pipeline workers training tests benchmarks lerobot_policy_idr
+	$(VENV)/bin/ruff format --check pipeline workers training tests benchmarks lerobot_policy_idr
 	$(VENV)/bin/python -m pytest $(PYTEST_ARGS)
 
 lint: setup
-	$(VENV)/bin/ruff check --fix pipeline workers training tests benchmarks
-	$(VENV)/bin/ruff format pipeline workers training tests benchmarks
+	$(VENV)/bin/ruff check --fix pipeline workers training tests benchmarks lerobot_policy_idr
+	$(VENV)/bin/ruff format pipeline workers training tests benchmarks lerobot_policy_idr
 
 bench: setup
 	$(VENV)/bin/python benchmarks/bench_idr_passes.py

@@ -40,7 +40,7 @@ if [ "${IDR_SKIP_BROWSER:-0}" != 1 ] && ! command -v chromium >/dev/null; then
 fi
 
 # --- the virtual environment ---------------------------------------------------------------
-want=$(cat requirements.lock pyproject.toml scripts/setup.sh scripts/find_python.sh | sha256sum | cut -d' ' -f1)
+want=$(cat requirements.lock pyproject.toml lerobot_policy_idr/pyproject.toml scripts/setup.sh scripts/find_python.sh | sha256sum | cut -d' ' -f1)
 if [ -x "$VENV/bin/python" ] && [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want" ]; then
     log "$VENV is up to date"
 else
@@ -57,6 +57,9 @@ else
     log "installing pinned dependencies (first time: several minutes, torch is large)"
     "$VENV/bin/uv" pip install -q --python "$VENV/bin/python" -r requirements.lock
     "$VENV/bin/uv" pip install -q --python "$VENV/bin/python" --no-deps -e .
+    # the method as a lerobot policy plugin (lerobot-eval / lerobot-rollout in .venv find it
+    # by its name); the harness imports the refiner from it
+    "$VENV/bin/uv" pip install -q --python "$VENV/bin/python" --no-deps -e lerobot_policy_idr
     # bytecode written once here: every process (actors, CLI calls, tests) then imports torch,
     # lerobot, pandas... without compiling them, also where PYTHONDONTWRITEBYTECODE is set
     # (measured: `idr-eval report` imports 7.4 -> ~2 s). A few dependency files are not Python 3.

@@ -159,9 +159,8 @@ def train(
     trained from scratch; a fine-tune keeps its checkpoint's."""
     from lerobot.configs.types import FeatureType, PolicyFeature
     from lerobot.processor.factory import make_default_pre_post_processors
-
-    from workers.backbones.tiny_vla.configuration_tiny_vla import TinyVLAConfig
-    from workers.backbones.tiny_vla.modeling_tiny_vla import TinyVLAPolicy
+    from lerobot_policy_idr.tiny_vla.configuration_tiny_vla import TinyVLAConfig
+    from lerobot_policy_idr.tiny_vla.modeling_tiny_vla import TinyVLAPolicy
 
     architecture = {k: v for k, v in (architecture or {}).items() if v is not None}
     if init is not None and architecture:

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from idr_core.three_pass import three_passes
 
 from workers.backbones.base import Backbone, Observation, concat_observations
 from workers.idr import Diagnostics, IDRConfig, refine
@@ -32,18 +33,6 @@ class IDRStep:
     inference_ms: float  # wall time of the backbone call(s) + refinement
     batched: bool  # whether the three passes were one 3B forward
     crn: bool  # whether the three passes shared one noise draw
-
-
-def _split3(x: Any, b: int) -> tuple[Any, Any, Any]:
-    return x[:b], x[b : 2 * b], x[2 * b :]
-
-
-def _repeat3(noise: Any) -> Any:
-    if type(noise).__module__.startswith("torch"):
-        import torch
-
-        return torch.cat([noise, noise, noise], dim=0)
-    return np.concatenate([noise, noise, noise], axis=0)
 
 
 def check_intervention_spaces(backbone: Any, name: str, intervention: InterventionConfig) -> None:
@@ -148,14 +137,16 @@ class IDRPolicy:
             )
 
         no_img, no_prop = self.counterfactuals(obs, step_seed)
-        if self.batched:
-            triple = concat_observations([obs, no_img, no_prop])
-            out = self._call(triple, None if noise is None else _repeat3(noise))
-            a_base, a_no_img, a_no_prop = _split3(out, b)
-        else:
-            a_base = self._call(obs, noise)
-            a_no_img = self._call(no_img, noise)
-            a_no_prop = self._call(no_prop, noise)
+        a_base, a_no_img, a_no_prop = three_passes(
+            self._call,
+            obs,
+            no_img,
+            no_prop,
+            noise,
+            b=b,
+            batched=self.batched,
+            concat=concat_observations,
+        )
         action, diag = refine(a_base, a_no_img, a_no_prop, self.cfg)
         ms = (time.perf_counter() - t0) * 1e3
         return IDRStep(

@@ -7,8 +7,7 @@ from pathlib import Path
 
 import pytest
 import torch
-
-from workers.backbones.tiny_vla.modeling_tiny_vla import tokenize
+from lerobot_policy_idr.tiny_vla.modeling_tiny_vla import tokenize
 
 ROOT = Path(__file__).resolve().parents[3]
 SHIPPED = ROOT / "checkpoints" / "tiny_vla"
@@ -52,8 +51,7 @@ def test_shipped_checkpoint_is_small_safetensors_and_loads_through_the_adapter()
 
 def test_ignored_state_dims_outside_the_state_are_refused() -> None:
     from lerobot.configs.types import FeatureType, PolicyFeature
-
-    from workers.backbones.tiny_vla.configuration_tiny_vla import TinyVLAConfig
+    from lerobot_policy_idr.tiny_vla.configuration_tiny_vla import TinyVLAConfig
 
     cfg = TinyVLAConfig(
         input_features={

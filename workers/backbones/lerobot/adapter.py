@@ -23,7 +23,6 @@ seeded identically; deterministic ones (ACT) need neither. ``crn_mode`` records 
 
 from __future__ import annotations
 
-import inspect
 import json
 import os
 import re
@@ -31,6 +30,8 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import torch
+from idr_core.checkpoint import check_checkpoint_dir
+from idr_core.sampling import crn_mode, noise_shape
 
 from workers.backbones.base import Observation
 from workers.interventions import intervene
@@ -38,12 +39,6 @@ from workers.io_spec import PolicyIO
 
 STATE_KEY = "observation.state"
 IMAGE_PREFIX = "observation.images."
-PICKLE_WEIGHTS = ("pytorch_model.bin", "model.bin", "model.pt", "model.pth", "model.ckpt")
-DETERMINISTIC_TYPES = frozenset({"act", "vqbet", "tdmpc", "tiny_vla"})  # no sampling at inference
-# pi0 / pi0.5 take ``noise`` through ``**kwargs`` (forwarded to ``model.sample_actions``): the
-# signature alone does not show it. X-VLA names a ``noise`` argument and ignores it.
-NOISE_VIA_KWARGS_TYPES = frozenset({"pi0", "pi05"})
-NOISE_IGNORED_TYPES = frozenset({"xvla"})
 # config.json keys by which a policy resizes its images to its own resolution (pi0, pi0.5,
 # pi0-FAST, SmolVLA, X-VLA, Diffusion's resize_shape...): any rendered size then fits it.
 RESIZE_KEYS = (
@@ -78,55 +73,8 @@ def check_checkpoint(path: str, allow_download: bool = False) -> Path | None:
         raise ValueError(
             f"backbone.params.path={path!r} does not exist (a checkpoint folder or a hub id)"
         )
-    if not (p / "config.json").is_file():
-        raise ValueError(
-            f"backbone.params.path={path!r} is not a lerobot policy: no config.json in it"
-        )
-    try:
-        cfg = json.loads((p / "config.json").read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise ValueError(f"backbone.params.path={path!r}: config.json is not JSON ({e})") from None
-    if not isinstance(cfg, dict):
-        raise ValueError(
-            f"backbone.params.path={path!r}: config.json holds a {type(cfg).__name__}, not an "
-            "object with the policy's config"
-        )
-    if "type" not in cfg:
-        raise ValueError(f"backbone.params.path={path!r}: config.json has no policy 'type'")
-    known = known_policy_types()
-    if known and cfg["type"] not in known:
-        raise ValueError(
-            f"backbone.params.path={path!r}: policy type {cfg['type']!r} is not one lerobot "
-            f"knows; known: {sorted(known)}"
-        )
-    weights = p / "model.safetensors"
-    if not weights.is_file():
-        pickles = [f for f in PICKLE_WEIGHTS if (p / f).exists()]
-        hint = (
-            f" (found {pickles}: pickled weights are refused, convert them to safetensors)"
-            if pickles
-            else ""
-        )
-        raise ValueError(f"backbone.params.path={path!r} has no model.safetensors{hint}")
-    _check_safetensors(path, weights)
+    check_checkpoint_dir(p, "backbone.params.path", known_policy_types())
     return p
-
-
-def _check_safetensors(path: str, weights: Path) -> None:
-    """The header parses and covers the file exactly (a truncated copy, or a pickle renamed
-    to model.safetensors, fails here); tensors are not read."""
-    from safetensors import SafetensorError, safe_open
-
-    try:
-        with safe_open(str(weights), framework="numpy") as f:
-            n = len(list(f.keys()))
-    except (SafetensorError, OSError) as e:
-        raise ValueError(
-            f"backbone.params.path={path!r}: model.safetensors is not a complete safetensors "
-            f"file ({e}); a truncated copy or another format (pickles are never loaded)"
-        ) from None
-    if n == 0:
-        raise ValueError(f"backbone.params.path={path!r}: model.safetensors holds no tensors")
 
 
 def _shape(cfg_path: Path, key: str, feature: object) -> tuple[int, ...]:
@@ -181,7 +129,7 @@ def known_policy_types() -> set[str]:
 
     found: set[str] = set()
     roots = []
-    for package in ("lerobot.policies", "workers.backbones.tiny_vla"):
+    for package in ("lerobot.policies", "lerobot_policy_idr"):
         spec = importlib.util.find_spec(package)
         if spec is not None and spec.submodule_search_locations:
             roots += [Path(p) for p in spec.submodule_search_locations]
@@ -192,8 +140,9 @@ def known_policy_types() -> set[str]:
 
 
 def register_project_policies() -> None:
-    """Make the project's own lerobot policy types (tiny_vla) known to lerobot's registry."""
-    import workers.backbones.tiny_vla.configuration_tiny_vla  # noqa: F401
+    """Make the project's own lerobot policy types (tiny_vla, idr) known to lerobot's registry:
+    importing the plugin registers them, as lerobot's own plugin discovery does."""
+    import lerobot_policy_idr  # noqa: F401
 
 
 class LerobotBackbone:
@@ -267,16 +216,7 @@ class LerobotBackbone:
         self.state_dim = int(state.shape[0]) if state is not None else 0
         self.action_dim = int(cfg.output_features["action"].shape[0])
         self.chunk_len = int(chunk_len or getattr(cfg, "n_action_steps", None) or cfg.chunk_size)
-        takes_noise = cfg.type not in NOISE_IGNORED_TYPES and (
-            cfg.type in NOISE_VIA_KWARGS_TYPES
-            or "noise" in inspect.signature(self.policy.predict_action_chunk).parameters
-        )
-        if cfg.type in DETERMINISTIC_TYPES:
-            self.crn_mode = "deterministic"
-        elif takes_noise:
-            self.crn_mode = "shared_noise"
-        else:
-            self.crn_mode = "seeded_rng"
+        self.crn_mode = crn_mode(cfg.type, self.policy.predict_action_chunk)
         self.can_batch = (
             self.crn_mode != "seeded_rng"
         )  # one seed cannot give three thirds equal noise
@@ -306,20 +246,14 @@ class LerobotBackbone:
     def reset(self) -> None:
         self.policy.reset()
 
-    def _noise_shape(self, batch_size: int) -> tuple[int, ...] | None:
-        cfg = self.config
-        if self.crn_mode != "shared_noise":
-            return None
-        if hasattr(cfg, "max_action_dim"):  # pi0, pi0.5, smolvla
-            return (batch_size, cfg.chunk_size, cfg.max_action_dim)
-        if cfg.type == "diffusion":
-            return (batch_size, cfg.horizon, self.action_dim)
-        return None
-
     def make_noise(self, batch_size: int, seed: int) -> Any:
         if self.crn_mode == "seeded_rng":
             return torch.tensor([seed] * batch_size)  # the seed, repeated per row
-        shape = self._noise_shape(batch_size)
+        shape = (
+            noise_shape(self.config, batch_size, self.action_dim)
+            if self.crn_mode == "shared_noise"
+            else None
+        )
         if shape is None:
             return None
         gen = torch.Generator().manual_seed(seed)

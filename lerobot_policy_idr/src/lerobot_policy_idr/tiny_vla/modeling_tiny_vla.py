@@ -10,7 +10,7 @@ import torch.nn.functional as F
 from lerobot.policies.pretrained import PreTrainedPolicy
 from torch import Tensor, nn
 
-from workers.backbones.tiny_vla.configuration_tiny_vla import TinyVLAConfig
+from lerobot_policy_idr.tiny_vla.configuration_tiny_vla import TinyVLAConfig
 
 STATE_KEY = "observation.state"
 ACTION_KEY = "action"

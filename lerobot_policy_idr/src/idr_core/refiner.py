@@ -1,0 +1,250 @@
+"""The causality-aware action refiner of IDR (paper, section Method), on plain arrays.
+
+This module knows nothing about models or simulators: it takes the factual action and the
+two counterfactual actions (image intervened, state intervened) and returns the refined
+action plus per-sample diagnostics. It works on numpy arrays and on torch tensors (on any
+device, without copying to the host), batch first, with any trailing action shape: norms
+are taken per sample over all trailing dims, so for (B, T, D) chunks the whole chunk is
+one vector.
+
+Equations (guidance ``visual``; ``proprio`` swaps the roles of image and state):
+
+    d_img  = a_base - a_no_img          d_prop = a_base - a_no_prop
+    e_img  = ||d_img||_2                e_prop = ||d_prop||_2
+    g      = 1[e_img < tau]
+    w_prop = beta * min(1, e_prop / (e_img + eps))
+    u_prop = clip(d_prop, -lam, lam)
+    a_final = a_base + g * (alpha * d_img + w_prop * u_prop)
+    r_img  = e_img / (e_img + e_prop + eps)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Any, Literal, get_args
+
+import numpy as np
+
+Mode = Literal["baseline", "diagnose", "A", "B", "C", "D", "E", "F"]
+Guidance = Literal["visual", "proprio"]
+
+MODES: tuple[str, ...] = get_args(Mode)
+GUIDANCES: tuple[str, ...] = get_args(Guidance)
+
+#: What each mode does, for help texts and reports.
+MODE_DESCRIPTIONS: dict[str, str] = {
+    "baseline": "backbone only: no counterfactual passes, executes a_base",
+    "diagnose": "three passes, executes a_base, records diagnostics",
+    "A": "no proprioceptive stabilizer term",
+    "B": "stabilizer not clipped to [-lam, lam]",
+    "C": "stabilizer weight fixed to beta (not adaptive)",
+    "D": "no gate: refinement at every step (g = 1)",
+    "E": "full method",
+    "F": "alpha and beta negated (refines against the diagnosed effect)",
+}
+
+
+@dataclass(frozen=True)
+class RefinerConfig:
+    """Refiner parameters. Defaults are the paper's (pi0.5 on LIBERO).
+
+    The harness knows this class as ``workers.idr.IDRConfig``; in this package that name is the
+    lerobot policy config (``configuration_idr.IDRConfig``), whose fields of the same names
+    build one of these (lerobot derives a policy class from its config class's name)."""
+
+    alpha: float = 0.08  # strength of the main (visual) correction
+    beta: float = 0.05  # strength of the bounded stabilizer (proprioceptive) term
+    lam: float = 0.1  # clip bound of the stabilizer residual
+    tau: float = 7.0  # gate threshold on the main effect's norm (paper: mean E_img of baseline)
+    eps: float = 1e-6  # keeps ratios finite when an effect is exactly zero
+    mode: str = "E"  # one of MODES
+    guidance: str = "visual"  # which modality's effect drives the correction
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"IDRConfig.mode={self.mode!r} is unknown; allowed values: {MODES}")
+        if self.guidance not in GUIDANCES:
+            raise ValueError(
+                f"IDRConfig.guidance={self.guidance!r} is unknown; allowed values: {GUIDANCES}"
+            )
+        for name in ("alpha", "beta", "lam", "tau"):
+            value = getattr(self, name)
+            if not isinstance(value, int | float) or math.isnan(value) or value < 0:
+                raise ValueError(
+                    f"IDRConfig.{name}={value!r} must be a number >= 0 "
+                    "(mode 'F' negates alpha and beta itself; tau may be inf for 'always on')"
+                )
+        if not isinstance(self.eps, int | float) or not (0 < self.eps < math.inf):
+            raise ValueError(f"IDRConfig.eps={self.eps!r} must be a finite number > 0")
+
+    @property
+    def needs_counterfactuals(self) -> bool:
+        """Whether the mode runs the two counterfactual passes."""
+        return self.mode != "baseline"
+
+    @property
+    def refines(self) -> bool:
+        """Whether the executed action may differ from a_base."""
+        return self.mode not in ("baseline", "diagnose")
+
+    def with_(self, **changes: Any) -> RefinerConfig:
+        return replace(self, **changes)
+
+
+@dataclass(frozen=True)
+class Diagnostics:
+    """Per-sample diagnostics, each of shape (B,), same array type/device/dtype as the actions.
+
+    ``gate`` is the gate the mode computes (1.0 = refinement applied). In ``diagnose`` mode it
+    is the gate the full method *would* apply; the executed action is a_base regardless.
+    ``w_prop`` is the weight of the stabilizer term (under ``proprio`` guidance the stabilizer
+    is the image residual); it is 0 in mode A.
+    """
+
+    e_img: Any
+    e_prop: Any
+    r_img: Any
+    gate: Any
+    w_prop: Any
+
+    def to_numpy(self) -> dict[str, np.ndarray]:
+        return {
+            k: _to_numpy(getattr(self, k)) for k in ("e_img", "e_prop", "r_img", "gate", "w_prop")
+        }
+
+
+def _is_torch(x: Any) -> bool:
+    return type(x).__module__.startswith("torch")
+
+
+def _to_numpy(x: Any) -> np.ndarray:
+    if _is_torch(x):
+        return x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+class _Ops:
+    """The handful of array operations the refiner needs, for numpy or torch."""
+
+    def __init__(self, torch_mode: bool) -> None:
+        self.torch = torch_mode
+        if torch_mode:
+            import torch
+
+            self._t = torch
+
+    def norm(self, x: Any) -> Any:
+        flat = x.reshape(x.shape[0], -1)
+        if self.torch:
+            return self._t.linalg.vector_norm(flat, dim=1)
+        return np.linalg.norm(flat, axis=1).astype(x.dtype, copy=False)
+
+    def clip(self, x: Any, lo: float, hi: float) -> Any:
+        if self.torch:
+            return self._t.clamp(x, lo, hi)
+        return np.clip(x, lo, hi)
+
+    def min_one(self, x: Any) -> Any:
+        if self.torch:
+            return self._t.clamp(x, max=1.0)
+        return np.minimum(x, 1.0)
+
+    def indicator(self, cond: Any, like: Any) -> Any:
+        if self.torch:
+            return cond.to(like.dtype)
+        return cond.astype(like.dtype)
+
+    def full_like(self, x: Any, value: float) -> Any:
+        if self.torch:
+            return self._t.full_like(x, value)
+        return np.full_like(x, value)
+
+    def all_finite(self, x: Any) -> bool:
+        if self.torch:
+            return bool(self._t.isfinite(x).all())
+        return bool(np.isfinite(x).all())
+
+    def is_float(self, x: Any) -> bool:
+        if self.torch:
+            return x.is_floating_point()
+        return np.issubdtype(x.dtype, np.floating)
+
+
+def _validate(a_base: Any, a_no_img: Any, a_no_prop: Any) -> _Ops:
+    named = {"a_base": a_base, "a_no_img": a_no_img, "a_no_prop": a_no_prop}
+    kinds = {name: _is_torch(x) for name, x in named.items()}
+    if len(set(kinds.values())) != 1:
+        raise ValueError(
+            f"actions must all be numpy arrays or all torch tensors, got {kinds} (True = torch)"
+        )
+    ops = _Ops(torch_mode=kinds["a_base"])
+    for name, x in named.items():
+        if not ops.torch and not isinstance(x, np.ndarray):
+            raise ValueError(
+                f"{name} must be a numpy array or torch tensor, got {type(x).__name__}"
+            )
+        if x.ndim < 2:
+            raise ValueError(
+                f"{name} has shape {tuple(x.shape)}: actions are batch first, (B, D) or (B, T, D)"
+            )
+        if not ops.is_float(x):
+            raise ValueError(f"{name} has dtype {x.dtype}: actions must be floating point")
+    shapes = {name: tuple(x.shape) for name, x in named.items()}
+    if len(set(shapes.values())) != 1:
+        raise ValueError(f"action shapes differ: {shapes}; all three must have the same shape")
+    dtypes = {name: str(x.dtype) for name, x in named.items()}
+    if len(set(dtypes.values())) != 1:
+        raise ValueError(f"action dtypes differ: {dtypes}; all three must have the same dtype")
+    if ops.torch:
+        devices = {name: str(x.device) for name, x in named.items()}
+        if len(set(devices.values())) != 1:
+            raise ValueError(f"action devices differ: {devices}; put all three on one device")
+    for name, x in named.items():
+        if not ops.all_finite(x):
+            raise ValueError(f"{name} contains NaN or inf; the refiner needs finite actions")
+    return ops
+
+
+def refine(
+    a_base: Any, a_no_img: Any, a_no_prop: Any, cfg: RefinerConfig
+) -> tuple[Any, Diagnostics]:
+    """Refine ``a_base`` from the two counterfactual actions; see the module docstring.
+
+    Returns ``(a_final, diag)``; ``a_final`` has the shape, dtype and device of ``a_base``.
+    In modes ``baseline`` and ``diagnose`` ``a_final`` is ``a_base`` (diagnostics still computed).
+    """
+    ops = _validate(a_base, a_no_img, a_no_prop)
+    d_img = a_base - a_no_img
+    d_prop = a_base - a_no_prop
+    e_img = ops.norm(d_img)
+    e_prop = ops.norm(d_prop)
+    r_img = e_img / (e_img + e_prop + cfg.eps)
+
+    # The main correction follows the guided modality; the other one is the stabilizer.
+    if cfg.guidance == "visual":
+        d_main, d_aux, e_main, e_aux = d_img, d_prop, e_img, e_prop
+    else:
+        d_main, d_aux, e_main, e_aux = d_prop, d_img, e_prop, e_img
+
+    alpha, beta = (-cfg.alpha, -cfg.beta) if cfg.mode == "F" else (cfg.alpha, cfg.beta)
+    gate = (
+        ops.full_like(e_main, 1.0) if cfg.mode == "D" else ops.indicator(e_main < cfg.tau, e_main)
+    )
+    if cfg.mode == "A":
+        w_aux = ops.full_like(e_main, 0.0)
+    elif cfg.mode == "C":
+        w_aux = ops.full_like(e_main, beta)
+    else:
+        w_aux = beta * ops.min_one(e_aux / (e_main + cfg.eps))
+    u_aux = d_aux if cfg.mode == "B" else ops.clip(d_aux, -cfg.lam, cfg.lam)
+
+    diag = Diagnostics(e_img=e_img, e_prop=e_prop, r_img=r_img, gate=gate, w_prop=w_aux)
+    if not cfg.refines:
+        return a_base, diag
+
+    trailing = (1,) * (a_base.ndim - 1)
+    g = gate.reshape(-1, *trailing)
+    w = w_aux.reshape(-1, *trailing)
+    a_final = a_base + g * (alpha * d_main + w * u_aux)
+    return a_final, diag

@@ -1,0 +1,254 @@
+"""The lerobot policy config of IDR, registered as policy type ``idr``.
+
+An ``idr`` policy names a base policy (a lerobot checkpoint folder: act, diffusion, pi0, pi05,
+smolvla or tiny_vla) and IDR's settings. lerobot resolves the policy class from this class's
+name and module (``IDRConfig`` in ``configuration_idr`` -> ``modeling_idr.IDRPolicy``) and the
+processors from ``processor_idr.make_idr_pre_post_processors``.
+
+Two ways to run it, both with lerobot's own tools:
+- ``--policy.path=<IDR folder>`` (made by ``lerobot-idr-wrap``): config.json of type ``idr``,
+  the base's processors with IDR's two steps inserted, the base referenced by path (relative
+  paths resolve against the folder; ``base/`` when the base is bundled);
+- ``--policy.type=idr --policy.base_policy_path=<base folder>`` (processors built at start).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from idr_core.checkpoint import WEIGHTS, check_checkpoint_dir, sha256_file
+from idr_core.interventions import SPACES, STRATEGIES, InterventionConfig
+from idr_core.refiner import RefinerConfig
+from lerobot.configs import PreTrainedConfig
+from lerobot.configs.types import FeatureType, PolicyFeature
+
+#: Base policy types IDR wraps, and why the others are refused.
+SUPPORTED_BASE_TYPES = ("act", "diffusion", "pi0", "pi05", "smolvla", "tiny_vla")
+REFUSED_BASE_TYPES = {
+    "idr": "an idr policy cannot wrap another idr policy; wrap its base instead",
+    "xvla": (
+        "X-VLA's env processors are chosen by lerobot with isinstance on the policy config, "
+        "which an idr config would silently miss; not supported by this plugin yet"
+    ),
+    "groot": "GR00T loads its processors from the hub; not supported offline",
+}
+REFINE_SPACES = ("physical", "normalized")
+
+
+class IDRConfigError(ValueError):
+    """A refusal of an idr config or folder: one message naming the field and the fix."""
+
+
+@PreTrainedConfig.register_subclass("idr")
+@dataclass
+class IDRConfig(PreTrainedConfig):
+    """IDR around a frozen base policy: three passes (factual, image zeroed, state zeroed) in
+    one batched forward with shared noise, a diagnosis of the step's visual reliance and a
+    gated residual refinement (the paper's Method section; the equations are in
+    ``idr_core.refiner``)."""
+
+    # The base policy: a local lerobot checkpoint folder (config.json, model.safetensors and
+    # its processors). Relative paths resolve against the IDR folder, else the working dir.
+    base_policy_path: str | None = None
+    # sha256 of the base's model.safetensors when the folder was made; loading refuses a base
+    # whose weights changed since (None: not checked).
+    base_weights_sha256: str | None = None
+
+    # The refiner (paper defaults; tau has none: it is the mean E_img of the baseline, which
+    # depends on the backbone and the action space; calibrate it with mode=diagnose).
+    mode: str = "E"  # baseline, diagnose, A-F (E: the full method)
+    guidance: str = "visual"  # which modality's effect drives the correction
+    alpha: float = 0.08
+    beta: float = 0.05
+    lam: float = 0.1
+    tau: float | None = None
+    eps: float = 1e-6
+
+    # The interventions do(V) and do(S).
+    intervention_strategy: str = "zero"  # zero (the paper's), mean, gaussian
+    # do(S) after the base's normalizer (zero = the dataset mean; before pi0.5's state
+    # tokenizer) or on the physical state before it; do(V) is always on raw [0, 1] images
+    # (a black image for every family).
+    state_space: str = "normalized"
+    noise_scale: float = 0.5  # gaussian strategy only
+    intervention_seed: int = 0
+
+    # Where the refinement happens: on physical actions (the base's unnormalizer is applied
+    # first, so tau and lam keep their meaning in robot units), or on normalized ones.
+    refine_space: str = "physical"
+    # Actions executed per chunk (None: the base's n_action_steps).
+    n_action_steps: int | None = None
+    # Clip the refined action into the base's action bounds (the dataset min/max its stats
+    # hold, widened to the base action itself); the sidecar counts clipped elements.
+    clip_actions: bool = True
+    # A chunk whose inference took longer executes the base action and says so (None: no
+    # deadline).
+    deadline_ms: float | None = None
+    # Where the diagnostics sidecar (Parquet, one row per env per inference) goes; None:
+    # ./idr_diagnostics/<time>-<pid> in the working dir, said at start.
+    diagnostics_dir: str | None = None
+
+    normalization_mapping: dict[str, str] = field(default_factory=dict)
+    push_to_hub: bool = False  # an IDR folder references its base: nothing to push
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self.refiner()  # field checks, with the refiner's own messages
+        if self.intervention_strategy not in STRATEGIES:
+            raise IDRConfigError(
+                f"policy.intervention_strategy={self.intervention_strategy!r} is unknown; "
+                f"use one of {STRATEGIES}"
+            )
+        if self.state_space not in SPACES:
+            raise IDRConfigError(
+                f"policy.state_space={self.state_space!r} is unknown; use one of {SPACES}"
+            )
+        if not self.noise_scale >= 0:
+            raise IDRConfigError(f"policy.noise_scale={self.noise_scale} must be >= 0")
+        if self.refine_space not in REFINE_SPACES:
+            raise IDRConfigError(
+                f"policy.refine_space={self.refine_space!r} is unknown; use one of {REFINE_SPACES}"
+            )
+        if self.n_action_steps is not None and self.n_action_steps < 1:
+            raise IDRConfigError(f"policy.n_action_steps={self.n_action_steps} must be >= 1")
+        if self.deadline_ms is not None and not self.deadline_ms > 0:
+            raise IDRConfigError(f"policy.deadline_ms={self.deadline_ms} must be > 0 (or unset)")
+        if not self.input_features and self.base_policy_path:
+            base = Path(self.base_policy_path).expanduser()
+            if (base / "config.json").is_file():
+                self.copy_features(read_base_config(base))
+
+    # -- what the rest of the package reads ----------------------------------------------
+    def refiner(self) -> RefinerConfig:
+        """The refiner's settings. A refining mode needs tau (no default: calibrate it)."""
+        refines = self.mode not in ("baseline", "diagnose")
+        if refines and self.tau is None:
+            raise IDRConfigError(
+                f"policy.mode={self.mode!r} refines actions and needs policy.tau: run mode "
+                "'diagnose' for a few rollouts and calibrate it (lerobot-idr-calibrate), or set "
+                "--tau / --policy.tau (the paper: the baseline's mean E_img)"
+            )
+        tau = math.inf if self.tau is None else self.tau
+        try:
+            return RefinerConfig(
+                alpha=self.alpha,
+                beta=self.beta,
+                lam=self.lam,
+                tau=tau,
+                eps=self.eps,
+                mode=self.mode,
+                guidance=self.guidance,
+            )
+        except ValueError as e:
+            raise IDRConfigError(str(e).replace("IDRConfig.", "policy.")) from None
+
+    def intervention(self) -> InterventionConfig:
+        return InterventionConfig(
+            strategy=self.intervention_strategy,
+            image_space="raw",
+            state_space=self.state_space,
+            noise_scale=self.noise_scale,
+            seed=self.intervention_seed,
+        )
+
+    def copy_features(self, base: dict) -> None:
+        """Input and output features from the base's config.json."""
+        self.input_features = _features(base.get("input_features") or {})
+        self.output_features = _features(base.get("output_features") or {})
+
+    def resolve_base(self, folder: str | Path | None = None) -> Path:
+        """The base checkpoint folder, checked: relative paths resolve against the IDR folder
+        (``folder``, else ``pretrained_path``), else the working dir; its type must be one IDR
+        wraps, and its weights the ones recorded when the folder was made."""
+        if not self.base_policy_path:
+            raise IDRConfigError(
+                "policy.base_policy_path is required: the lerobot checkpoint folder IDR wraps "
+                "(--policy.base_policy_path=DIR, or make an IDR folder with lerobot-idr-wrap)"
+            )
+        base = Path(self.base_policy_path).expanduser()
+        anchor = folder or self.pretrained_path
+        if not base.is_absolute() and anchor and (Path(anchor) / base).is_dir():
+            base = Path(anchor) / base
+        try:
+            cfg = check_checkpoint_dir(base, "policy.base_policy_path")
+        except ValueError as e:
+            raise IDRConfigError(str(e)) from None
+        kind = cfg["type"]
+        if kind in REFUSED_BASE_TYPES:
+            raise IDRConfigError(
+                f"policy.base_policy_path={str(base)!r}: base type {kind!r} is refused: "
+                f"{REFUSED_BASE_TYPES[kind]}. Supported: {', '.join(SUPPORTED_BASE_TYPES)}"
+            )
+        if kind not in SUPPORTED_BASE_TYPES:
+            raise IDRConfigError(
+                f"policy.base_policy_path={str(base)!r}: base type {kind!r} is not supported by "
+                f"IDR; supported: {', '.join(SUPPORTED_BASE_TYPES)}"
+            )
+        if self.base_weights_sha256:
+            have = sha256_file(base / WEIGHTS)
+            if have != self.base_weights_sha256:
+                raise IDRConfigError(
+                    f"policy.base_policy_path={str(base)!r}: its {WEIGHTS} changed since the IDR "
+                    f"folder was made (sha256 {have[:12]}... != {self.base_weights_sha256[:12]}"
+                    "...): remake the folder with lerobot-idr-wrap, or point base_policy_path at "
+                    "the original weights"
+                )
+        return base
+
+    # -- PreTrainedConfig's abstract members ----------------------------------------------
+    @property
+    def observation_delta_indices(self) -> None:
+        return None
+
+    @property
+    def action_delta_indices(self) -> None:
+        return None
+
+    @property
+    def reward_delta_indices(self) -> None:
+        return None
+
+    def get_optimizer_preset(self):
+        raise IDRConfigError(
+            "policy.type=idr is training-free: train the base policy (its own type), then wrap "
+            "the checkpoint with lerobot-idr-wrap"
+        )
+
+    def get_scheduler_preset(self) -> None:
+        return None
+
+    def validate_features(self) -> None:
+        if not self.output_features or "action" not in self.output_features:
+            raise IDRConfigError(
+                "the idr policy has no action output feature: its base config.json was not read "
+                "(set policy.base_policy_path to a lerobot checkpoint folder)"
+            )
+
+
+def read_base_config(path: Path) -> dict:
+    """The base checkpoint's config.json as a dict (read, not instantiated)."""
+    try:
+        cfg = json.loads((path / "config.json").read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise IDRConfigError(
+            f"policy.base_policy_path={str(path)!r}: config.json cannot be read ({e}); give a "
+            "lerobot checkpoint folder"
+        ) from None
+    if not isinstance(cfg, dict) or "type" not in cfg:
+        raise IDRConfigError(
+            f"policy.base_policy_path={str(path)!r}: config.json names no policy 'type'; "
+            "give a lerobot checkpoint folder"
+        )
+    return cfg
+
+
+def _features(raw: dict) -> dict[str, PolicyFeature]:
+    return {
+        k: PolicyFeature(type=FeatureType(v["type"]), shape=tuple(v["shape"]))
+        if isinstance(v, dict)
+        else v
+        for k, v in raw.items()
+    }

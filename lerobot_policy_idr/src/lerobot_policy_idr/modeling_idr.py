@@ -1,0 +1,304 @@
+"""The idr policy: a frozen base policy run on the factual inputs and two counterfactuals in one
+batched forward (shared noise), diagnosed and refined per chunk (the paper's Method section).
+
+The preprocessor (``processor_idr``) has already made the 3B rows ``[factual | do(V) | do(S)]``;
+``predict_action_chunk`` runs the base once on them, splits the thirds, unnormalizes them
+(``refine_space=physical``), refines, applies the hardware safety rules and returns B chunks.
+``select_action`` keeps its own queue of ``n_action_steps`` actions (the base's queue would be
+fed 3B rows). Mode ``baseline`` hands ``select_action`` to the base unchanged.
+
+Safety on hardware: the refined action never leaves the base's action bounds (the dataset's
+min/max where the stats hold them, widened to the base action itself so a gate that is off
+changes nothing); a non-finite refinement, or an inference past ``deadline_ms``, executes the
+base action for that chunk; each is counted in the sidecar.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import torch
+from idr_core.refiner import refine
+from idr_core.sampling import crn_mode, noise_shape
+from idr_core.three_pass import repeat3, split3
+from lerobot.configs.policies import PreTrainedConfig
+from lerobot.policies.factory import get_policy_class
+from lerobot.policies.pretrained import PreTrainedPolicy
+
+from lerobot_policy_idr.configuration_idr import IDRConfig, IDRConfigError, read_base_config
+from lerobot_policy_idr.processor_idr import BATCH_SIZE_KEY, IMAGE_PREFIX, STATE_KEY
+from lerobot_policy_idr.sidecar import SidecarWriter
+
+ACTION = "action"
+_HISTORY_KEYS = (STATE_KEY, "observation.environment_state")
+
+
+class IDRPolicy(PreTrainedPolicy):
+    """IDR around a lerobot policy (see the module docstring)."""
+
+    config_class = IDRConfig
+    name = "idr"
+
+    def __init__(self, config: IDRConfig, **kwargs: Any) -> None:
+        super().__init__(config)
+        base_dir = config.resolve_base()
+        base_cfg = PreTrainedConfig.from_pretrained(base_dir)
+        base_cfg.device = config.device
+        if not config.output_features:
+            config.copy_features(read_base_config(base_dir))
+        self.base_dir = base_dir
+        self.base = get_policy_class(base_cfg.type).from_pretrained(base_dir, config=base_cfg)
+        self.base.eval()
+        self.refiner_cfg = config.refiner()
+        self.crn = crn_mode(base_cfg.type, self.base.predict_action_chunk)
+        if self.crn == "seeded_rng":
+            raise IDRConfigError(
+                f"policy.base_policy_path={str(base_dir)!r}: a {base_cfg.type} policy samples "
+                "without a noise input, so its three passes cannot share noise in one forward"
+            )
+        if config.mode != "baseline" and getattr(base_cfg, "temporal_ensemble_coeff", None):
+            raise IDRConfigError(
+                "the base ACT uses temporal ensembling (temporal_ensemble_coeff), which runs "
+                "inside its own select_action: use mode=baseline, or a base without it"
+            )
+        self.action_dim = int(base_cfg.output_features[ACTION].shape[0])
+        base_steps = getattr(base_cfg, "n_action_steps", None) or base_cfg.chunk_size
+        self.n_action_steps = int(config.n_action_steps or base_steps)
+        self.n_obs_steps = int(getattr(base_cfg, "n_obs_steps", 1) or 1)
+        self._unnormalize, self._bounds = _action_unnormalizer(base_dir, config)
+        self.sidecar = SidecarWriter(config.diagnostics_dir)
+        self._episode = 0
+        self._recorded = False
+        self.reset()
+
+    @classmethod
+    def from_pretrained(
+        cls, pretrained_name_or_path: str | Path, *, config: IDRConfig | None = None, **kwargs: Any
+    ) -> IDRPolicy:
+        """An IDR folder holds no weights of its own: the base is loaded from its path."""
+        path = Path(pretrained_name_or_path)
+        if config is None:
+            config = PreTrainedConfig.from_pretrained(path)
+        if not isinstance(config, IDRConfig):
+            raise IDRConfigError(f"{path} is a {config.type!r} checkpoint, not an idr folder")
+        if config.pretrained_path is None:
+            config.pretrained_path = path
+        policy = cls(config)
+        policy.to(config.device)
+        policy.eval()
+        return policy
+
+    # -- lerobot's policy interface ---------------------------------------------------------
+    def get_optim_params(self) -> dict:
+        return self.config.get_optimizer_preset()  # raises: training-free
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict | None]:
+        self.config.get_optimizer_preset()  # raises: training-free
+        raise AssertionError("unreachable")
+
+    def reset(self) -> None:
+        self.base.reset()
+        self._queue: deque[torch.Tensor] = deque(maxlen=self.n_action_steps)
+        self._history: dict[str, deque[torch.Tensor]] = {}
+        self._steps = 0
+        self._tick = 0
+        if self._recorded:  # a new episode starts
+            self._episode += 1
+            self._recorded = False
+            self.sidecar.flush()
+
+    @torch.no_grad()
+    def predict_action_chunk(self, batch: dict[str, torch.Tensor], **kwargs: Any) -> torch.Tensor:
+        actions, rows = self._infer(batch, kwargs.get("noise"))
+        self.sidecar.add(rows)
+        return actions
+
+    @torch.no_grad()
+    def select_action(self, batch: dict[str, torch.Tensor], **kwargs: Any) -> torch.Tensor:
+        t0 = time.perf_counter()
+        self._steps += 1
+        if self.config.mode == "baseline":
+            inferred = _queue_empty(self.base)
+            action = self.base.select_action(batch, **kwargs)
+            if inferred:  # the base predicted a chunk in this call: one sidecar row per env
+                ms = (time.perf_counter() - t0) * 1e3
+                self._record_baseline(action.shape[0], ms)
+            return self._physical(action)
+        if not self._queue:
+            chunk, rows = self._infer(batch, kwargs.get("noise"))
+            self._queue.extend(chunk[:, : self.n_action_steps].transpose(0, 1))
+            wait = (time.perf_counter() - t0) * 1e3
+            self.sidecar.add([{**r, "wait_ms": wait} for r in rows])
+        return self._queue.popleft()
+
+    # -- the three passes, the diagnosis and the refinement ---------------------------------
+    def _infer(self, batch: dict[str, Any], noise: Any = None) -> tuple[torch.Tensor, list[dict]]:
+        t0 = time.perf_counter()
+        mode = self.config.mode
+        if mode == "baseline":
+            actions = self.base.predict_action_chunk(self._with_history(batch))
+            ms = (time.perf_counter() - t0) * 1e3
+            rows = self._rows(actions.shape[0], None, forward_ms=ms, inference_ms=ms)
+            return self._physical(actions), rows
+        rows_in = _batch_rows(batch)
+        b = int(batch.get(BATCH_SIZE_KEY, rows_in // 3))
+        if rows_in != 3 * b:
+            raise ValueError(
+                f"the idr policy got {rows_in} rows, not 3 x {b}: its preprocessor must hold "
+                "the idr_counterfactual_batch step (load it with the idr folder's processors)"
+            )
+        batch = self._with_history(batch)
+        if noise is None and self.crn == "shared_noise":
+            shape = noise_shape(self.base.config, b, self.action_dim)
+            if shape is not None:  # one draw from torch's RNG, shared by the three thirds
+                noise = torch.randn(shape, device=_batch_device(batch))
+        if noise is not None:
+            out = self.base.predict_action_chunk(batch, noise=repeat3(noise))
+        else:
+            out = self.base.predict_action_chunk(batch)
+        forward_ms = (time.perf_counter() - t0) * 1e3
+        t1 = time.perf_counter()
+        a_base, a_no_img, a_no_prop = split3(self._physical(out), b)
+        final, diag, clipped, fallback = self._refine(a_base, a_no_img, a_no_prop)
+        now = time.perf_counter()
+        total = (now - t0) * 1e3
+        if self.refiner_cfg.refines and self.config.deadline_ms and total > self.config.deadline_ms:
+            final, fallback = a_base, ["deadline"] * b
+        rows = self._rows(
+            b,
+            diag,
+            forward_ms=forward_ms,
+            refine_ms=(now - t1) * 1e3,
+            inference_ms=total,
+            clipped=clipped,
+            fallback=fallback,
+        )
+        return final, rows
+
+    def _refine(self, a_base: torch.Tensor, a_no_img: torch.Tensor, a_no_prop: torch.Tensor):
+        b = a_base.shape[0]
+        if not bool(torch.isfinite(a_base).all()):
+            raise ValueError("the base policy's action is not finite; nothing safe to execute")
+        if not (bool(torch.isfinite(a_no_img).all()) and bool(torch.isfinite(a_no_prop).all())):
+            return a_base, None, [0] * b, ["nonfinite"] * b
+        final, diag = refine(a_base, a_no_img, a_no_prop, self.refiner_cfg)
+        if not self.refiner_cfg.refines:
+            return final, diag, [0] * b, [""] * b
+        if not bool(torch.isfinite(final).all()):
+            return a_base, diag, [0] * b, ["nonfinite"] * b
+        clipped = [0] * b
+        if self._bounds is not None and self.config.clip_actions:
+            lo, hi = (x.to(final.device) for x in self._bounds)
+            lo, hi = torch.minimum(lo, a_base), torch.maximum(hi, a_base)
+            bounded = torch.maximum(torch.minimum(final, hi), lo)
+            clipped = (bounded != final).reshape(b, -1).sum(dim=1).tolist()
+            final = bounded
+        return final, diag, clipped, [""] * b
+
+    def _physical(self, actions: torch.Tensor) -> torch.Tensor:
+        return actions if self._unnormalize is None else self._unnormalize(actions)
+
+    def _with_history(self, batch: dict[str, Any]) -> dict[str, Any]:
+        """Diffusion reads (rows, n_obs_steps, ...) observations: keep the last n_obs_steps
+        frames of each row (the first frame repeated at an episode's start), as Diffusion's own
+        select_action does, for the 3B rows."""
+        if self.base.config.type != "diffusion":
+            return batch
+        out = dict(batch)
+        keys = [k for k in batch if k in _HISTORY_KEYS or k.startswith(IMAGE_PREFIX)]
+        for key in keys:
+            q = self._history.setdefault(key, deque(maxlen=self.n_obs_steps))
+            while len(q) < self.n_obs_steps - 1:
+                q.append(batch[key])
+            q.append(batch[key])
+            out[key] = torch.stack(list(q), dim=1)
+        return out
+
+    # -- the sidecar ----------------------------------------------------------------------
+    def _rows(self, b: int, diag: Any, **columns: Any) -> list[dict[str, Any]]:
+        d = diag.to_numpy() if diag is not None else {}
+        now = time.time()
+        rows = []
+        for i in range(b):
+            row = {
+                "episode": self._episode,
+                "tick": self._tick,
+                "env": i,
+                "step": self._steps,
+                "wall_time": now,
+                "mode": self.config.mode,
+                **{k: (v[i] if isinstance(v, list) else v) for k, v in columns.items()},
+            }
+            for k, v in d.items():
+                row[k] = float(v[i])
+            rows.append(row)
+        self._tick += 1
+        self._recorded = True
+        return rows
+
+    def _record_baseline(self, b: int, ms: float) -> None:
+        self.sidecar.add(self._rows(b, None, forward_ms=ms, inference_ms=ms, wait_ms=ms))
+
+
+def _batch_rows(batch: dict[str, Any]) -> int:
+    for key, value in batch.items():
+        if isinstance(value, torch.Tensor) and (key == STATE_KEY or key.startswith(IMAGE_PREFIX)):
+            return int(value.shape[0])
+    raise ValueError(f"the idr policy found no state or image tensor in the batch: {sorted(batch)}")
+
+
+def _batch_device(batch: dict[str, Any]) -> torch.device:
+    for value in batch.values():
+        if isinstance(value, torch.Tensor):
+            return value.device
+    return torch.device("cpu")
+
+
+def _queue_empty(policy: PreTrainedPolicy) -> bool:
+    """Whether the policy's next select_action predicts a new chunk (its action queue is
+    empty): ``_action_queue`` (act, pi0, pi05, tiny_vla) or ``_queues['action']`` (diffusion,
+    smolvla)."""
+    q = getattr(policy, "_action_queue", None)
+    if q is None:
+        q = getattr(policy, "_queues", {}).get(ACTION)
+    return q is None or len(q) == 0
+
+
+def _action_unnormalizer(base_dir: Path, config: IDRConfig):
+    """The base's action unnormalizer as a callable on action tensors and the action bounds
+    it knows (dataset min/max), for ``refine_space=physical``; (None, None) otherwise."""
+    if config.refine_space != "physical":
+        return None, None
+    from lerobot.processor import PolicyProcessorPipeline
+    from lerobot.processor.converters import (
+        policy_action_to_transition,
+        transition_to_policy_action,
+    )
+
+    post = PolicyProcessorPipeline.from_pretrained(
+        str(base_dir),
+        config_filename="policy_postprocessor.json",
+        to_transition=policy_action_to_transition,
+        to_output=transition_to_policy_action,
+    )
+    steps = [s for s in post.steps if type(s).__name__ == "UnnormalizerProcessorStep"]
+    if not steps:
+        return None, None
+    step = steps[0]
+    step.to(device=config.device)
+    unnormalize = PolicyProcessorPipeline(
+        steps=[step],
+        name="idr_action_unnormalizer",
+        to_transition=policy_action_to_transition,
+        to_output=transition_to_policy_action,
+    )
+    stats = (step.stats or {}).get(ACTION, {})
+    bounds = None
+    if "min" in stats and "max" in stats:
+        lo = torch.as_tensor(stats["min"], dtype=torch.float32).reshape(-1)
+        hi = torch.as_tensor(stats["max"], dtype=torch.float32).reshape(-1)
+        bounds = (lo, hi)
+    return unnormalize, bounds

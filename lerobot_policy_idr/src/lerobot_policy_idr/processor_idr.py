@@ -1,0 +1,226 @@
+"""IDR's two processor steps and the idr policy's pre/post-processors.
+
+The policy only sees the preprocessed batch (normalized, maybe tokenized), so the
+counterfactual inputs are made inside the base's own preprocessor, by two registered steps:
+
+1. ``idr_counterfactual_batch`` right after the batch dimension is added (and after a
+   relative-actions step, which must cache the factual state): the batch of B rows becomes
+   ``[factual | do(V) | do(S)]`` of 3B rows; do(V) acts on raw [0, 1] images (a black image
+   for every family); do(S) too when ``state_space`` is ``raw``; the task strings are tripled.
+2. ``idr_state_intervention`` right after the normalizer: do(S) on rows 2B:3B in normalized
+   space (zero = the dataset mean), before any later step reads the state (pi0.5's state
+   tokenizer turns it into text).
+
+With ``refine_space=physical`` the base's action unnormalizer moves from the postprocessor
+into the policy (it refines physical actions and returns them), so the folder's
+postprocessor is the base's without that step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from idr_core.interventions import intervene
+from lerobot.configs.types import PipelineFeatureType, PolicyFeature
+from lerobot.lerobot_types import TransitionKey
+from lerobot.processor import (
+    PolicyAction,
+    PolicyProcessorPipeline,
+    ProcessorStep,
+    ProcessorStepRegistry,
+)
+
+STATE_KEY = "observation.state"
+IMAGE_PREFIX = "observation.images."
+BATCH_SIZE_KEY = "idr_batch_size"  # complementary data: B of the 3B rows
+# after these (the last of them before the normalizer) the counterfactual rows are made
+_BEFORE_COUNTERFACTUALS = ("AddBatchDimensionProcessorStep", "RelativeActionsProcessorStep")
+
+
+def _rows(obs: dict[str, Any]) -> int:
+    for key, value in obs.items():
+        if isinstance(value, torch.Tensor) and (key == STATE_KEY or key.startswith(IMAGE_PREFIX)):
+            return int(value.shape[0])
+    raise ValueError(
+        f"the idr policy needs {STATE_KEY!r} or an {IMAGE_PREFIX}* tensor; observation has "
+        f"{sorted(obs)}"
+    )
+
+
+@ProcessorStepRegistry.register("idr_counterfactual_batch")
+@dataclass
+class IDRCounterfactualBatchStep(ProcessorStep):
+    """B rows -> 3B rows ``[factual | do(V) | do(S)]`` (do(S) here only in raw space)."""
+
+    strategy: str = "zero"
+    state_space: str = "normalized"
+    noise_scale: float = 0.5
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        self._calls = 0
+
+    def __call__(self, transition: dict) -> dict:
+        obs = dict(transition[TransitionKey.OBSERVATION])
+        b = _rows(obs)
+        step_seed = self.seed + 7919 * self._calls  # gaussian interventions: new draw per call
+        self._calls += 1
+        images = sorted(k for k in obs if k.startswith(IMAGE_PREFIX))
+        for key, value in list(obs.items()):
+            if not isinstance(value, torch.Tensor) or value.ndim == 0 or value.shape[0] != b:
+                continue
+            no_img, no_prop = value, value
+            if key in images:
+                no_img = intervene(
+                    value,
+                    self.strategy,
+                    noise_scale=self.noise_scale,
+                    seed=step_seed + images.index(key),
+                )
+            if key == STATE_KEY and self.state_space == "raw":
+                no_prop = intervene(
+                    value, self.strategy, noise_scale=self.noise_scale, seed=step_seed + 104729
+                )
+            obs[key] = torch.cat([value, no_img, no_prop], dim=0)
+        comp = dict(transition.get(TransitionKey.COMPLEMENTARY_DATA) or {})
+        for key, value in list(comp.items()):
+            if isinstance(value, list) and len(value) == b:
+                comp[key] = value * 3
+            elif isinstance(value, torch.Tensor) and value.ndim and value.shape[0] == b:
+                comp[key] = torch.cat([value, value, value], dim=0)
+        comp[BATCH_SIZE_KEY] = b
+        out = dict(transition)
+        out[TransitionKey.OBSERVATION] = obs
+        out[TransitionKey.COMPLEMENTARY_DATA] = comp
+        return out
+
+    def reset(self) -> None:
+        self._calls = 0
+
+    def get_config(self) -> dict[str, Any]:
+        return {
+            "strategy": self.strategy,
+            "state_space": self.state_space,
+            "noise_scale": self.noise_scale,
+            "seed": self.seed,
+        }
+
+    def transform_features(
+        self, features: dict[PipelineFeatureType, dict[str, PolicyFeature]]
+    ) -> dict[PipelineFeatureType, dict[str, PolicyFeature]]:
+        return features  # rows are added, no feature changes
+
+
+@ProcessorStepRegistry.register("idr_state_intervention")
+@dataclass
+class IDRStateInterventionStep(ProcessorStep):
+    """do(S) on rows 2B:3B of the normalized state."""
+
+    strategy: str = "zero"
+    noise_scale: float = 0.5
+    seed: int = 0
+
+    def __call__(self, transition: dict) -> dict:
+        comp = transition.get(TransitionKey.COMPLEMENTARY_DATA) or {}
+        if BATCH_SIZE_KEY not in comp:
+            raise ValueError(
+                "idr_state_intervention found no idr_counterfactual_batch step before it: the "
+                "idr preprocessor is damaged (remake the folder with lerobot-idr-wrap)"
+            )
+        obs = dict(transition[TransitionKey.OBSERVATION])
+        b = int(comp[BATCH_SIZE_KEY])
+        state = obs[STATE_KEY]
+        cf = intervene(state[2 * b :], self.strategy, noise_scale=self.noise_scale, seed=self.seed)
+        obs[STATE_KEY] = torch.cat([state[: 2 * b], cf], dim=0)
+        out = dict(transition)
+        out[TransitionKey.OBSERVATION] = obs
+        return out
+
+    def get_config(self) -> dict[str, Any]:
+        return {"strategy": self.strategy, "noise_scale": self.noise_scale, "seed": self.seed}
+
+    def transform_features(
+        self, features: dict[PipelineFeatureType, dict[str, PolicyFeature]]
+    ) -> dict[PipelineFeatureType, dict[str, PolicyFeature]]:
+        return features
+
+
+def _index(steps: list, name: str) -> int | None:
+    for i, step in enumerate(steps):
+        if type(step).__name__ == name:
+            return i
+    return None
+
+
+def insert_idr_steps(
+    pre: PolicyProcessorPipeline, post: PolicyProcessorPipeline, config: Any
+) -> tuple[PolicyProcessorPipeline, PolicyProcessorPipeline]:
+    """The base's pipelines with IDR's steps in place (``config``: an IDRConfig). Mode
+    ``baseline`` adds no step: the preprocessor is the base's."""
+    steps = list(pre.steps)
+    if any(type(s).__name__.startswith("IDR") for s in steps):
+        raise ValueError("the preprocessor already holds IDR steps")
+    post_steps = list(post.steps)
+    if config.refine_space == "physical":
+        i = _index(post_steps, "UnnormalizerProcessorStep")
+        if i is not None:  # the policy unnormalizes before refining
+            post_steps.pop(i)
+    if config.mode != "baseline":
+        norm = _index(steps, "NormalizerProcessorStep")
+        anchors = [i for n in _BEFORE_COUNTERFACTUALS if (i := _index(steps, n)) is not None]
+        anchors = [i for i in anchors if norm is None or i < norm]
+        if not anchors:
+            raise ValueError(
+                "the base's preprocessor has no batch-dimension step before its normalizer: "
+                f"{[type(s).__name__ for s in steps]}; cannot place IDR's counterfactual step"
+            )
+        where = max(anchors) + 1
+        iv = config.intervention()
+        steps.insert(
+            where,
+            IDRCounterfactualBatchStep(iv.strategy, iv.state_space, iv.noise_scale, iv.seed),
+        )
+        if iv.state_space == "normalized":
+            norm = _index(steps, "NormalizerProcessorStep")
+            if norm is None:
+                raise ValueError(
+                    "policy.state_space='normalized' but the base's preprocessor has no "
+                    "normalizer; use --policy.state_space=raw"
+                )
+            steps.insert(norm + 1, IDRStateInterventionStep(iv.strategy, iv.noise_scale, iv.seed))
+    return _like(pre, steps), _like(post, post_steps)
+
+
+def _like(pipe: PolicyProcessorPipeline, steps: list) -> PolicyProcessorPipeline:
+    return PolicyProcessorPipeline(
+        steps=steps, name=pipe.name, to_transition=pipe.to_transition, to_output=pipe.to_output
+    )
+
+
+def load_base_processors(
+    base_path: Path, device: str | None
+) -> tuple[PolicyProcessorPipeline, PolicyProcessorPipeline]:
+    """The base checkpoint's saved pre/post-processors (device step set to ``device``)."""
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import make_pre_post_processors
+
+    base_cfg = PreTrainedConfig.from_pretrained(base_path)
+    overrides = {"device_processor": {"device": device}} if device else {}
+    return make_pre_post_processors(
+        base_cfg, pretrained_path=str(base_path), preprocessor_overrides=overrides
+    )
+
+
+def make_idr_pre_post_processors(
+    config: Any, dataset_stats: dict | None = None
+) -> tuple[
+    PolicyProcessorPipeline[dict[str, Any], dict[str, Any]],
+    PolicyProcessorPipeline[PolicyAction, PolicyAction],
+]:
+    """lerobot's factory hook for ``--policy.type=idr`` (no IDR folder): the base's saved
+    processors with IDR's steps. ``dataset_stats`` is not used: the base's stats are."""
+    pre, post = load_base_processors(config.resolve_base(), config.device)
+    return insert_idr_steps(pre, post, config)
