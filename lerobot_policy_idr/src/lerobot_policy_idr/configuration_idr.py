@@ -124,26 +124,25 @@ class IDRConfig(PreTrainedConfig):
     # -- what the rest of the package reads ----------------------------------------------
     def refiner(self) -> RefinerConfig:
         """The refiner's settings. A refining mode needs tau (no default: calibrate it)."""
-        refines = self.mode not in ("baseline", "diagnose")
-        if refines and self.tau is None:
-            raise IDRConfigError(
-                f"policy.mode={self.mode!r} refines actions and needs policy.tau: run mode "
-                "'diagnose' for a few rollouts and calibrate it (lerobot-idr-calibrate), or set "
-                "--tau / --policy.tau (the paper: the baseline's mean E_img)"
-            )
-        tau = math.inf if self.tau is None else self.tau
         try:
-            return RefinerConfig(
+            cfg = RefinerConfig(
                 alpha=self.alpha,
                 beta=self.beta,
                 lam=self.lam,
-                tau=tau,
+                tau=math.inf if self.tau is None else self.tau,
                 eps=self.eps,
                 mode=self.mode,
                 guidance=self.guidance,
             )
         except ValueError as e:
             raise IDRConfigError(str(e).replace("IDRConfig.", "policy.")) from None
+        if cfg.refines and self.tau is None:
+            raise IDRConfigError(
+                f"policy.mode={self.mode!r} refines actions and needs policy.tau: run mode "
+                "'diagnose' for a few rollouts and calibrate it (lerobot-idr-calibrate), or set "
+                "--tau / --policy.tau (the paper: the baseline's mean E_img)"
+            )
+        return cfg
 
     def intervention(self) -> InterventionConfig:
         return InterventionConfig(

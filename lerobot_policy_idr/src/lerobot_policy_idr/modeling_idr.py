@@ -2,7 +2,9 @@
 batched forward (shared noise), diagnosed and refined per chunk (the paper's Method section).
 
 The preprocessor (``processor_idr``) has already made the 3B rows ``[factual | do(V) | do(S)]``;
-``predict_action_chunk`` runs the base once on them, splits the thirds, unnormalizes them
+``predict_action_chunk`` runs the base once on them, keeps the executed horizon
+(``n_action_steps``: the refiner's norms are over the chunk, so they are taken over the actions
+that run), splits the thirds, unnormalizes them
 (``refine_space=physical``), refines, applies the hardware safety rules and returns B chunks.
 ``select_action`` keeps its own queue of ``n_action_steps`` actions (the base's queue would be
 fed 3B rows). Mode ``baseline`` hands ``select_action`` to the base unchanged.
@@ -140,6 +142,7 @@ class IDRPolicy(PreTrainedPolicy):
         mode = self.config.mode
         if mode == "baseline":
             actions = self.base.predict_action_chunk(self._with_history(batch))
+            actions = actions[:, : self.n_action_steps]
             ms = (time.perf_counter() - t0) * 1e3
             rows = self._rows(actions.shape[0], None, forward_ms=ms, inference_ms=ms)
             return self._physical(actions), rows
@@ -161,6 +164,9 @@ class IDRPolicy(PreTrainedPolicy):
             out = self.base.predict_action_chunk(batch)
         forward_ms = (time.perf_counter() - t0) * 1e3
         t1 = time.perf_counter()
+        # the executed horizon: E_img is a norm over the chunk, so it is taken over the actions
+        # that will run (n_action_steps), as idr-eval does
+        out = out[:, : self.n_action_steps]
         a_base, a_no_img, a_no_prop = split3(self._physical(out), b)
         final, diag, clipped, fallback = self._refine(a_base, a_no_img, a_no_prop)
         now = time.perf_counter()

@@ -1,0 +1,49 @@
+"""Small real lerobot checkpoints (random weights, built offline) and IDR folders around them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+from lerobot_policy_idr.wrap import main as wrap_main
+
+from tests.workers.backbones.lerobot_fixtures import build_act, build_diffusion
+
+
+@pytest.fixture(scope="session")
+def bases(tmp_path_factory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("bases")
+    return {
+        "act": build_act(root / "act", n_action_steps=4),
+        "diffusion": build_diffusion(root / "diffusion"),
+    }
+
+
+def make_idr(base: Path, out: Path, *args: str) -> Path:
+    """An IDR folder around ``base`` made by the real command (exit code checked)."""
+    code = wrap_main([str(base), str(out), *args])
+    assert code == 0, f"lerobot-idr-wrap exited {code}"
+    return out
+
+
+def obs_batch(b: int = 2, seed: int = 0, image: int = 64, state: int = 8) -> dict:
+    """An env-side observation batch as lerobot-eval hands it to the preprocessor."""
+    g = torch.Generator().manual_seed(seed)
+    return {
+        "observation.images.agentview": torch.rand(b, 3, image, image, generator=g),
+        "observation.state": 0.5 + torch.rand(b, state, generator=g),
+        "task": [f"task {i}" for i in range(b)],
+    }
+
+
+def load(folder: Path):
+    """The policy and its processors from an IDR folder, as lerobot's tools load them."""
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+    cfg = PreTrainedConfig.from_pretrained(folder)
+    cfg.pretrained_path = folder
+    policy = get_policy_class(cfg.type).from_pretrained(folder, config=cfg)
+    pre, post = make_pre_post_processors(cfg, pretrained_path=str(folder))
+    return policy, pre, post

@@ -1,0 +1,294 @@
+"""The idr policy on real lerobot policies (ACT, Diffusion under DDIM; random weights, offline):
+baseline is the base bit for bit, diagnose executes the base row of the three-pass forward,
+E is the harness's IDR exactly, and the hardware safety rules hold."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from lerobot_policy_idr.sidecar import read_sidecar
+
+from tests.lerobot_policy_idr.conftest import load, make_idr, obs_batch
+
+pytestmark = pytest.mark.slow
+
+
+def _base(path):
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+    cfg = PreTrainedConfig.from_pretrained(path)
+    policy = get_policy_class(cfg.type).from_pretrained(path, config=cfg).eval()
+    pre, post = make_pre_post_processors(cfg, pretrained_path=str(path))
+    return policy, pre, post
+
+
+def _rollout(policy, pre, post, steps: int) -> list[torch.Tensor]:
+    """select_action on a sequence of observations, as lerobot-eval's loop calls it."""
+    policy.reset()
+    out = []
+    for t in range(steps):
+        with torch.inference_mode():
+            out.append(post(policy.select_action(pre(obs_batch(2, seed=t)))))
+    return out
+
+
+@pytest.mark.parametrize("kind", ["act", "diffusion"])
+def test_baseline_is_the_base_bit_for_bit(bases, tmp_path, kind) -> None:
+    folder = make_idr(
+        bases[kind],
+        tmp_path / "idr",
+        "--mode",
+        "baseline",
+        "--diagnostics-dir",
+        str(tmp_path / "d"),
+    )
+    torch.manual_seed(0)
+    theirs = _rollout(*_base(bases[kind]), steps=9)
+    torch.manual_seed(0)
+    policy, pre, post = load(folder)
+    ours = _rollout(policy, pre, post, steps=9)
+    for t, (a, b) in enumerate(zip(theirs, ours, strict=True)):
+        assert torch.equal(a, b), f"step {t}: {a} vs {b}"
+    policy.sidecar.flush()
+    rows = read_sidecar(tmp_path / "d")
+    # one row per env per inference: the base replans every n_action_steps
+    n_steps = policy.base.config.n_action_steps
+    assert len(rows) == 2 * len(range(0, 9, n_steps))
+    assert rows["e_img"].isna().all()  # baseline runs no counterfactual
+
+
+def test_diagnose_executes_the_base_row_of_the_three_pass_forward(bases, tmp_path) -> None:
+    folder = make_idr(
+        bases["act"],
+        tmp_path / "idr",
+        "--mode",
+        "diagnose",
+        "--diagnostics-dir",
+        str(tmp_path / "d"),
+    )
+    theirs = _rollout(*_base(bases["act"]), steps=8)
+    policy, pre, post = load(folder)
+    ours = _rollout(policy, pre, post, steps=8)
+    diff = max(float((a - b).abs().max()) for a, b in zip(theirs, ours, strict=True))
+    # the same rows in a batch of 3B instead of B: equal up to float32 rounding of that batch
+    assert diff < 1e-5, diff
+    policy.sidecar.flush()
+    rows = read_sidecar(tmp_path / "d")
+    assert len(rows) == 2 * 2 and (rows["e_img"] > 0).all() and (rows["e_prop"] > 0).all()
+    assert set(rows["fallback"]) == {""} and (rows["clipped"] == 0).all()
+
+
+@pytest.mark.parametrize("kind", ["act", "diffusion"])
+def test_mode_E_equals_the_harness_exactly(bases, tmp_path, kind) -> None:
+    """The same checkpoint, observation and noise: the plugin's refined chunk and diagnostics
+    equal idr-eval's IDRPolicy around its lerobot backbone, bit for bit."""
+    from workers.backbones.base import Observation
+    from workers.backbones.lerobot import LerobotBackbone
+    from workers.idr import IDRConfig
+    from workers.idr_policy import IDRPolicy
+    from workers.interventions import InterventionConfig
+
+    tau = "1e9"  # the gate on for every row: the refinement is exercised
+    folder = make_idr(
+        bases[kind],
+        tmp_path / "idr",
+        "--tau",
+        tau,
+        "--no-clip",
+        "--diagnostics-dir",
+        str(tmp_path / "d"),
+    )
+    backbone = LerobotBackbone(str(bases[kind]))
+    harness = IDRPolicy(
+        backbone, IDRConfig(mode="E", tau=float(tau)), InterventionConfig(state_space="normalized")
+    )
+    policy, pre, post = load(folder)
+    for seed in range(3):
+        obs = obs_batch(2, seed=seed)
+        step = harness.infer(
+            Observation(
+                {"agentview": obs["observation.images.agentview"]},
+                obs["observation.state"],
+                obs["task"],
+            ),
+            step_seed=seed,
+        )
+        noise = backbone.make_noise(2, seed)
+        policy.reset()
+        with torch.inference_mode():
+            ours = post(policy.predict_action_chunk(pre(obs), noise=noise))
+        assert torch.equal(ours[:, : backbone.chunk_len], step.action), f"seed {seed}"
+        assert not torch.equal(step.action, step.a_base)  # refined: the comparison is not vacuous
+    policy.sidecar.flush()
+    rows = read_sidecar(tmp_path / "d")
+    diag = step.diag.to_numpy()
+    for key in ("e_img", "e_prop", "r_img", "gate", "w_prop"):
+        assert np.array_equal(rows[key].to_numpy()[-2:].astype(np.float32), diag[key]), key
+
+
+def _patched(policy, fn) -> None:
+    orig = policy.base.predict_action_chunk
+
+    def predict(batch, **kw):
+        return fn(orig(batch, **kw))
+
+    policy.base.predict_action_chunk = predict
+
+
+def test_refined_actions_stay_in_the_bases_bounds(bases, tmp_path) -> None:
+    folder = make_idr(
+        bases["act"],
+        tmp_path / "idr",
+        "--tau",
+        "1e9",
+        "--alpha",
+        "40",
+        "--diagnostics-dir",
+        str(tmp_path / "d"),
+    )
+    policy, pre, _ = load(folder)
+    with torch.inference_mode():
+        out = policy.predict_action_chunk(pre(obs_batch(2)))
+    lo, hi = policy._bounds
+    # the fixture's bounds are [-1, 1]; the base action itself may lie outside them
+    policy_dx = make_idr(
+        bases["act"],
+        tmp_path / "diag",
+        "--mode",
+        "diagnose",
+        "--diagnostics-dir",
+        str(tmp_path / "d2"),
+    )
+    base_policy, base_pre, _ = load(policy_dx)
+    with torch.inference_mode():
+        a_base = base_policy.predict_action_chunk(base_pre(obs_batch(2)))
+    assert (out >= torch.minimum(lo, a_base) - 1e-6).all()
+    assert (out <= torch.maximum(hi, a_base) + 1e-6).all()
+    policy.sidecar.flush()
+    rows = read_sidecar(tmp_path / "d")
+    assert (rows["clipped"] > 0).all()  # alpha 40 pushes every row out: clipped and counted
+
+
+def test_a_nonfinite_counterfactual_executes_the_base_action(bases, tmp_path) -> None:
+    folder = make_idr(
+        bases["act"], tmp_path / "idr", "--tau", "1e9", "--diagnostics-dir", str(tmp_path / "d")
+    )
+    policy, pre, _ = load(folder)
+
+    def poison(out):  # the do(V) rows of the 3B forward become NaN
+        out = out.clone()
+        out[2:4] = float("nan")
+        return out
+
+    with torch.inference_mode():
+        clean = policy.base.predict_action_chunk(pre(obs_batch(2)))
+        _patched(policy, poison)
+        out = policy.predict_action_chunk(pre(obs_batch(2)))
+    assert torch.isfinite(out).all()
+    assert torch.equal(out, policy._physical(clean[:2, : policy.n_action_steps]))
+    policy.sidecar.flush()
+    assert list(read_sidecar(tmp_path / "d")["fallback"]) == ["nonfinite"] * 2
+
+
+def test_an_inference_past_its_deadline_executes_the_base_action(bases, tmp_path) -> None:
+    folder = make_idr(
+        bases["act"],
+        tmp_path / "idr",
+        "--tau",
+        "1e9",
+        "--deadline-ms",
+        "0.001",
+        "--diagnostics-dir",
+        str(tmp_path / "d"),
+    )
+    policy, pre, _ = load(folder)
+    with torch.inference_mode():
+        batch = pre(obs_batch(2))
+        out = policy.predict_action_chunk(batch)
+        base = policy._physical(
+            policy.base.predict_action_chunk(batch)[:2, : policy.n_action_steps]
+        )
+    assert torch.equal(out, base)
+    policy.sidecar.flush()
+    rows = read_sidecar(tmp_path / "d")
+    assert list(rows["fallback"]) == ["deadline"] * 2 and (rows["inference_ms"] > 0.001).all()
+
+
+def test_sidecar_rows_follow_episodes_and_ticks(bases, tmp_path) -> None:
+    folder = make_idr(
+        bases["act"], tmp_path / "idr", "--tau", "3", "--diagnostics-dir", str(tmp_path / "d")
+    )
+    policy, pre, post = load(folder)
+    for _ in range(2):  # two episodes of 9 steps, replanning every 4
+        _rollout(policy, pre, post, steps=9)
+    policy.reset()
+    rows = read_sidecar(tmp_path / "d")
+    assert sorted(set(rows["episode"])) == [0, 1]
+    ep = rows[(rows["episode"] == 1) & (rows["env"] == 0)]
+    assert list(ep["tick"]) == [0, 1, 2] and list(ep["step"]) == [1, 5, 9]
+    assert (rows["wait_ms"] >= rows["inference_ms"]).all()
+
+
+def test_training_is_refused_with_one_line(bases, tmp_path) -> None:
+    from lerobot_policy_idr.configuration_idr import IDRConfigError
+
+    policy, _, _ = load(make_idr(bases["act"], tmp_path / "idr", "--tau", "3"))
+    with pytest.raises(IDRConfigError, match="training-free: train the base policy"):
+        policy.forward({})
+    with pytest.raises(IDRConfigError, match="training-free"):
+        policy.config.get_optimizer_preset()
+
+
+@pytest.mark.parametrize("kind", ["pi05", "pi0"])
+def test_flow_matching_E_equals_the_harness_with_shared_noise(tmp_path, monkeypatch, kind) -> None:
+    """pi0 / pi0.5 (shrunk widths, lerobot's classes): one draw of noise for the three thirds;
+    the plugin's chunk and E_img equal the harness's for the same noise."""
+    from tests.workers.backbones.lerobot_fixtures import (
+        build_local_tokenizer,
+        build_pi,
+        tiny_pi_gemma,
+    )
+    from workers.backbones.base import Observation
+    from workers.backbones.lerobot import LerobotBackbone
+    from workers.idr import IDRConfig
+    from workers.idr_policy import IDRPolicy
+    from workers.interventions import InterventionConfig
+
+    tiny_pi_gemma(monkeypatch)
+    tok = build_local_tokenizer(tmp_path / "tok", ["pick it", "place it"])
+    base = build_pi(kind, tmp_path / kind, tok, monkeypatch)
+    folder = make_idr(
+        base,
+        tmp_path / "idr",
+        "--tau",
+        "1e9",
+        "--no-clip",
+        "--diagnostics-dir",
+        str(tmp_path / "d"),
+    )
+    backbone = LerobotBackbone(str(base))
+    assert backbone.crn_mode == "shared_noise"
+    harness = IDRPolicy(
+        backbone, IDRConfig(mode="E", tau=1e9), InterventionConfig(state_space="normalized")
+    )
+    policy, pre, post = load(folder)
+    g = torch.Generator().manual_seed(0)
+    images = {c: torch.rand(2, 3, 32, 32, generator=g) for c in ("agentview", "wrist")}
+    state, tasks = torch.rand(2, 8, generator=g), ["pick it", "place it"]
+    step = harness.infer(Observation(images, state, tasks), step_seed=3)
+    obs = {**{f"observation.images.{c}": v for c, v in images.items()}, "observation.state": state}
+    with torch.inference_mode():
+        ours = post(
+            policy.predict_action_chunk(
+                pre({**obs, "task": tasks}), noise=backbone.make_noise(2, 3)
+            )
+        )
+    assert torch.equal(ours, step.action)
+    policy.sidecar.flush()
+    rows = read_sidecar(tmp_path / "d")
+    assert np.array_equal(
+        rows["e_img"].to_numpy().astype(np.float32), step.diag.to_numpy()["e_img"]
+    )
+    assert (rows["e_img"] > 0).all()

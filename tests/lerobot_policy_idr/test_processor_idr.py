@@ -1,0 +1,102 @@
+"""IDR's processor steps in the base's pipelines: where they go, and the 3B rows they make."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from tests.lerobot_policy_idr.conftest import load, make_idr, obs_batch
+
+pytestmark = pytest.mark.slow
+
+
+def _steps(folder, name: str) -> list[str]:
+    return [s["registry_name"] for s in json.loads((folder / name).read_text())["steps"]]
+
+
+def test_steps_are_placed_after_batching_and_after_the_normalizer(bases, tmp_path) -> None:
+    for kind in ("act", "diffusion"):
+        folder = make_idr(bases[kind], tmp_path / kind, "--mode", "diagnose")
+        pre = _steps(folder, "policy_preprocessor.json")
+        assert pre == [
+            "rename_observations_processor",
+            "to_batch_processor",
+            "idr_counterfactual_batch",
+            "device_processor",
+            "normalizer_processor",
+            "idr_state_intervention",
+        ], (kind, pre)
+        # physical refinement: the policy unnormalizes, so the postprocessor does not
+        assert _steps(folder, "policy_postprocessor.json") == ["device_processor"]
+    raw = make_idr(bases["act"], tmp_path / "raw", "--mode", "diagnose", "--state-space", "raw")
+    assert "idr_state_intervention" not in _steps(raw, "policy_preprocessor.json")
+    norm = make_idr(
+        bases["act"], tmp_path / "n", "--mode", "diagnose", "--refine-space", "normalized"
+    )
+    assert _steps(norm, "policy_postprocessor.json")[0] == "unnormalizer_processor"
+    baseline = make_idr(bases["act"], tmp_path / "b", "--mode", "baseline")
+    assert "idr_counterfactual_batch" not in _steps(baseline, "policy_preprocessor.json")
+
+
+def test_the_three_thirds_hold_factual_black_image_and_mean_state(bases, tmp_path) -> None:
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import make_pre_post_processors
+
+    folder = make_idr(bases["act"], tmp_path / "idr", "--mode", "diagnose")
+    _, pre, _ = load(folder)
+    base_pre, _ = make_pre_post_processors(
+        PreTrainedConfig.from_pretrained(bases["act"]), pretrained_path=str(bases["act"])
+    )
+    obs = obs_batch(2)
+    black = dict(obs, **{"observation.images.agentview": torch.zeros(2, 3, 64, 64)})
+    out, factual, no_img = pre(dict(obs)), base_pre(dict(obs)), base_pre(black)
+    img, state = out["observation.images.agentview"], out["observation.state"]
+    assert img.shape[0] == state.shape[0] == 6 and out["idr_batch_size"] == 2
+    assert out["task"] == obs["task"] * 3
+    assert torch.equal(img[:2], factual["observation.images.agentview"])
+    assert torch.equal(img[2:4], no_img["observation.images.agentview"])  # raw black, normalized
+    assert torch.equal(img[4:], factual["observation.images.agentview"])
+    assert torch.equal(state[:4], torch.cat([factual["observation.state"]] * 2))
+    assert torch.equal(state[4:], torch.zeros(2, 8))  # normalized zero = the dataset mean
+
+
+@pytest.mark.parametrize("kind", ["pi05", "pi0"])
+def test_pi_pipelines_get_three_consistent_thirds(tmp_path, monkeypatch, kind) -> None:
+    """pi0 tokenizes the task before its normalizer, pi0.5 turns the normalized state into
+    text tokens after it: wherever the steps sit, every tensor reaching the model has 3B rows,
+    do(V) leaves the tokens alone and, for pi0.5, do(S) reaches the state's tokens."""
+    from tests.workers.backbones.lerobot_fixtures import (
+        build_local_tokenizer,
+        build_pi,
+        tiny_pi_gemma,
+    )
+
+    tiny_pi_gemma(monkeypatch)
+    tok = build_local_tokenizer(tmp_path / "tok", ["pick it", "place it"])
+    base = build_pi(kind, tmp_path / kind, tok, monkeypatch)
+    folder = make_idr(base, tmp_path / "idr", "--mode", "diagnose")
+    pre_steps = _steps(folder, "policy_preprocessor.json")
+    norm = pre_steps.index("normalizer_processor")
+    assert pre_steps.index("idr_state_intervention") == norm + 1, pre_steps
+    _, pre, _ = load(folder)
+    g = torch.Generator().manual_seed(0)
+    obs = {
+        "observation.images.agentview": torch.rand(2, 3, 32, 32, generator=g),
+        "observation.images.wrist": torch.rand(2, 3, 32, 32, generator=g),
+        "observation.state": torch.rand(2, 8, generator=g),
+        "task": ["pick it", "place it"],
+    }
+    out = pre(obs)
+    tensors = {k: v for k, v in out.items() if isinstance(v, torch.Tensor) and v.ndim}
+    assert tensors and all(v.shape[0] == 6 for v in tensors.values()), {
+        k: tuple(v.shape) for k, v in tensors.items()
+    }
+    tokens = next(v for k, v in tensors.items() if k.endswith("language.tokens"))
+    assert torch.equal(tokens[:2], tokens[2:4])  # do(V): same words
+    if kind == "pi05":  # the state is text: do(S) changed the tokens of rows 2B:3B
+        assert not torch.equal(tokens[:2], tokens[4:])
+    else:
+        assert torch.equal(tokens[:2], tokens[4:])
+        assert torch.equal(out["observation.state"][4:], torch.zeros(2, 8))
