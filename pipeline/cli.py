@@ -114,6 +114,37 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_sidecar(args: argparse.Namespace) -> int:
+    from pipeline import sidecar_report
+
+    dirs = [Path(d) for d in args.dirs]
+    for d in dirs:
+        if not d.is_dir() or not any(d.glob("part-*.parquet")):
+            raise ConfigError(
+                f"{d} is not an IDR diagnostics folder (no part-*.parquet): give the "
+                "diagnostics_dir the idr policy announced at the start of the rollout"
+            )
+    if args.eval_info and not Path(args.eval_info).is_file():
+        raise ConfigError(
+            f"--eval-info {args.eval_info} does not exist (lerobot-eval's eval_info.json)"
+        )
+    if args.fps is not None and not args.fps > 0:
+        raise ConfigError(f"--fps {args.fps} must be > 0 (the env's control rate)")
+    try:
+        path = sidecar_report.write(
+            dirs,
+            Path(args.out),
+            Path(args.eval_info) if args.eval_info else None,
+            args.fps,
+            args.label or None,
+        )
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    print(path.read_text())
+    print(f"written to {path}")
+    return 0
+
+
 def _cmd_compare(args: argparse.Namespace) -> int:
     from pipeline.compare import TablesRefused, compare
 
@@ -229,6 +260,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     cpt.add_argument("run_dir")
     cpt.set_defaults(func=_cmd_compact)
+    car = sub.add_parser(
+        "sidecar",
+        help="report IDR's diagnostics sidecars (the idr lerobot policy on a robot or lerobot-eval)",
+    )
+    car.add_argument("dirs", nargs="+", metavar="DIAG_DIR", help="one cell per folder")
+    car.add_argument(
+        "--out", required=True, help="folder for report.md, figures/, episodes.parquet"
+    )
+    car.add_argument("--eval-info", help="lerobot-eval's eval_info.json: success per episode")
+    car.add_argument(
+        "--fps", type=float, help="control rate, for completion time under lerobot-eval"
+    )
+    car.add_argument("--label", action="append", help="a cell name per folder, in order")
+    car.set_defaults(func=_cmd_sidecar)
     cmp = sub.add_parser(
         "compare", help="one table across runs: success per suite, Avg, Δ vs baseline, p"
     )

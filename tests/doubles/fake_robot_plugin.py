@@ -74,12 +74,17 @@ class FakeCameraArm(Robot):
         level = int(np.clip(128 + 100 * np.tanh(self._q[0]), 0, 255))
         image = np.full((s, s, 3), level, dtype=np.uint8)
         image[: s // 2, :, 1] = 255 - level
-        return {**{f"{j}.pos": float(q) for j, q in zip(JOINTS, self._q, strict=True)}, "front": image}
+        return {
+            **{f"{j}.pos": float(q) for j, q in zip(JOINTS, self._q, strict=True)},
+            "front": image,
+        }
 
     def send_action(self, action: dict) -> dict:
         self._q = np.array([float(action[f"{j}.pos"]) for j in JOINTS], dtype=np.float32)
         with Path(self.config.action_log).open("a") as f:
-            f.write(json.dumps({"t": time.time(), **{k: float(v) for k, v in action.items()}}) + "\n")
+            f.write(
+                json.dumps({"t": time.time(), **{k: float(v) for k, v in action.items()}}) + "\n"
+            )
         return action
 
     def disconnect(self) -> None:

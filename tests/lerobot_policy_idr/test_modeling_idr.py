@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from lerobot_policy_idr.sidecar import read_sidecar
+from idr_core.sidecar import read_sidecar
 
 from tests.lerobot_policy_idr.conftest import load, make_idr, obs_batch
 

@@ -21,7 +21,7 @@ from idr_core.refiner import MODES
 def calibrate(idr_dir: Path, sidecars: list[Path], mode: str | None = None) -> dict:
     """Compute tau from the sidecars' diagnose rows and write it (and ``mode``) into
     ``idr_dir/config.json``; returns what was computed. Raises ValueError before writing."""
-    from lerobot_policy_idr.sidecar import read_sidecar
+    from idr_core.sidecar import read_sidecar
 
     cfg_path = idr_dir / "config.json"
     try:

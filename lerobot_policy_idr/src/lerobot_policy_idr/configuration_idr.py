@@ -171,11 +171,12 @@ class IDRConfig(PreTrainedConfig):
         anchor = folder or self.pretrained_path
         if not base.is_absolute() and anchor and (Path(anchor) / base).is_dir():
             base = Path(anchor) / base
-        try:
-            cfg = check_checkpoint_dir(base, "policy.base_policy_path")
-        except ValueError as e:
-            raise IDRConfigError(str(e)) from None
-        kind = cfg["type"]
+        kind = _peek_type(base)  # the type first: an idr folder has no weights of its own
+        if kind is None or kind in SUPPORTED_BASE_TYPES:
+            try:
+                kind = check_checkpoint_dir(base, "policy.base_policy_path")["type"]
+            except ValueError as e:
+                raise IDRConfigError(str(e)) from None
         if kind in REFUSED_BASE_TYPES:
             raise IDRConfigError(
                 f"policy.base_policy_path={str(base)!r}: base type {kind!r} is refused: "
@@ -242,6 +243,14 @@ def read_base_config(path: Path) -> dict:
             "give a lerobot checkpoint folder"
         )
     return cfg
+
+
+def _peek_type(path: Path) -> str | None:
+    try:
+        cfg = json.loads((path / "config.json").read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        return None
+    return cfg.get("type") if isinstance(cfg, dict) else None
 
 
 def _features(raw: dict) -> dict[str, PolicyFeature]:

@@ -25,6 +25,7 @@ from typing import Any
 import torch
 from idr_core.refiner import refine
 from idr_core.sampling import crn_mode, noise_shape
+from idr_core.sidecar import SidecarWriter
 from idr_core.three_pass import repeat3, split3
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.policies.factory import get_policy_class
@@ -32,7 +33,6 @@ from lerobot.policies.pretrained import PreTrainedPolicy
 
 from lerobot_policy_idr.configuration_idr import IDRConfig, IDRConfigError, read_base_config
 from lerobot_policy_idr.processor_idr import BATCH_SIZE_KEY, IMAGE_PREFIX, STATE_KEY
-from lerobot_policy_idr.sidecar import SidecarWriter
 
 ACTION = "action"
 _HISTORY_KEYS = (STATE_KEY, "observation.environment_state")

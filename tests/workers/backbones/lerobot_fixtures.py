@@ -62,20 +62,25 @@ def build_act(
     chunk: int = 10,
     cams: tuple[str, ...] = ("agentview",),
     n_action_steps: int | None = None,
+    full_size: bool = False,
 ) -> Path:
+    """``full_size``: lerobot's default widths and depths (for benchmarks), else tiny ones."""
     from lerobot.policies.act.configuration_act import ACTConfig
     from lerobot.policies.act.modeling_act import ACTPolicy
 
     inputs, outputs = _features(image, state, action, cams)
+    small = {
+        "dim_model": 64,
+        "n_heads": 2,
+        "dim_feedforward": 128,
+        "n_encoder_layers": 1,
+        "n_decoder_layers": 1,
+    }
     cfg = ACTConfig(
         input_features=inputs,
         output_features=outputs,
         pretrained_backbone_weights=None,
-        dim_model=64,
-        n_heads=2,
-        dim_feedforward=128,
-        n_encoder_layers=1,
-        n_decoder_layers=1,
+        **({} if full_size else small),
         use_vae=False,
         chunk_size=chunk,
         n_action_steps=n_action_steps or chunk,
