@@ -69,9 +69,8 @@ def measure(base: Path, work: Path, rounds: int, warmup: int = 3) -> dict[str, A
                 post(policy.predict_action_chunk(pre(dict(obs))))
             if r >= warmup:
                 times[mode].append((time.perf_counter() - t0) * 1e3)
-    for mode, (policy, _, _) in loaded.items():
+    for policy, _, _ in loaded.values():
         policy.sidecar.flush()
-        del policy
     from idr_core.sidecar import read_sidecar
 
     rows = read_sidecar(work / "diag")

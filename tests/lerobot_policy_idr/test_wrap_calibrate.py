@@ -42,7 +42,7 @@ def test_a_bundled_folder_loads_without_the_original_base(bases, tmp_path) -> No
     shutil.rmtree(base)
     assert json.loads((folder / "config.json").read_text())["base_policy_path"] == "base"
     moved = shutil.move(folder, tmp_path / "moved")  # relative to the folder, wherever it is
-    policy, pre, post = load(moved)
+    policy, pre, _ = load(moved)
     assert policy.predict_action_chunk(pre(obs_batch(1))).shape == (1, 4, 7)
 
 
