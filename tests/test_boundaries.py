@@ -1,6 +1,8 @@
 """The import boundaries of the design, checked on the source (AST), so a change that crosses
 one fails here instead of in a review: pipeline/ imports workers/, never the reverse; envs/ and
-backbones/ never import each other; training/ and tests/ are imported by nothing shipped."""
+backbones/ never import each other; training/ and tests/ are imported by nothing shipped; the
+method's distribution (lerobot_policy_idr/) imports nothing of the harness, and its idr_core
+nothing of lerobot."""
 
 from __future__ import annotations
 
@@ -17,6 +19,11 @@ FORBIDDEN = {
     "workers/envs": ("workers.backbones", "workers.experts", "workers.actor"),
     "workers/backbones": ("workers.envs", "workers.experts", "workers.actor"),
     "pipeline": ("training", "tests"),
+    # the method's own distribution installs on a robot computer without the harness
+    "lerobot_policy_idr": ("workers", "pipeline", "training", "tests", "benchmarks"),
+    # the method on arrays: no model, no simulator, no lerobot (torch only lazily, for torch
+    # inputs; test_configuration_idr checks that importing it loads neither)
+    "lerobot_policy_idr/src/idr_core": ("lerobot", "lerobot_policy_idr", "mujoco"),
 }
 
 
