@@ -98,12 +98,12 @@ def test_bad_bases_are_refused_before_loading(bases, tmp_path) -> None:
     refused(tmp_path / "empty", r"is not a lerobot policy: no config.json")
     with pytest.raises(IDRConfigError, match=r"base_policy_path is required"):
         IDRConfig(mode="diagnose").resolve_base()
-    for kind, match in (("xvla", "isinstance on the policy config"), ("vqbet", "not supported")):
+    for kind, match in (("groot", "processors from the hub"), ("vqbet", "not supported")):
         other = tmp_path / kind
         shutil.copytree(bases["act"], other)
         cfg = json.loads((other / "config.json").read_text())
         (other / "config.json").write_text(json.dumps({**cfg, "type": kind}))
-        refused(other, rf"base type {kind!r} .*{match}.*act, diffusion, pi0, pi05, smolvla")
+        refused(other, rf"base type {kind!r} .*{match}.*act, diffusion, pi0, pi05, smolvla, xvla")
     truncated = tmp_path / "truncated"
     shutil.copytree(bases["act"], truncated)
     weights = truncated / "model.safetensors"

@@ -4,6 +4,8 @@ E is the harness's IDR exactly, and the hardware safety rules hold."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -292,3 +294,65 @@ def test_flow_matching_E_equals_the_harness_with_shared_noise(tmp_path, monkeypa
         rows["e_img"].to_numpy().astype(np.float32), step.diag.to_numpy()["e_img"]
     )
     assert (rows["e_img"] > 0).all()
+
+
+def test_xvla_E_equals_the_harness_and_keeps_xvlas_env_processors(tmp_path) -> None:
+    """X-VLA (the paper's CALVIN and SIMPLER backbone; tiny Florence-2 built offline) ignores
+    a noise input: three forwards under one seed, in the plugin as in idr-eval's adapter. And
+    lerobot picks X-VLA's env processors by isinstance on the policy config: an idr config
+    wrapping X-VLA gets them too."""
+    from lerobot.envs.configs import LiberoEnv
+    from lerobot.envs.factory import make_env_pre_post_processors
+
+    from tests.workers.backbones.lerobot_fixtures import build_local_tokenizer, build_xvla
+    from workers.backbones.base import Observation
+    from workers.backbones.lerobot import LerobotBackbone
+    from workers.idr import IDRConfig
+    from workers.idr_policy import IDRPolicy
+    from workers.interventions import InterventionConfig
+
+    tok = build_local_tokenizer(tmp_path / "tok", ["pick it", "place it"])
+    base = build_xvla(tmp_path / "xvla", tok)
+    folder = make_idr(
+        base,
+        tmp_path / "idr",
+        "--tau",
+        "1e9",
+        "--no-clip",
+        "--diagnostics-dir",
+        str(tmp_path / "d"),
+    )
+    backbone = LerobotBackbone(str(base))
+    assert backbone.crn_mode == "seeded_rng" and not backbone.can_batch
+    harness = IDRPolicy(
+        backbone, IDRConfig(mode="E", tau=1e9), InterventionConfig(state_space="normalized")
+    )
+    policy, pre, post = load(folder)
+    g = torch.Generator().manual_seed(0)
+    image, state, tasks = (
+        torch.rand(2, 3, 64, 64, generator=g),
+        torch.rand(2, 8, generator=g),
+        ["pick it", "place it"],
+    )
+    step = harness.infer(Observation({"agentview": image}, state, tasks), step_seed=5)
+    obs = {"observation.images.agentview": image, "observation.state": state, "task": tasks}
+    with torch.inference_mode():
+        ours = post(policy.predict_action_chunk(pre(obs), noise=backbone.make_noise(2, 5)))
+    assert torch.equal(ours, step.action)
+    assert not torch.equal(step.a_base, step.a_no_img)  # the image matters to the actions
+    # another seed gives other actions (the seed reaches the sampler), the same seed the same
+    with torch.inference_mode():
+        again = post(policy.predict_action_chunk(pre(obs), noise=backbone.make_noise(2, 5)))
+        other = post(policy.predict_action_chunk(pre(obs), noise=backbone.make_noise(2, 6)))
+    assert torch.equal(again, ours) and not torch.equal(other, ours)
+    env_pre, env_post = make_env_pre_post_processors(
+        LiberoEnv(task="libero_spatial"), policy.config
+    )
+    names = [type(s).__name__ for s in env_pre.steps] + [type(s).__name__ for s in env_post.steps]
+    assert (
+        "XVLAImageNetNormalizeProcessorStep" in names
+        and "XVLARotation6DToAxisAngleProcessorStep" in names
+    )
+    assert policy.config.type == "idr"
+    policy.config._save_pretrained(tmp_path)  # still saves as an idr config
+    assert json.loads((tmp_path / "config.json").read_text())["type"] == "idr"

@@ -26,13 +26,9 @@ from lerobot.configs import PreTrainedConfig
 from lerobot.configs.types import FeatureType, PolicyFeature
 
 #: Base policy types IDR wraps, and why the others are refused.
-SUPPORTED_BASE_TYPES = ("act", "diffusion", "pi0", "pi05", "smolvla", "tiny_vla")
+SUPPORTED_BASE_TYPES = ("act", "diffusion", "pi0", "pi05", "smolvla", "xvla", "tiny_vla")
 REFUSED_BASE_TYPES = {
     "idr": "an idr policy cannot wrap another idr policy; wrap its base instead",
-    "xvla": (
-        "X-VLA's env processors are chosen by lerobot with isinstance on the policy config, "
-        "which an idr config would silently miss; not supported by this plugin yet"
-    ),
     "groot": "GR00T loads its processors from the hub; not supported offline",
 }
 REFINE_SPACES = ("physical", "normalized")
@@ -226,6 +222,36 @@ class IDRConfig(PreTrainedConfig):
                 "the idr policy has no action output feature: its base config.json was not read "
                 "(set policy.base_policy_path to a lerobot checkpoint folder)"
             )
+
+
+class IDROverXVLAConfig(IDRConfig):
+    """An ``idr`` config whose base is X-VLA.
+
+    lerobot gives X-VLA its own env processors by ``isinstance(policy_cfg, XVLAConfig)``
+    (``lerobot.envs.factory.make_env_pre_post_processors``), which an ``idr`` config would
+    silently miss: the env's observations would reach X-VLA processed for another policy. This
+    class is registered as a virtual subclass of ``XVLAConfig`` (``abc``), so that choice sees
+    X-VLA; it is still type ``idr`` (not a registered choice of its own) and saves as one."""
+
+    @property
+    def type(self) -> str:
+        return "idr"
+
+    def _save_pretrained(self, save_directory: Path) -> None:
+        self.__class__ = IDRConfig  # encoded as the registered idr config
+        try:
+            IDRConfig._save_pretrained(self, save_directory)
+        finally:
+            self.__class__ = IDROverXVLAConfig
+
+
+def adopt_base_type(config: IDRConfig, base_type: str) -> None:
+    """Make ``config`` look like its base where lerobot dispatches on the config's class."""
+    if base_type == "xvla" and not isinstance(config, IDROverXVLAConfig):
+        from lerobot.policies.xvla.configuration_xvla import XVLAConfig
+
+        XVLAConfig.register(IDROverXVLAConfig)
+        config.__class__ = IDROverXVLAConfig
 
 
 def read_base_config(path: Path) -> dict:

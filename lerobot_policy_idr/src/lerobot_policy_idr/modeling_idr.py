@@ -31,7 +31,12 @@ from lerobot.configs.policies import PreTrainedConfig
 from lerobot.policies.factory import get_policy_class
 from lerobot.policies.pretrained import PreTrainedPolicy
 
-from lerobot_policy_idr.configuration_idr import IDRConfig, IDRConfigError, read_base_config
+from lerobot_policy_idr.configuration_idr import (
+    IDRConfig,
+    IDRConfigError,
+    adopt_base_type,
+    read_base_config,
+)
 from lerobot_policy_idr.processor_idr import BATCH_SIZE_KEY, IMAGE_PREFIX, STATE_KEY
 
 ACTION = "action"
@@ -56,11 +61,7 @@ class IDRPolicy(PreTrainedPolicy):
         self.base.eval()
         self.refiner_cfg = config.refiner()
         self.crn = crn_mode(base_cfg.type, self.base.predict_action_chunk)
-        if self.crn == "seeded_rng":
-            raise IDRConfigError(
-                f"policy.base_policy_path={str(base_dir)!r}: a {base_cfg.type} policy samples "
-                "without a noise input, so its three passes cannot share noise in one forward"
-            )
+        adopt_base_type(config, base_cfg.type)  # X-VLA: lerobot's env processors for X-VLA
         if config.mode != "baseline" and getattr(base_cfg, "temporal_ensemble_coeff", None):
             raise IDRConfigError(
                 "the base ACT uses temporal ensembling (temporal_ensemble_coeff), which runs "
@@ -158,7 +159,9 @@ class IDRPolicy(PreTrainedPolicy):
             shape = noise_shape(self.base.config, b, self.action_dim)
             if shape is not None:  # one draw from torch's RNG, shared by the three thirds
                 noise = torch.randn(shape, device=_batch_device(batch))
-        if noise is not None:
+        if self.crn == "seeded_rng":  # X-VLA ignores a noise input: three forwards, one seed
+            out = self._seeded_thirds(batch, b, noise)
+        elif noise is not None:
             out = self.base.predict_action_chunk(batch, noise=repeat3(noise))
         else:
             out = self.base.predict_action_chunk(batch)
@@ -183,6 +186,20 @@ class IDRPolicy(PreTrainedPolicy):
             fallback=fallback,
         )
         return final, rows
+
+    def _seeded_thirds(self, batch: dict[str, Any], b: int, seed: Any) -> torch.Tensor:
+        """The three thirds as three forwards of B rows, each under a forked RNG seeded alike
+        (``seed``: a tensor of seeds as idr-eval's backbone makes it, else one draw from torch's
+        RNG), so the thirds see the same sampling noise."""
+        s = int(seed[0]) if seed is not None else int(torch.randint(0, 2**31 - 1, ()))
+        device = _batch_device(batch)
+        outs = []
+        for i in range(3):
+            part = {k: _rows_of(v, i, b) for k, v in batch.items()}
+            with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+                torch.manual_seed(s)
+                outs.append(self.base.predict_action_chunk(part))
+        return torch.cat(outs, dim=0)
 
     def _refine(self, a_base: torch.Tensor, a_no_img: torch.Tensor, a_no_prop: torch.Tensor):
         b = a_base.shape[0]
@@ -254,6 +271,15 @@ def _batch_rows(batch: dict[str, Any]) -> int:
         if isinstance(value, torch.Tensor) and (key == STATE_KEY or key.startswith(IMAGE_PREFIX)):
             return int(value.shape[0])
     raise ValueError(f"the idr policy found no state or image tensor in the batch: {sorted(batch)}")
+
+
+def _rows_of(value: Any, i: int, b: int) -> Any:
+    """Third ``i`` of a 3B-row batch entry (tensors and per-row lists; others as they are)."""
+    if isinstance(value, torch.Tensor) and value.ndim and value.shape[0] == 3 * b:
+        return value[i * b : (i + 1) * b]
+    if isinstance(value, list) and len(value) == 3 * b:
+        return value[i * b : (i + 1) * b]
+    return value
 
 
 def _batch_device(batch: dict[str, Any]) -> torch.device:
