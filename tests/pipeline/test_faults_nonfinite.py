@@ -147,3 +147,56 @@ def test_mujoco_instability_and_nan_action_on_the_tabletop(tmp_path, monkeypatch
         GUARANTEE + "; MuJoCo's silent reset is detected from its warning counters",
         {**outcome, "mujoco_steps_sent_with_nan_action": len(sent)},
     )
+
+
+@pytest.mark.sim
+@pytest.mark.slow
+def test_a_diverging_libero_scene_is_an_error_row(tmp_path, monkeypatch, fault_log):
+    """LIBERO is MuJoCo too: a divergence (qvel := NaN inside the physics) is detected from
+    MuJoCo's warnings, the episode is one SimulationUnstableError row, and the next episode on
+    the same simulator is what a rerun gives."""
+    from workers import actor
+
+    cfg = config_from_dict(
+        {
+            "name": "unstable-libero",
+            "backbone": {"kind": "noop", "params": {"action_dim": 7, "chunk_len": 4}},
+            "env": {
+                "suite": "tests.doubles.libero:UnstableLiberoEnv",
+                "tasks": ["libero_spatial/0"],
+                "params": {
+                    "suites": ["libero_spatial"],
+                    "max_steps": {"libero_spatial": 10},
+                    "inject_instability": [0, 4],  # episode 0, before control step 5
+                },
+            },
+            "episodes_per_task": 2,
+            "grid": [{"mode": ["baseline"]}],
+            "executor": {"kind": "inline", "max_attempts": 1},
+            "tracking": {"enabled": False},
+        }
+    )
+    plan = plan_run(cfg, tmp_path / "run")
+    worker = actor.EpisodeWorker(plan.worker_spec)  # one simulator for the whole test
+    monkeypatch.setattr(actor, "EpisodeWorker", lambda spec: worker)
+    monkeypatch.setattr(worker, "close", lambda: None)
+    try:
+        run_episodes(plan)
+        outcome = audit(plan.run_dir, {s.key for s in plan.all_specs()})
+        assert_clean(outcome)
+        eps = RunStore(plan.run_dir).episodes().to_pandas().set_index("episode_index")
+        assert eps.loc[0, "error"].startswith("SimulationUnstableError: MuJoCo simulation unstable")
+        assert "at step 5 of libero_spatial/0" in eps.loc[0, "error"]
+        assert pd.isna(eps.loc[1, "error"]) and eps.loc[1, "steps"] == 10
+        again = worker.run_episode(plan.specs[1])
+        assert again.episode.error is None
+        for col in ("success", "steps", "init_state_id"):
+            assert getattr(again.episode, col) == eps.loc[1, col]
+    finally:
+        worker.env.close()
+    fault_log.record(
+        "MuJoCo instability (LIBERO, hf-libero + MuJoCo 3)",
+        "env fault hook sets qvel to NaN inside LIBERO's physics at step 5 of episode 0",
+        GUARANTEE + "; MuJoCo's silent reset is detected from its warning counters",
+        outcome,
+    )

@@ -49,6 +49,7 @@ from workers.envs.libero_protocol import (
     quat_to_axis_angle,
     state_vector,
 )
+from workers.envs.stability import mujoco_instability, raise_if_unstable
 from workers.io_spec import ROBOSUITE_CAMERA_ALIASES, EnvIO
 
 __all__ = [
@@ -250,10 +251,12 @@ class LiberoEnv:
 
     @classmethod
     def _protocol_of(cls, params: dict[str, Any]) -> LiberoProtocol:
-        """The validated protocol of constructor params (``lazy_render`` changes nothing)."""
+        """The validated protocol of constructor params (``lazy_render`` changes nothing; a
+        subclass's own params are left to its constructor)."""
         import inspect
 
-        bound = inspect.signature(cls.__init__).bind(None, **params)
+        sig = inspect.signature(LiberoEnv.__init__)
+        bound = sig.bind(None, **{k: v for k, v in params.items() if k in sig.parameters})
         bound.apply_defaults()
         args = dict(bound.arguments)
         for name in ("self", "lazy_render"):
@@ -367,6 +370,7 @@ class LiberoEnv:
         self._init_index = episode_index % len(self._init_states)
         self._sim.seed(self.protocol.reset_seed(seed, episode_index))
         self._sim.reset()
+        mujoco_instability(self._sim.env.sim.data._data)  # what an earlier episode left
         p, self._init_suffix = self._perturbation, ""
         self._perturb_scene(p)
         raw = self._sim.set_init_state(self._init_states[self._init_index])
@@ -374,6 +378,11 @@ class LiberoEnv:
             raw = self._jitter(p, task_id, episode_index, seed)
         for _ in range(self.protocol.num_noops):
             raw, _, _, _ = self._sim.step(list(NOOP_ACTION))
+        # a scene that diverges while settling is as unscorable as one that diverges later
+        raise_if_unstable(
+            self._sim.env.sim.data._data,
+            f"in the no-ops after reset of {task_id} episode {episode_index}",
+        )
         self._task, self._steps, self._success = spec, 0, False
         return self._observe(raw)
 
@@ -423,6 +432,10 @@ class LiberoEnv:
         a = checked_action(action, self.action_dim, self._task is not None, self.done)
         raw, _, goal_reached, _ = self._sim.step(a)
         self._steps += 1
+        # MuJoCo resets a diverged simulation and carries on: an error row, not a failure
+        raise_if_unstable(
+            self._sim.env.sim.data._data, f"at step {self._steps} of {self._task.task_id}"
+        )
         self._success = bool(goal_reached)  # hf-libero's done is its goal check
         return self._observe(raw)
 
