@@ -90,18 +90,21 @@ def select(run_dirs: list[Path], cells: dict[Path, set[str]] | None = None) -> S
 def _experiments_of(uri: str, run_ids: list[str]) -> list[str]:
     if not run_ids:
         return []
-    from mlflow import MlflowClient
+    from pipeline.tracking import answers, bounded_client
 
-    client = MlflowClient(tracking_uri=uri)
+    if uri.startswith(("http://", "https://")) and not answers(uri):
+        return []  # a server out of reach: the URL without its experiments still opens
+    client = bounded_client(uri)
     try:
         return list(dict.fromkeys(client.get_run(r).info.experiment_id for r in run_ids))
     except Exception:  # a store out of reach: the URL without its experiments still opens
         return []
 
 
-def check_store(uri: str) -> None:
-    """Refuse, before a UI starts, a SQLite store that is not there or that another version of
-    MLflow wrote (its UI would fail on it, or offer to migrate it)."""
+def check_store(uri: str, damaged_hint: bool = False) -> None:
+    """Refuse, before a UI or a run starts, a SQLite store that is not there, is damaged, is
+    not an MLflow store, or that another version of MLflow wrote (its UI would fail on it, or
+    offer to migrate it). ``damaged_hint``: the refusal says how a run can go on without it."""
     if not uri.startswith("sqlite:///"):
         return
     path = Path(uri.removeprefix("sqlite:///"))
@@ -110,11 +113,20 @@ def check_store(uri: str) -> None:
             f"the MLflow store {path} does not exist: run a config with tracking enabled first "
             "(its runs go to <output_root>/mlflow.db), or name a run dir that was tracked"
         )
+    aside = (
+        f"; move it aside (mv {path} {path}.bad) to start a new store, or set "
+        "tracking.enabled=false to run without MLflow"
+        if damaged_hint
+        else ""
+    )
     try:
         with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
+            ok = db.execute("PRAGMA quick_check(1)").fetchone()
+            if ok is None or ok[0] != "ok":
+                raise sqlite3.DatabaseError(f"quick_check: {ok[0] if ok else 'no answer'}")
             row = db.execute("SELECT version_num FROM alembic_version").fetchone()
     except sqlite3.DatabaseError as e:
-        raise ConfigError(f"{path} is not an MLflow store ({e})") from None
+        raise ConfigError(f"{path} is not a readable MLflow store ({e}){aside}") from None
     found = row[0] if row else None
     known, head = _schema_revisions()
     if found == head:

@@ -263,6 +263,18 @@ def check_cell_budget(cfg: RunConfig, n_tasks: int | None = None, yes: bool = Fa
         )
 
 
+def _check_tracking(cfg: RunConfig, run_dir: Path) -> None:
+    """The MLflow store, before anything of the run is created (pipeline.tracking.check_uri)."""
+    if not cfg.tracking.enabled:
+        return
+    from pipeline.tracking import check_uri, resolve_uri
+
+    try:
+        check_uri(resolve_uri(cfg.tracking.uri, run_dir))
+    except RuntimeError as e:
+        raise ConfigError(f"tracking.uri: {e}; fix the URI or set tracking.enabled=false") from None
+
+
 def plan_run(
     cfg: RunConfig,
     run_dir: str | Path,
@@ -272,6 +284,7 @@ def plan_run(
 ) -> RunPlan:
     """Everything checked, nothing started; ``yes`` confirms a grid larger than max_cells."""
     run_dir = check_run_dir(run_dir, cfg.output_root)
+    _check_tracking(cfg, run_dir)
     _check_names(cfg)
     # where the simulator runs (an env server: started once here, version and runtime checked)
     server, server_hello = check_env_runtime(cfg)

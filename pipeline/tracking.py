@@ -28,6 +28,7 @@ What the UI shows, and why:
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -100,7 +101,85 @@ def probe(uri: str, timeout: float = 5.0) -> None:
         ) from None
 
 
-def _answers(uri: str) -> bool:
+#: URI schemes a run can track to: a SQLite file, a tracking server, or a database server
+#: (``mlflow server``'s backends; psycopg for PostgreSQL is the ``server`` extra).
+SCHEMES = ("sqlite", "http", "https", "postgresql", "mysql", "mssql")
+
+
+def sqlite_path(uri: str) -> Path | None:
+    return Path(uri.removeprefix("sqlite:///")) if uri.startswith("sqlite:///") else None
+
+
+def store_lock(path: Path) -> Any:
+    """The lock under which a SQLite store is created, migrated and checked: MLflow creates a
+    new store's schema on first use, and two drivers doing it at once collide (``duplicate
+    column name``); held for seconds, once per driver."""
+    from filelock import FileLock
+
+    return FileLock(str(path) + ".lock", timeout=300)
+
+
+def check_uri(uri: str) -> None:
+    """Refuse, before anything of a run is created, a tracking URI that cannot work: an unknown
+    scheme, a SQLite store that is a directory, unwritable, damaged, not an MLflow store or of
+    another MLflow version, a tracking server that does not answer. Raises RuntimeError."""
+    scheme = uri.split(":", 1)[0].split("+", 1)[0].lower() if ":" in uri else ""
+    if scheme not in SCHEMES:
+        raise RuntimeError(
+            f"{uri!r} has an unknown scheme {scheme or '(none)'!r}: use sqlite:///PATH, "
+            "http(s)://HOST:PORT (a tracking server) or postgresql://..."
+        )
+    path = sqlite_path(uri)
+    if path is None:
+        probe(uri)
+        return
+    if path.is_dir():
+        raise RuntimeError(f"the SQLite store {path} is a directory: give a file path")
+    folder = next(p for p in (path.parent, *path.parent.parents) if p.exists())
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise RuntimeError(f"the SQLite store {path} cannot be written ({folder} is not writable)")
+    if path.exists() and not os.access(path, os.R_OK | os.W_OK):
+        raise RuntimeError(f"the SQLite store {path} is not readable and writable")
+    if not path.exists():
+        return
+    from pipeline.config import ConfigError
+    from pipeline.mlflow_ui import check_store
+
+    with store_lock(path):  # a store another driver is creating right now is whole after it
+        try:
+            check_store(uri, damaged_hint=True)
+        except ConfigError as e:
+            raise RuntimeError(str(e)) from None
+
+
+def bounded_client(uri: str) -> Any:
+    """An MlflowClient whose HTTP requests give up within about a minute (30 s timeout, 2
+    retries) instead of MLflow's defaults (7 tries with doubling backoff: minutes against a
+    server that is gone, slow or unresolvable); the user's own MLFLOW_HTTP_* settings win.
+    Every MLflow client the CLI makes comes from here."""
+    from mlflow import MlflowClient
+
+    if uri.startswith(("http://", "https://")):
+        for key, value in HTTP_RETRY_DEFAULTS.items():
+            os.environ.setdefault(key, value)
+    return MlflowClient(tracking_uri=uri)
+
+
+def answers(uri: str) -> bool:
+    """Whether the store answers: a tracking server its health check, a SQLite store a read
+    of its schema version (a damaged or vanished file does not)."""
+    path = sqlite_path(uri)
+    if path is not None:
+        import sqlite3
+
+        if not path.is_file():
+            return False
+        try:
+            with sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=5) as db:
+                db.execute("SELECT version_num FROM alembic_version").fetchone()
+        except sqlite3.Error:
+            return False
+        return True
     try:
         probe(uri, timeout=2.0)
     except RuntimeError:
@@ -116,39 +195,30 @@ class Tracker:
     the end of a finished run the tracker waits up to ``reconnect_wait_s`` for it; if it is
     still down, it says so, and rerunning the same command (nothing is re-run) completes the
     MLflow runs. A server that is down at the start is refused before any work (:func:`probe`).
+    A SQLite store that stops answering mid-run (a full disk, a damaged or vanished file) is
+    held back the same way; a SQLite store is created and migrated under :func:`store_lock`, so
+    drivers started at once on a new output root do not race on its schema.
     """
 
     def __init__(
         self, uri: str, experiment: str, run_dir: Path, reconnect_wait_s: float = 60.0
     ) -> None:
-        from mlflow import MlflowClient
-
         probe(uri)
         self.uri = uri
         self.run_dir = run_dir
         self.reconnect_wait_s = reconnect_wait_s
         self._server = uri.startswith(("http://", "https://"))
-        if self._server:
-            # MLflow retries a failed request for minutes by default (7 tries, backoff x2); a
-            # server that went down is noticed by probe() and caught up with later instead
-            for key, value in HTTP_RETRY_DEFAULTS.items():
-                os.environ.setdefault(key, value)
         self._pending: list[Callable[[], None]] = []  # held back while the server is down
         self._down_since: float | None = None
         self._next_probe = 0.0
         self.offline_seconds = 0.0  # how long the server was down during this run
-        self.client = MlflowClient(tracking_uri=uri)
+        path = sqlite_path(uri)
         try:
-            exp = self.client.get_experiment_by_name(experiment)
-            self.experiment_id = (
-                exp.experiment_id
-                if exp
-                else self.client.create_experiment(
-                    experiment, artifact_location=self._artifact_location()
-                )
-            )
-            if exp is None or EXPERIMENT_KIND[0] not in exp.tags:  # a user's choice stands
-                self.client.set_experiment_tag(self.experiment_id, *EXPERIMENT_KIND)
+            # MLflow creates (and migrates) a SQLite store when its client is made
+            with store_lock(path) if path else contextlib.nullcontext():
+                # short retries: a server that went down is noticed by probe(), caught up later
+                self.client = bounded_client(uri)
+                self.experiment_id = self._experiment(experiment)
         except Exception as e:
             raise RuntimeError(
                 f"MLflow store {uri} is not usable: {type(e).__name__}: {e}"
@@ -157,6 +227,25 @@ class Tracker:
         self.children: dict[str, str] = {}
         self._uses_tau: set[str] = set()
         self._done = 0
+
+    def _experiment(self, name: str) -> str:
+        """The experiment's id, created if new (the store's schema with it, on first use)."""
+        exp = self.client.get_experiment_by_name(name)
+        if exp is None:
+            try:
+                exp_id = self.client.create_experiment(
+                    name, artifact_location=self._artifact_location()
+                )
+            except Exception:  # created meanwhile by a driver on another store lock (a server)
+                exp = self.client.get_experiment_by_name(name)
+                if exp is None:
+                    raise
+                exp_id = exp.experiment_id
+        else:
+            exp_id = exp.experiment_id
+        if exp is None or EXPERIMENT_KIND[0] not in exp.tags:  # a user's choice stands
+            self.client.set_experiment_tag(exp_id, *EXPERIMENT_KIND)
+        return exp_id
 
     def _artifact_location(self) -> str | None:
         if self.uri.startswith("sqlite:///"):
@@ -290,7 +379,7 @@ class Tracker:
         if now < self._next_probe:
             return False
         self._next_probe = now + RECHECK_S
-        if not _answers(self.uri):
+        if not answers(self.uri):
             return False
         down = now - self._down_since
         self.offline_seconds += down
@@ -324,8 +413,8 @@ class Tracker:
             try:
                 self._pending[0]()
             except Exception as exc:
-                if not self._server or _answers(self.uri):
-                    raise  # not an outage: a real error
+                if answers(self.uri):
+                    raise  # the store answers: not an outage but a real error
                 self._went_down(exc)
                 return False
             self._pending.pop(0)

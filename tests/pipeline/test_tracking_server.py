@@ -147,7 +147,7 @@ def test_a_server_down_at_the_end_is_reported_and_a_rerun_completes_mlflow(
     tracker._server = True  # handle outages as for an http:// store
     flaky = tracker.client = _Flaky(tracker.client)
     alive = {"up": True}
-    monkeypatch.setattr(tracking, "_answers", lambda _uri: alive["up"])
+    monkeypatch.setattr(tracking, "answers", lambda _uri: alive["up"])
     monkeypatch.setattr(tracking, "RECHECK_S", 0.05)
     cfg = load_config(CONF / "smoke.yaml", ["executor.kind=inline"])
     tracker.start(run_name="r", run_id="abc", params={"suite": "fake_marker"}, cells=cfg.cells())
