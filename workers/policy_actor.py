@@ -69,6 +69,8 @@ class BatchingPolicyActor:
             "mean_batch": float(np.mean(sizes)) if sizes else 0.0,
             "busy_s": self._busy_s,
             "served_ms_median": float(np.median(self._served)) * 1e3 if self._served else 0.0,
+            "oom_splits": self.worker.splits,
+            "fit": self.worker.fit or 0,
         }
 
     def infer(self, request: InferRequest) -> IDRStep:
@@ -95,18 +97,18 @@ class BatchingPolicyActor:
                 except queue.Empty:
                     break
             t0 = time.perf_counter()
-            try:
-                answers = self.worker.infer_many([p.request for p in batch])
+            try:  # a forward out of memory is split (PolicyWorker): errors are per request
+                answers = self.worker.infer_each([p.request for p in batch])
             except Exception as exc:  # the whole batch fails alike (each episode an error row)
-                for p in batch:
-                    p.error = exc
-                    p.done.set()
-                continue
+                answers = [exc] * len(batch)
             finally:
                 self._busy_s += time.perf_counter() - t0
             self._batch_sizes.append(len(batch))
             for p, answer in zip(batch, answers, strict=True):
-                p.answer = answer
+                if isinstance(answer, BaseException):
+                    p.error = answer
+                else:
+                    p.answer = answer
                 p.done.set()
 
 

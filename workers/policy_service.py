@@ -136,9 +136,30 @@ def _one_forward(policy: IDRPolicy, group: list[tuple[int, InferRequest]]) -> di
     return answers
 
 
+def is_out_of_memory(exc: BaseException) -> bool:
+    """A forward that failed for lack of device memory (torch's OutOfMemoryError, CUDA's or
+    another allocator's "out of memory" RuntimeError)."""
+    if type(exc).__name__ == "OutOfMemoryError":
+        return True
+    return isinstance(exc, RuntimeError) and "out of memory" in str(exc).lower()
+
+
+def _free_device_memory() -> None:
+    import sys
+
+    torch = sys.modules.get("torch")
+    if torch is not None and torch.cuda.is_available():
+        torch.cuda.empty_cache()
+
+
 class PolicyWorker:
     """A backbone wrapped by IDR that answers many episodes' requests (no per-episode state:
-    the backbone is called on whole chunks, never through a queue of its own)."""
+    the backbone is called on whole chunks, never through a queue of its own).
+
+    A forward that runs out of device memory is split: the requests are halved and the halves
+    retried, down to a single request; the largest number of requests that fit is remembered
+    (``fit``), and later batches are cut to it before their forward. Only a request that fails
+    alone becomes an error (its episode's row); its batch mates are answered."""
 
     def __init__(self, kind: str, params: dict[str, Any], batched: bool | None = None) -> None:
         from workers.backbones.factory import make_backbone
@@ -147,6 +168,8 @@ class PolicyWorker:
         self.policy = IDRPolicy(self.backbone, batched=batched)
         self.forwards = 0
         self.requests = 0
+        self.fit: int | None = None  # requests per forward that fit in memory (None: any)
+        self.splits = 0  # forwards split for lack of memory
 
     def describe(self) -> dict[str, Any]:
         return {
@@ -156,10 +179,39 @@ class PolicyWorker:
         }
 
     def infer_many(self, requests: list[InferRequest]) -> list[IDRStep]:
-        self.forwards += 1
+        """Every request answered, or the first request's error raised."""
+        answers = self.infer_each(requests)
+        for a in answers:
+            if isinstance(a, BaseException):
+                raise a
+        return answers  # type: ignore[return-value]
+
+    def infer_each(self, requests: list[InferRequest]) -> list[IDRStep | BaseException]:
+        """One answer per request, in order: its step, or the error of a forward it failed
+        alone (out of memory on its own) or with all its batch mates (any other error)."""
         self.requests += len(requests)
         requests = [dataclasses.replace(r, obs=_as_torch(r.obs)) for r in requests]
-        return [to_numpy_step(s) for s in infer_many(self.policy, requests)]
+        size = self.fit or len(requests)
+        out: list[IDRStep | BaseException] = []
+        for k in range(0, len(requests), size):
+            out += self._fitting(requests[k : k + size])
+        return out
+
+    def _fitting(self, requests: list[InferRequest]) -> list[IDRStep | BaseException]:
+        self.forwards += 1
+        try:
+            answers = [to_numpy_step(s) for s in infer_many(self.policy, requests)]
+        except Exception as exc:
+            if not is_out_of_memory(exc):
+                raise
+            _free_device_memory()
+            if len(requests) == 1:
+                return [exc]
+            self.splits += 1
+            half = (len(requests) + 1) // 2
+            self.fit = min(self.fit or half, half)
+            return self._fitting(requests[:half]) + self._fitting(requests[half:])
+        return answers
 
 
 def _as_torch(obs: Observation) -> Observation:

@@ -197,12 +197,15 @@ class RayActorPool:
                     ray.get([a.stats.remote() for a in self.policy_actors], timeout=5)
                 ):
                     log.info(
-                        "policy actor %d: %d requests in %d forwards (mean batch %.1f), busy %.1f s",
+                        "policy actor %d: %d requests in %d forwards (mean batch %.1f), busy "
+                        "%.1f s, %d forwards split for lack of device memory%s",
                         i,
                         st["requests"],
                         st["forwards"],
                         st["mean_batch"],
                         st["busy_s"],
+                        st["oom_splits"],
+                        f" (now at most {st['fit']} requests per forward)" if st["fit"] else "",
                     )
             except Exception as exc:  # closing anyway
                 log.debug("no policy actor stats: %s", exc)

@@ -77,3 +77,27 @@ class CheckpointedMarkerBackbone(FakeMarkerBackbone):
     def __init__(self, path: str, **params: Any) -> None:
         super().__init__(**params)
         self.path = path
+
+
+class SmallDeviceMarkerBackbone(FakeMarkerBackbone):
+    """FakeMarkerBackbone on a device that holds at most ``max_rows`` rows per forward: a larger
+    forward raises torch's out-of-memory error, as CUDA's allocator would. Every request whose
+    instruction names ``always_oom`` fails alone too (a request that cannot fit at all)."""
+
+    def __init__(self, max_rows: int, always_oom: str | None = None, **params: Any) -> None:
+        super().__init__(**params)
+        self.max_rows = int(max_rows)
+        self.always_oom = always_oom
+        self.oom_raised = 0
+
+    def predict_chunk(
+        self, obs: Observation, noise: Any | None = None, intervention: Any | None = None
+    ) -> torch.Tensor:
+        too_big = obs.batch_size > self.max_rows
+        if too_big or (self.always_oom and any(self.always_oom in s for s in obs.instruction)):
+            self.oom_raised += 1
+            raise torch.OutOfMemoryError(
+                f"CUDA out of memory. Tried to allocate {obs.batch_size} rows (FAKE device of "
+                f"{self.max_rows} rows)"
+            )
+        return super().predict_chunk(obs, noise, intervention)

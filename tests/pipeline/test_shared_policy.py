@@ -3,6 +3,8 @@ a policy actor that dies is restarted and its requests retried, refusals before 
 
 from __future__ import annotations
 
+import logging
+import re
 from pathlib import Path
 
 import pandas as pd
@@ -90,3 +92,49 @@ def test_more_policy_actors_than_gpus_is_refused_with_what_the_cluster_has() -> 
     too_many = ok.model_copy(update={"executor": ok.executor.model_copy(update={"workers": 23})})
     with pytest.raises(ConfigError, match="after the policy actors"):
         check_capacity(too_many.executor, nodes)
+
+
+@pytest.mark.slow
+def test_a_policy_actor_out_of_device_memory_splits_and_loses_nothing(
+    tmp_path, ray_local, fault_log, caplog
+):
+    """The policy actor's device holds 4 rows (a FAKE backbone raising torch's out-of-memory
+    error above that): forwards of many requests x 3 IDR rows are halved until they fit; the
+    episode and step tables equal an in-actor run's, with no error row."""
+    base = ["tracking.enabled=false", "executor.kind=ray"]
+    in_actor = execute(plan_run(load_config(CONF / "smoke.yaml", base), tmp_path / "in_actor"))
+    cfg = load_config(
+        CONF / "smoke.yaml",
+        [
+            *base,
+            *SHARED,
+            "executor.batch_wait_ms=50",
+            "executor.envs_per_worker=3",
+            "backbone.kind=tests.doubles.backbones:SmallDeviceMarkerBackbone",
+            "backbone.params.max_rows=4",
+        ],
+    )
+    with caplog.at_level(logging.INFO):
+        shared = execute(plan_run(cfg, tmp_path / "shared"))
+    assert shared.stored == in_actor.stored == 12 and shared.errors == 0
+    name = ["backbone"]  # the double's entry point vs fake_marker: everything else equal
+    pd.testing.assert_frame_equal(
+        _episodes(tmp_path / "in_actor").drop(columns=name),
+        _episodes(tmp_path / "shared").drop(columns=name),
+    )
+    pd.testing.assert_frame_equal(_steps(tmp_path / "in_actor"), _steps(tmp_path / "shared"))
+    log = caplog.text
+    splits = [int(m) for m in re.findall(r"(\d+) forwards split for lack of device memory", log)]
+    assert splits and sum(splits) > 0, "no forward was split: the fault was not injected"
+    fault_log.record(
+        "a policy actor's forward out of device memory (shared policy service)",
+        "FAKE backbone raising torch.OutOfMemoryError above 4 rows; 3 episodes per worker batched",
+        "the forward is halved until it fits, the size that fit is remembered; only a request "
+        "that fails alone is an error row; tables equal an in-actor run's",
+        {
+            "stored": shared.stored,
+            "errors": shared.errors,
+            "forwards_split": sum(splits),
+            "tables_equal_in_actor": True,
+        },
+    )

@@ -97,3 +97,47 @@ def test_the_worker_answers_numpy_to_numpy_requests():
     assert all(_same(a, b) for a, b in zip(got, expected, strict=True))
     assert worker.describe()["batched"] is True and worker.forwards == 1
     assert torch.is_tensor(requests[0].obs.state)  # the caller's requests are left as they were
+
+
+def test_a_forward_out_of_memory_is_split_and_the_fitting_size_remembered():
+    """12 requests (30 rows) on a FAKE device of 8 rows: halves, then quarters... down to
+    forwards that fit; every answer equals the unsplit forward's, and the next batch is cut to
+    the size that fit before its forward (no second out-of-memory)."""
+    params = {"chunk_len": 4, "gain": 5.0, "noise_std": 0.3}
+    requests = _requests(12)
+    roomy = PolicyWorker("fake_marker", params)
+    small = PolicyWorker(
+        "tests.doubles.backbones:SmallDeviceMarkerBackbone", {**params, "max_rows": 8}
+    )
+    want = roomy.infer_each(requests)
+    got = small.infer_each(requests)
+    assert all(_same(a, b) for a, b in zip(want, got, strict=True))
+    assert small.splits > 0 and small.fit is not None and small.fit <= 3
+    raised = small.backbone.oom_raised
+    again = small.infer_each(requests)
+    assert small.backbone.oom_raised == raised  # cut to the remembered size: nothing raised
+    assert all(_same(a, b) for a, b in zip(want, again, strict=True))
+
+
+def test_only_a_request_that_fails_alone_is_an_error():
+    requests = _requests(6)
+    doomed = 3  # this one cannot fit even alone
+    requests[doomed] = InferRequest(
+        Observation(
+            requests[doomed].obs.images,
+            requests[doomed].obs.state,
+            ["reach the marker HUGE"],
+        ),
+        requests[doomed].step_seed,
+        requests[doomed].idr,
+        requests[doomed].intervention,
+    )
+    worker = PolicyWorker(
+        "tests.doubles.backbones:SmallDeviceMarkerBackbone",
+        {"chunk_len": 4, "max_rows": 100, "always_oom": "HUGE"},
+    )
+    answers = worker.infer_each(requests)
+    assert [isinstance(a, BaseException) for a in answers] == [i == doomed for i in range(6)]
+    assert type(answers[doomed]).__name__ == "OutOfMemoryError"
+    with pytest.raises(torch.OutOfMemoryError):
+        worker.infer_many(requests)  # the old interface raises the request's error
