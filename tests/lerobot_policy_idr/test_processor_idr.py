@@ -100,3 +100,18 @@ def test_pi_pipelines_get_three_consistent_thirds(tmp_path, monkeypatch, kind) -
     else:
         assert torch.equal(tokens[:2], tokens[4:])
         assert torch.equal(out["observation.state"][4:], torch.zeros(2, 8))
+
+
+def test_an_observation_that_does_not_fit_the_base_is_refused_before_the_first_chunk(
+    bases, tmp_path
+) -> None:
+    folder = make_idr(bases["act"], tmp_path / "idr", "--mode", "diagnose")
+    _, pre, _ = load(folder)
+    obs = obs_batch(1)
+    wrong_cam = {"observation.images.front": obs.pop("observation.images.agentview"), **obs}
+    with pytest.raises(ValueError, match=r"reads 'observation.images.agentview'.*--rename_map"):
+        pre(wrong_cam)
+    _, pre, _ = load(folder)
+    short_state = {**obs_batch(1), "observation.state": torch.rand(1, 6)}
+    with pytest.raises(ValueError, match=r"gives 6 dims, the base reads 8"):
+        pre(short_state)

@@ -59,12 +59,38 @@ class IDRCounterfactualBatchStep(ProcessorStep):
     state_space: str = "normalized"
     noise_scale: float = 0.5
     seed: int = 0
+    # what the base reads (from its config): checked on the first observation, before the
+    # first chunk is computed and so before a robot moves
+    expects: dict[str, list[int]] | None = None
 
     def __post_init__(self) -> None:
         self._calls = 0
 
+    def _check(self, obs: dict[str, Any]) -> None:
+        for key, shape in (self.expects or {}).items():
+            value = obs.get(key)
+            if not isinstance(value, torch.Tensor):
+                have = sorted(k for k in obs if k.startswith("observation."))
+                raise ValueError(
+                    f"the idr policy's base reads {key!r}, which the robot or env does not give "
+                    f"(it gives {have}): map its names with --rename_map, or wrap a base trained "
+                    "on this robot's features"
+                )
+            if key == STATE_KEY and int(value.shape[-1]) != shape[0]:
+                raise ValueError(
+                    f"{STATE_KEY}: the robot or env gives {int(value.shape[-1])} dims, the base "
+                    f"reads {shape[0]}: wrap a base trained on this robot's state"
+                )
+            if key.startswith(IMAGE_PREFIX) and int(value.shape[-3]) != shape[0]:
+                raise ValueError(
+                    f"{key}: the robot or env gives {int(value.shape[-3])} channels, the base "
+                    f"reads {shape[0]}"
+                )
+
     def __call__(self, transition: dict) -> dict:
         obs = dict(transition[TransitionKey.OBSERVATION])
+        if self._calls == 0:
+            self._check(obs)
         b = _rows(obs)
         step_seed = self.seed + 7919 * self._calls  # gaussian interventions: new draw per call
         self._calls += 1
@@ -106,6 +132,7 @@ class IDRCounterfactualBatchStep(ProcessorStep):
             "state_space": self.state_space,
             "noise_scale": self.noise_scale,
             "seed": self.seed,
+            "expects": self.expects,
         }
 
     def transform_features(
@@ -179,9 +206,16 @@ def insert_idr_steps(
             )
         where = max(anchors) + 1
         iv = config.intervention()
+        expects = {
+            k: list(f.shape)
+            for k, f in (config.input_features or {}).items()
+            if k == STATE_KEY or k.startswith(IMAGE_PREFIX)
+        }
         steps.insert(
             where,
-            IDRCounterfactualBatchStep(iv.strategy, iv.state_space, iv.noise_scale, iv.seed),
+            IDRCounterfactualBatchStep(
+                iv.strategy, iv.state_space, iv.noise_scale, iv.seed, expects or None
+            ),
         )
         if iv.state_space == "normalized":
             norm = _index(steps, "NormalizerProcessorStep")
