@@ -32,6 +32,7 @@ lint: setup
 
 bench: setup
 	$(VENV)/bin/python benchmarks/bench_idr_passes.py
+	$(VENV)/bin/python benchmarks/bench_plugin_latency.py
 	$(VENV)/bin/python benchmarks/bench_engine.py
 	$(VENV)/bin/python benchmarks/bench_cluster.py
 	$(VENV)/bin/python benchmarks/bench_tabletop_env.py

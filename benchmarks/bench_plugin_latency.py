@@ -18,6 +18,7 @@ import argparse
 import json
 import platform
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -27,6 +28,8 @@ import torch
 from lerobot_policy_idr.wrap import main as wrap_main
 
 ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a plain script: the test fixtures build the ACT base
+    sys.path.insert(0, str(ROOT))
 RESULTS = ROOT / "benchmarks" / "results" / "plugin_latency.json"
 MODES = ("baseline", "diagnose", "E")
 
