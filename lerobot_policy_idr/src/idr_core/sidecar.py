@@ -55,7 +55,7 @@ class SidecarWriter:
         self._part = 0
         self._lock = threading.Lock()
         self._announced = False
-        atexit.register(self.flush)
+        atexit.register(self._flush_at_exit)
 
     def add(self, rows: list[dict[str, Any]]) -> None:
         with self._lock:
@@ -68,6 +68,12 @@ class SidecarWriter:
             full = len(self._rows) >= self.flush_every
         if full:
             self.flush()
+
+    def _flush_at_exit(self) -> None:
+        try:
+            self.flush()
+        except OSError as e:  # the folder went away (a temporary dir): say so, no traceback
+            log.warning("IDR diagnostics sidecar %s: last rows not written (%s)", self.dir, e)
 
     def flush(self) -> None:
         import pyarrow as pa
