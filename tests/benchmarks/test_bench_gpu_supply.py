@@ -1,0 +1,46 @@
+"""The GPU supply benchmark cannot rot: its dry mode runs the same code paths on the CPU at toy
+sizes (lerobot's pi0 classes, eager and through torch.compile, the idr plugin's per-chunk
+latency) and writes the JSON a device run writes; unknown models are skipped with the reason."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.slow
+def test_dry_run_writes_the_supply_json(tmp_path) -> None:
+    out = tmp_path / "supply.json"
+    cmd = [
+        sys.executable,
+        str(ROOT / "benchmarks" / "bench_gpu_supply.py"),
+        "--dry",
+        "--models",
+        "pi0,smolvla,not_a_model",
+        "--out",
+        str(out),
+    ]
+    run = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    r = json.loads(out.read_text())
+    assert r["dry"] and r["batches"] == [1, 2] and r["actions_per_inference"] == [5, 10]
+    pi0 = r["models"]["pi0"]
+    for mode, sizes in (("eager", ["1", "2"]), ("compiled", ["1"])):
+        assert list(pi0[mode]["per_batch"]) == sizes, mode
+        for b, row in pi0[mode]["per_batch"].items():
+            base, idr = row["base"], row["idr"]
+            assert idr["rows_per_forward"] == 3 * base["rows_per_forward"] == 3 * int(b)
+            assert base["mu_inf_per_s"] == pytest.approx(int(b) / (base["ms"] / 1e3))
+            assert idr["env_steps_per_s"]["10"] == pytest.approx(10 * idr["mu_inf_per_s"])
+            assert row["idr_vs_base"] == pytest.approx(idr["ms"] / base["ms"])
+    assert pi0["compiled"]["compile_mode"] == "eager" and pi0["compiled"]["compile_s"] > 0
+    assert "SmolVLM2's config and processor files" in r["models"]["smolvla"]["skipped"]
+    assert "unknown model 'not_a_model'" in r["models"]["not_a_model"]["skipped"]
+    plugin = r["plugin_latency_B1"]
+    assert plugin["E"]["ms"] > 0 and plugin["idr_vs_base"] > 1.0
