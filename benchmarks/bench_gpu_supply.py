@@ -176,8 +176,7 @@ def _tiny_gemmas() -> None:
 def plugin_latency(device: torch.device, rounds: int, work: Path) -> dict[str, Any]:
     """The idr policy type's per-chunk latency at B = 1 (preprocessor + predict_action_chunk +
     postprocessor), base (mode baseline) vs IDR (mode E), for the shipped tiny VLA."""
-    from lerobot.configs.policies import PreTrainedConfig
-    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+    from lerobot_policy_idr.loading import load_idr
     from lerobot_policy_idr.wrap import main as wrap_main
 
     base = ROOT / "checkpoints" / "tiny_vla"
@@ -187,15 +186,8 @@ def plugin_latency(device: torch.device, rounds: int, work: Path) -> dict[str, A
         args = [str(base), str(folder), "--mode", mode, "--device", str(device.type)]
         args += ["--diagnostics-dir", str(work / "diag")]
         assert wrap_main([*args, *(["--tau", "1e9"] if mode == "E" else [])]) == 0
-        cfg = PreTrainedConfig.from_pretrained(folder)
-        cfg.pretrained_path, cfg.device = folder, str(device)
-        policy = get_policy_class("idr").from_pretrained(folder, config=cfg)
-        pre, post = make_pre_post_processors(
-            cfg,
-            pretrained_path=str(folder),
-            preprocessor_overrides={"device_processor": {"device": str(device)}},
-        )
-        obs = {k: torch.rand(1, *f.shape) for k, f in cfg.input_features.items()}
+        policy, pre, post = load_idr(folder, str(device))
+        obs = {k: torch.rand(1, *f.shape) for k, f in policy.config.input_features.items()}
         obs["task"] = ["pick up the red cube"]
 
         def chunk(policy: Any = policy, pre: Any = pre, post: Any = post, obs: Any = obs) -> None:

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from lerobot_policy_idr.loading import load_idr
 from lerobot_policy_idr.wrap import main as wrap_main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -32,17 +33,6 @@ if str(ROOT) not in sys.path:  # run as a plain script: the test fixtures build 
     sys.path.insert(0, str(ROOT))
 RESULTS = ROOT / "benchmarks" / "results" / "plugin_latency.json"
 MODES = ("baseline", "diagnose", "E")
-
-
-def _load(folder: Path):
-    from lerobot.configs.policies import PreTrainedConfig
-    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
-
-    cfg = PreTrainedConfig.from_pretrained(folder)
-    cfg.pretrained_path = folder
-    policy = get_policy_class(cfg.type).from_pretrained(folder, config=cfg)
-    pre, post = make_pre_post_processors(cfg, pretrained_path=str(folder))
-    return policy, pre, post
 
 
 def _obs(base: Path) -> dict[str, Any]:
@@ -60,7 +50,7 @@ def measure(base: Path, work: Path, rounds: int, warmup: int = 3) -> dict[str, A
         folder = work / f"{base.name}_{mode}"
         args = [str(base), str(folder), "--mode", mode, "--diagnostics-dir", str(work / "diag")]
         assert wrap_main([*args, *(["--tau", "1e9"] if mode == "E" else [])]) == 0
-        loaded[mode] = _load(folder)
+        loaded[mode] = load_idr(folder)
     obs = _obs(base)
     times: dict[str, list[float]] = {m: [] for m in MODES}
     forward: dict[str, list[float]] = {m: [] for m in MODES}

@@ -3,27 +3,20 @@ the tabletop suite, which the fake-marker doubles do not need)."""
 
 from __future__ import annotations
 
-import numpy as np
+from typing import Any
 
-from workers.envs.base import EnvObservation
+from tests.doubles.instability import InjectsInstability
 from workers.envs.tabletop import TabletopEnv
 
 
-class UnstableTabletopEnv(TabletopEnv):
+class UnstableTabletopEnv(InjectsInstability, TabletopEnv):
     """TabletopEnv whose joint velocities are set to NaN inside MuJoCo's physics data just
     before control step ``inject_instability[1]`` of episode ``inject_instability[0]``, as a
     diverging simulation would leave them."""
 
     def __init__(self, inject_instability: tuple[int, int], **params: object) -> None:
         super().__init__(**params)  # type: ignore[arg-type]
-        self._inject = tuple(inject_instability)
-        self._episode = -1
+        self._inject = tuple(inject_instability)  # type: ignore[assignment]
 
-    def reset(self, task_id: str, episode_index: int, seed: int) -> EnvObservation:
-        self._episode = episode_index
-        return super().reset(task_id, episode_index, seed)
-
-    def step(self, action: np.ndarray) -> EnvObservation:
-        if self._inject == (self._episode, self.steps) and not self.done:
-            self._scene(self.task.task_id).sim.data._data.qvel[:] = np.nan
-        return super().step(action)
+    def _physics_data(self) -> Any:
+        return self._scene(self.task.task_id).sim.data._data

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from lerobot_policy_idr.loading import load_idr
 from lerobot_policy_idr.wrap import main as wrap_main
 
 from tests.workers.backbones.lerobot_fixtures import build_act, build_diffusion
@@ -38,12 +39,5 @@ def obs_batch(b: int = 2, seed: int = 0, image: int = 64, state: int = 8) -> dic
 
 
 def load(folder: Path):
-    """The policy and its processors from an IDR folder, as lerobot's tools load them."""
-    from lerobot.configs.policies import PreTrainedConfig
-    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
-
-    cfg = PreTrainedConfig.from_pretrained(folder)
-    cfg.pretrained_path = folder
-    policy = get_policy_class(cfg.type).from_pretrained(folder, config=cfg)
-    pre, post = make_pre_post_processors(cfg, pretrained_path=str(folder))
-    return policy, pre, post
+    """The policy and its processors from an IDR folder, as lerobot's tools load it."""
+    return load_idr(folder)

@@ -18,6 +18,7 @@ import torch
 from idr_core.sidecar import read_sidecar
 
 from tests.lerobot_policy_idr.conftest import make_idr
+from tests.support.lerobot_eval import lerobot_eval_libero
 from tests.workers.backbones.lerobot_fixtures import build_act
 
 pytestmark = pytest.mark.slow
@@ -126,68 +127,6 @@ def _our_episodes(ckpt: Path, tmp_path: Path) -> tuple[list[list[np.ndarray]], l
     return actions, e_img
 
 
-def _lerobot_eval_episodes(folder: Path) -> list[list[np.ndarray]]:
-    """What lerobot-eval runs (make_env, make_policy, its processors, eval_policy_all)."""
-    import gymnasium as gym
-    from lerobot.configs.policies import PreTrainedConfig
-    from lerobot.envs.configs import LiberoEnv as LiberoEnvConfig
-    from lerobot.envs.factory import make_env, make_env_pre_post_processors
-    from lerobot.policies.factory import make_policy, make_pre_post_processors
-    from lerobot.scripts.lerobot_eval import eval_policy_all
-
-    env_cfg = LiberoEnvConfig(
-        task="libero_spatial",
-        task_ids=[0],
-        episode_length=STEPS,
-        observation_height=SIZE,
-        observation_width=SIZE,
-    )
-    episodes: list[list[np.ndarray]] = []
-
-    class Recorder(gym.vector.VectorWrapper):
-        def reset(self, **kwargs):
-            episodes.append([])
-            return self.env.reset(**kwargs)
-
-        def call(self, name, *args, **kwargs):
-            return self.env.call(name, *args, **kwargs)
-
-        def step(self, actions):
-            episodes[-1].append(np.array(actions[0], copy=True))
-            return self.env.step(actions)
-
-    envs = make_env(env_cfg, n_envs=1)
-    envs = {s: {t: Recorder(v) for t, v in m.items()} for s, m in envs.items()}
-    cfg = PreTrainedConfig.from_pretrained(folder)
-    cfg.pretrained_path = folder
-    cfg.device = "cpu"
-    policy = make_policy(cfg, env_cfg=env_cfg).eval()
-    pre, post = make_pre_post_processors(
-        cfg,
-        pretrained_path=str(folder),
-        preprocessor_overrides={"device_processor": {"device": "cpu"}},
-    )
-    env_pre, env_post = make_env_pre_post_processors(env_cfg, cfg)
-    try:
-        with torch.no_grad():
-            eval_policy_all(
-                envs=envs,
-                policy=policy,
-                env_preprocessor=env_pre,
-                env_postprocessor=env_post,
-                preprocessor=pre,
-                postprocessor=post,
-                n_episodes=EPISODES,
-                start_seed=SEED,
-            )
-    finally:
-        for m in envs.values():
-            for v in m.values():
-                v.close()
-        policy.sidecar.flush()
-    return episodes
-
-
 @pytest.mark.sim
 def test_mode_E_under_lerobot_eval_gives_idr_evals_episodes(libero_act, tmp_path) -> None:
     _libero_env()
@@ -201,7 +140,8 @@ def test_mode_E_under_lerobot_eval_gives_idr_evals_episodes(libero_act, tmp_path
         "--diagnostics-dir",
         str(tmp_path / "diag"),
     )
-    theirs = _lerobot_eval_episodes(folder)
+    recorded, _ = lerobot_eval_libero(folder, steps=STEPS, episodes=EPISODES, seed=SEED, size=SIZE)
+    theirs = [e["actions"] for e in recorded]
     assert len(theirs) == len(ours) == EPISODES
     for e, (a, b) in enumerate(zip(theirs, ours, strict=True)):
         assert len(a) == len(b) == STEPS, f"episode {e}"

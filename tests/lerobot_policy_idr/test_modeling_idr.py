@@ -26,6 +26,21 @@ def _base(path):
     return policy, pre, post
 
 
+def _harness(base, tau: float):
+    """idr-eval's IDRPolicy around its lerobot backbone of ``base``, mode E, do(S) in
+    normalized space (the plugin's default)."""
+    from workers.backbones.lerobot import LerobotBackbone
+    from workers.idr import IDRConfig
+    from workers.idr_policy import IDRPolicy
+    from workers.interventions import InterventionConfig
+
+    backbone = LerobotBackbone(str(base))
+    policy = IDRPolicy(
+        backbone, IDRConfig(mode="E", tau=tau), InterventionConfig(state_space="normalized")
+    )
+    return backbone, policy
+
+
 def _rollout(policy, pre, post, steps: int) -> list[torch.Tensor]:
     """select_action on a sequence of observations, as lerobot-eval's loop calls it."""
     policy.reset()
@@ -87,10 +102,6 @@ def test_mode_E_equals_the_harness_exactly(bases, tmp_path, kind) -> None:
     """The same checkpoint, observation and noise: the plugin's refined chunk and diagnostics
     equal idr-eval's IDRPolicy around its lerobot backbone, bit for bit."""
     from workers.backbones.base import Observation
-    from workers.backbones.lerobot import LerobotBackbone
-    from workers.idr import IDRConfig
-    from workers.idr_policy import IDRPolicy
-    from workers.interventions import InterventionConfig
 
     tau = "1e9"  # the gate on for every row: the refinement is exercised
     folder = make_idr(
@@ -102,10 +113,7 @@ def test_mode_E_equals_the_harness_exactly(bases, tmp_path, kind) -> None:
         "--diagnostics-dir",
         str(tmp_path / "d"),
     )
-    backbone = LerobotBackbone(str(bases[kind]))
-    harness = IDRPolicy(
-        backbone, IDRConfig(mode="E", tau=float(tau)), InterventionConfig(state_space="normalized")
-    )
+    backbone, harness = _harness(bases[kind], float(tau))
     policy, pre, post = load(folder)
     for seed in range(3):
         obs = obs_batch(2, seed=seed)
@@ -253,10 +261,6 @@ def test_flow_matching_E_equals_the_harness_with_shared_noise(tmp_path, monkeypa
         tiny_pi_gemma,
     )
     from workers.backbones.base import Observation
-    from workers.backbones.lerobot import LerobotBackbone
-    from workers.idr import IDRConfig
-    from workers.idr_policy import IDRPolicy
-    from workers.interventions import InterventionConfig
 
     tiny_pi_gemma(monkeypatch)
     tok = build_local_tokenizer(tmp_path / "tok", ["pick it", "place it"])
@@ -270,11 +274,8 @@ def test_flow_matching_E_equals_the_harness_with_shared_noise(tmp_path, monkeypa
         "--diagnostics-dir",
         str(tmp_path / "d"),
     )
-    backbone = LerobotBackbone(str(base))
+    backbone, harness = _harness(base, 1e9)
     assert backbone.crn_mode == "shared_noise"
-    harness = IDRPolicy(
-        backbone, IDRConfig(mode="E", tau=1e9), InterventionConfig(state_space="normalized")
-    )
     policy, pre, post = load(folder)
     g = torch.Generator().manual_seed(0)
     images = {c: torch.rand(2, 3, 32, 32, generator=g) for c in ("agentview", "wrist")}
@@ -306,10 +307,6 @@ def test_xvla_E_equals_the_harness_and_keeps_xvlas_env_processors(tmp_path) -> N
 
     from tests.workers.backbones.lerobot_fixtures import build_local_tokenizer, build_xvla
     from workers.backbones.base import Observation
-    from workers.backbones.lerobot import LerobotBackbone
-    from workers.idr import IDRConfig
-    from workers.idr_policy import IDRPolicy
-    from workers.interventions import InterventionConfig
 
     tok = build_local_tokenizer(tmp_path / "tok", ["pick it", "place it"])
     base = build_xvla(tmp_path / "xvla", tok)
@@ -322,11 +319,8 @@ def test_xvla_E_equals_the_harness_and_keeps_xvlas_env_processors(tmp_path) -> N
         "--diagnostics-dir",
         str(tmp_path / "d"),
     )
-    backbone = LerobotBackbone(str(base))
+    backbone, harness = _harness(base, 1e9)
     assert backbone.crn_mode == "seeded_rng" and not backbone.can_batch
-    harness = IDRPolicy(
-        backbone, IDRConfig(mode="E", tau=1e9), InterventionConfig(state_space="normalized")
-    )
     policy, pre, post = load(folder)
     g = torch.Generator().manual_seed(0)
     image, state, tasks = (

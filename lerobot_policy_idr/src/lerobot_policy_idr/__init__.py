@@ -13,6 +13,7 @@ from idr_core.refiner import RefinerConfig, refine
 
 from lerobot_policy_idr import processor_idr  # noqa: F401  (registers the processor steps)
 from lerobot_policy_idr.configuration_idr import IDRConfig
+from lerobot_policy_idr.loading import load_idr
 from lerobot_policy_idr.tiny_vla.configuration_tiny_vla import TinyVLAConfig
 
-__all__ = ["IDRConfig", "RefinerConfig", "TinyVLAConfig", "refine"]
+__all__ = ["IDRConfig", "RefinerConfig", "TinyVLAConfig", "load_idr", "refine"]

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.support.lerobot_eval import lerobot_eval_libero, sim_state
 from tests.workers.backbones.lerobot_fixtures import build_act
 
 SIZE = 64  # the checkpoint declares 64 px; our pre-flight renders at it, lerobot is told it
@@ -26,74 +27,10 @@ SEED = 7
 TASK = "libero_spatial/0"
 
 
-def _sim_state(sim) -> np.ndarray:
-    """qpos, qvel (and time) of a robosuite simulator, flattened."""
-    return np.asarray(sim.get_state().flatten()).copy()
-
-
 def _lerobot_episodes(ckpt: Path) -> tuple[list[dict], dict]:
-    import gymnasium as gym
-    from lerobot.configs.policies import PreTrainedConfig
-    from lerobot.envs.configs import LiberoEnv as LiberoEnvConfig
-    from lerobot.envs.factory import make_env, make_env_pre_post_processors
-    from lerobot.policies.factory import make_policy, make_pre_post_processors
-    from lerobot.scripts.lerobot_eval import eval_policy_all
-
-    env_cfg = LiberoEnvConfig(
-        task="libero_spatial",
-        task_ids=[0],
-        episode_length=STEPS,
-        observation_height=SIZE,
-        observation_width=SIZE,
+    return lerobot_eval_libero(
+        ckpt, steps=STEPS, episodes=EPISODES, seed=SEED, size=SIZE, states=True
     )
-    episodes: list[dict] = []
-
-    class Recorder(gym.vector.VectorWrapper):
-        """What reaches the simulator, step by step (lerobot's rollout is unchanged)."""
-
-        def reset(self, **kwargs):
-            out = self.env.reset(**kwargs)
-            episodes.append({"actions": [], "states": []})
-            return out
-
-        def call(self, name, *args, **kwargs):
-            return self.env.call(name, *args, **kwargs)
-
-        def step(self, actions):
-            out = self.env.step(actions)
-            libero = self.env.unwrapped.envs[0].unwrapped
-            episodes[-1]["actions"].append(np.array(actions[0], copy=True))
-            episodes[-1]["states"].append(_sim_state(libero._env.sim))
-            return out
-
-    envs = make_env(env_cfg, n_envs=1)
-    envs = {suite: {tid: Recorder(v) for tid, v in m.items()} for suite, m in envs.items()}
-    policy_cfg = PreTrainedConfig.from_pretrained(ckpt)
-    policy_cfg.pretrained_path = ckpt
-    policy_cfg.device = "cpu"
-    policy = make_policy(policy_cfg, env_cfg=env_cfg).eval()
-    pre, post = make_pre_post_processors(
-        policy_cfg,
-        pretrained_path=str(ckpt),
-        preprocessor_overrides={"device_processor": {"device": "cpu"}},
-    )
-    env_pre, env_post = make_env_pre_post_processors(env_cfg, policy_cfg)
-    try:
-        info = eval_policy_all(
-            envs=envs,
-            policy=policy,
-            env_preprocessor=env_pre,
-            env_postprocessor=env_post,
-            preprocessor=pre,
-            postprocessor=post,
-            n_episodes=EPISODES,
-            start_seed=SEED,
-        )
-    finally:
-        for m in envs.values():
-            for v in m.values():
-                v.close()
-    return episodes, info
 
 
 def _our_episodes(ckpt: Path, tmp_path: Path) -> tuple[list[dict], list, dict]:
@@ -131,7 +68,7 @@ def _our_episodes(ckpt: Path, tmp_path: Path) -> tuple[list[dict], list, dict]:
     def recording_step(action):
         obs = step(action)
         episodes[-1]["actions"].append(np.asarray(action, dtype=np.float32).copy())
-        episodes[-1]["states"].append(_sim_state(env._sim.sim))
+        episodes[-1]["states"].append(sim_state(env._sim.sim))
         return obs
 
     env.step = recording_step

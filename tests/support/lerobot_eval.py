@@ -1,0 +1,98 @@
+"""lerobot-eval's own code path on LIBERO, recording what reaches the simulator: its env config
+and ``make_env``, ``make_policy``, its policy and env processors and ``eval_policy_all`` (what
+``lerobot-eval`` runs), with a vector-env wrapper that records each step's action (and, if
+asked, the simulator state after it). The parity tests compare idr-eval's episodes with these."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def sim_state(sim: Any) -> np.ndarray:
+    """qpos, qvel (and time) of a robosuite simulator, flattened."""
+    return np.asarray(sim.get_state().flatten()).copy()
+
+
+def lerobot_eval_libero(
+    policy_dir: Path,
+    *,
+    steps: int,
+    episodes: int,
+    seed: int,
+    size: int,
+    states: bool = False,
+) -> tuple[list[dict[str, list[np.ndarray]]], dict]:
+    """Episodes of ``libero_spatial/0`` as lerobot-eval runs them for the checkpoint (or idr
+    folder) in ``policy_dir``: per episode ``{"actions": [...], "states": [...]}``; and
+    eval_policy_all's info."""
+    import gymnasium as gym
+    import torch
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.envs.configs import LiberoEnv as LiberoEnvConfig
+    from lerobot.envs.factory import make_env, make_env_pre_post_processors
+    from lerobot.policies.factory import make_policy, make_pre_post_processors
+    from lerobot.scripts.lerobot_eval import eval_policy_all
+
+    env_cfg = LiberoEnvConfig(
+        task="libero_spatial",
+        task_ids=[0],
+        episode_length=steps,
+        observation_height=size,
+        observation_width=size,
+    )
+    recorded: list[dict[str, list[np.ndarray]]] = []
+
+    class Recorder(gym.vector.VectorWrapper):
+        """What reaches the simulator, step by step (lerobot's rollout is unchanged)."""
+
+        def reset(self, **kwargs):
+            out = self.env.reset(**kwargs)
+            recorded.append({"actions": [], "states": []})
+            return out
+
+        def call(self, name, *args, **kwargs):
+            return self.env.call(name, *args, **kwargs)
+
+        def step(self, actions):
+            out = self.env.step(actions)
+            recorded[-1]["actions"].append(np.array(actions[0], copy=True))
+            if states:
+                libero = self.env.unwrapped.envs[0].unwrapped
+                recorded[-1]["states"].append(sim_state(libero._env.sim))
+            return out
+
+    envs = make_env(env_cfg, n_envs=1)
+    envs = {suite: {tid: Recorder(v) for tid, v in m.items()} for suite, m in envs.items()}
+    cfg = PreTrainedConfig.from_pretrained(policy_dir)
+    cfg.pretrained_path = policy_dir
+    cfg.device = "cpu"
+    policy = make_policy(cfg, env_cfg=env_cfg).eval()
+    pre, post = make_pre_post_processors(
+        cfg,
+        pretrained_path=str(policy_dir),
+        preprocessor_overrides={"device_processor": {"device": "cpu"}},
+    )
+    env_pre, env_post = make_env_pre_post_processors(env_cfg, cfg)
+    try:
+        with torch.no_grad():
+            info = eval_policy_all(
+                envs=envs,
+                policy=policy,
+                env_preprocessor=env_pre,
+                env_postprocessor=env_post,
+                preprocessor=pre,
+                postprocessor=post,
+                n_episodes=episodes,
+                start_seed=seed,
+            )
+    finally:
+        for m in envs.values():
+            for v in m.values():
+                v.close()
+        sidecar = getattr(policy, "sidecar", None)
+        if sidecar is not None:
+            sidecar.flush()
+    return recorded, info
