@@ -256,7 +256,12 @@ class LiberoEnv:
         import inspect
 
         sig = inspect.signature(LiberoEnv.__init__)
-        bound = sig.bind(None, **{k: v for k, v in params.items() if k in sig.parameters})
+        own = {  # a subclass's own named params (a test double's fault settings)
+            name
+            for name, p in inspect.signature(cls.__init__).parameters.items()
+            if p.kind is not p.VAR_KEYWORD and name not in sig.parameters
+        }
+        bound = sig.bind(None, **{k: v for k, v in params.items() if k not in own})
         bound.apply_defaults()
         args = dict(bound.arguments)
         for name in ("self", "lazy_render"):
