@@ -23,11 +23,13 @@ PYTHON = Path(os.environ.get("IDR_CALVIN_PYTHON", ROOT / ".venv-calvin" / "bin" 
 
 
 def measure(renderer: str, steps: int) -> dict[str, float]:
-    from workers.envs.remote import RemoteEnv, ServerSpec
+    from workers.envs.server.client import EnvServerClient, ServerSpec
 
     t0 = time.perf_counter()
-    env = RemoteEnv(
-        "workers.envs.calvin:CalvinEnv", {"renderer": renderer}, ServerSpec(str(PYTHON), 300)
+    env = EnvServerClient(
+        "workers.envs.suites.calvin.env:CalvinEnv",
+        {"renderer": renderer},
+        ServerSpec(str(PYTHON), 300),
     )
     start = time.perf_counter() - t0
     actions = np.random.default_rng(0).uniform(-0.3, 0.3, (steps, 7))

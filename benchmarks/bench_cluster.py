@@ -34,9 +34,9 @@ RESULTS = Path(__file__).parent / "results" / "cluster.json"
 
 def _run(overrides: list[str]) -> tuple[float, int, set[str]]:
     """(seconds after the workers were ready, episodes stored, nodes they ran on)."""
-    from pipeline.config import load_config
-    from pipeline.runner import plan_run, run_episodes
-    from pipeline.store import RunStore
+    from pipeline.execution.runner import plan_run, run_episodes
+    from pipeline.planning.config import load_config
+    from pipeline.results.store import RunStore
 
     with tempfile.TemporaryDirectory() as d:
         cfg = load_config(ROOT / "conf" / "smoke.yaml", ["tracking.enabled=false", *overrides])
@@ -56,7 +56,7 @@ def _per_episode(overrides: list[str], n: int) -> tuple[float, set[str]]:
 def _connect(address: str | None, cpus: float | None = None) -> None:
     import ray
 
-    from pipeline.cluster import init_ray
+    from pipeline.execution.cluster import init_ray
 
     if ray.is_initialized():
         ray.shutdown()

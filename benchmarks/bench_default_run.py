@@ -88,10 +88,10 @@ def main() -> None:
 
     torch.set_num_threads(1)  # as in a Ray actor with one CPU
     import workers.observation as observation
-    from pipeline.config import load_config
-    from pipeline.runner import plan_run
-    from pipeline.store import RunStore
-    from pipeline.tracking import Tracker
+    from pipeline.execution.runner import plan_run
+    from pipeline.planning.config import load_config
+    from pipeline.results.store import RunStore
+    from pipeline.tracking.tracker import Tracker
     from workers.actor import EpisodeWorker
 
     cfg = load_config(args.config, [*args.overrides, f"episodes_per_task={args.episodes}"])

@@ -22,11 +22,11 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from pipeline import aggregate as agg
-from pipeline.cluster import init_ray
-from pipeline.config import load_config
-from pipeline.runner import plan_run, run_episodes
-from pipeline.store import RunStore
+from pipeline.execution.cluster import init_ray
+from pipeline.execution.runner import plan_run, run_episodes
+from pipeline.planning.config import load_config
+from pipeline.results import aggregate as agg
+from pipeline.results.store import RunStore
 from workers.envs.base import TaskSpec
 from workers.episode import EpisodeResult, EpisodeRow, EpisodeSpec, StepRow
 from workers.idr import IDRConfig

@@ -50,13 +50,15 @@ def main() -> None:
     from workers.rendering import configure_rendering
 
     backend = configure_rendering()
-    from workers.envs.remote import RemoteEnv, ServerSpec
-    from workers.envs.tabletop import TabletopEnv
+    from workers.envs.server.client import EnvServerClient, ServerSpec
+    from workers.envs.suites.tabletop.env import TabletopEnv
 
     actions = np.random.default_rng(0).uniform(-1, 1, (args.steps, 7)).astype(np.float32)
     local = TabletopEnv(**PARAMS)
     t0 = time.perf_counter()
-    remote = RemoteEnv("workers.envs.tabletop:TabletopEnv", PARAMS, ServerSpec(sys.executable))
+    remote = EnvServerClient(
+        "workers.envs.suites.tabletop.env:TabletopEnv", PARAMS, ServerSpec(sys.executable)
+    )
     start_s = time.perf_counter() - t0
     times: dict[str, dict[str, list[float]]] = {
         kind: {"in_process": [], "server": []} for kind in ("open_loop", "rendered")
@@ -82,7 +84,7 @@ def main() -> None:
     fake_actions = np.zeros((2000, 2), dtype=np.float32)
     fakes = (
         FakeMarkerEnv(),
-        RemoteEnv("workers.envs.fakes:FakeMarkerEnv", {}, ServerSpec(sys.executable)),
+        EnvServerClient("workers.envs.fakes:FakeMarkerEnv", {}, ServerSpec(sys.executable)),
     )
     fake_ms = []
     try:

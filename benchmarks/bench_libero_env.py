@@ -51,7 +51,7 @@ def _actions(n: int) -> np.ndarray:
 
 
 def measure(cameras: tuple[str, ...], image_size: int, steps: int) -> dict[str, Any]:
-    from workers.envs.libero import LiberoEnv
+    from workers.envs.suites.libero.env import LiberoEnv
 
     env = LiberoEnv(
         suites=["libero_spatial"], image_size=image_size, cameras=cameras, lazy_render=False
@@ -95,7 +95,7 @@ def run_pattern(env: Any, read_every: int, steps: int) -> tuple[dict[str, float]
 
 
 def measure_patterns(steps: int, repeats: int, read_every: list[int]) -> list[dict[str, Any]]:
-    from workers.envs.libero import LiberoEnv
+    from workers.envs.suites.libero.env import LiberoEnv
 
     envs = {
         lazy: LiberoEnv(

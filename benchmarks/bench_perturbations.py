@@ -83,8 +83,8 @@ def main() -> None:
     from workers.rendering import configure_rendering
 
     configure_rendering()
-    from workers.envs.perturbations import PerturbedEnv, parse
-    from workers.envs.tabletop import TabletopEnv
+    from workers.envs.suites.tabletop.env import TabletopEnv
+    from workers.envs.wrappers.perturbations import PerturbedEnv, parse
 
     env = PerturbedEnv(TabletopEnv(image_size=96), [parse(c) for c in CASES])
     result: dict = {
@@ -94,7 +94,7 @@ def main() -> None:
         "image_size": 96,
     }
     if args.libero_episodes:
-        from workers.envs.libero import LiberoEnv
+        from workers.envs.suites.libero.env import LiberoEnv
 
         libero = LiberoEnv(suites=("libero_spatial",), image_size=128)
         env = PerturbedEnv(libero, [parse(c) for c in LIBERO_CASES])

@@ -9,7 +9,7 @@
    copy, alternate; a core steps n t_sim / (n t_sim + L) of the time. shared: 2 actors with
    4 envs each (threads) and one policy actor; a core steps while its other envs' requests are
    away. Env steps per second, the same simulators and cores.
-3. Round trip per inference on one node (batch_wait_ms 0): RemotePolicy.infer vs IDRPolicy.infer
+3. Round trip per inference on one node (batch_wait_ms 0): PolicyServiceClient.infer vs IDRPolicy.infer
    in this process, the fake backbone (so the difference is the service's cost).
 4. A model of one GPU node from these and the GPU figures already measured.
 
@@ -111,8 +111,8 @@ def batching(rounds: int) -> dict[str, Any]:
 
 
 def overlap(episodes: int) -> dict[str, Any]:
-    from pipeline.config import config_from_dict
-    from pipeline.runner import execute, plan_run
+    from pipeline.execution.runner import execute, plan_run
+    from pipeline.planning.config import config_from_dict
 
     base = {
         "name": "overlap",
@@ -185,12 +185,12 @@ def round_trip(calls: int) -> dict[str, float]:
     from workers.idr import IDRConfig
     from workers.idr_policy import IDRPolicy
     from workers.observation import to_policy_observation
-    from workers.policy_actor import RemotePolicy, policy_actor_class
+    from workers.policy_actor import PolicyServiceClient, policy_actor_class
 
     if not ray.is_initialized():
         ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     actor = policy_actor_class(1, 0).remote("fake_marker", {"chunk_len": 4}, None, 32, 0.0)
-    remote = RemotePolicy(actor, ray.get(actor.describe.remote()))
+    remote = PolicyServiceClient(actor, ray.get(actor.describe.remote()))
     local = IDRPolicy(FakeMarkerBackbone(chunk_len=4))
     env = FakeMarkerEnv()
     obs = to_policy_observation(env.reset("reach", 0, 0), env.instruction)

@@ -44,9 +44,9 @@ class InProcess:
 
     def predict_chunk(self, obs: Any, noise: Any = None, intervention: Any = None) -> np.ndarray:
         from tests.doubles.openpi_server import act
-        from workers.backbones.remote.client import RemoteBackbone
+        from workers.backbones.websocket.client import WebsocketBackbone
 
-        rows = [RemoteBackbone._row(self, obs, i) for i in range(obs.batch_size)]  # type: ignore[arg-type]
+        rows = [WebsocketBackbone._row(self, obs, i) for i in range(obs.batch_size)]  # type: ignore[arg-type]
         return np.stack([act(r, 2.0, 0.5, 0.0, 4, 7) for r in rows])
 
     key_map = KEYS
@@ -76,7 +76,7 @@ def main() -> None:
     ap.add_argument("--calls", type=int, default=300)
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
-    from workers.backbones.remote.client import RemoteBackbone
+    from workers.backbones.websocket.client import WebsocketBackbone
     from workers.idr_policy import IDRPolicy
     from workers.observation import to_policy_observation
 
@@ -99,7 +99,7 @@ def main() -> None:
         )
         try:
             assert server.stdout is not None and server.stdout.readline().strip() == "ready"
-            backbone = RemoteBackbone(port=port, key_map=KEYS)
+            backbone = WebsocketBackbone(port=port, key_map=KEYS)
             rows[label] = measure(IDRPolicy(backbone), obs, args.calls)
             backbone.close()
         finally:

@@ -55,7 +55,7 @@ def _timed(cmd: list[str]) -> dict[str, Any]:
 
 
 def make_run_dir(run_dir: Path, episodes: int, inferences: int, batch: int) -> dict[str, Any]:
-    from pipeline.store import EPISODE_SCHEMA, STEP_SCHEMA, RunStore
+    from pipeline.results.store import EPISODE_SCHEMA, STEP_SCHEMA, RunStore
 
     t0 = time.perf_counter()
     template = run_dir.parent / "template"
@@ -127,7 +127,7 @@ def make_run_dir(run_dir: Path, episodes: int, inferences: int, batch: int) -> d
 
 def measure(run_dir: Path, other: Path) -> dict[str, Any]:
     keys = (  # the scan alone, timed inside the process (imports excluded)
-        "import json, sys, time; from pipeline.store import RunStore;"
+        "import json, sys, time; from pipeline.results.store import RunStore;"
         "t = time.perf_counter(); n = len(RunStore(sys.argv[1], read_only=True).stored_keys());"
         "print(json.dumps({'keys': n, 'scan_seconds': round(time.perf_counter() - t, 3)}))"
     )

@@ -23,7 +23,7 @@ RESULTS = Path(__file__).parent / "results" / "tabletop_env.json"
 def measure(
     task: str, steps: int, image_size: int, cameras: tuple[str, ...], render: bool, fast: bool
 ) -> float:
-    from workers.envs.tabletop import TabletopEnv
+    from workers.envs.suites.tabletop.env import TabletopEnv
 
     env = TabletopEnv(image_size=image_size, cameras=cameras, fast_render=fast)
     try:

@@ -30,7 +30,7 @@ SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10")
 
 
 def _config(cells: int):
-    from pipeline.config import load_config
+    from pipeline.planning.config import load_config
 
     alphas = [round(0.01 * (i + 1), 2) for i in range(cells - 2)]
     grid = f"grid=[{{mode: [baseline, diagnose, E]}}, {{alpha: {alphas}}}]"
@@ -39,7 +39,7 @@ def _config(cells: int):
 
 def _episodes(modes: dict[str, str], tasks_per_suite: int, per_task: int, run_dir: Path):
     """The synthetic episodes (a frame), also written with 10 inferences each to ``run_dir``."""
-    from pipeline.store import EPISODE_SCHEMA, RunStore, rows_to_table
+    from pipeline.results.store import EPISODE_SCHEMA, RunStore, rows_to_table
     from workers.episode import EpisodeResult, EpisodeRow, StepRow
 
     rng = np.random.default_rng(0)
@@ -115,7 +115,8 @@ def main() -> None:
 
     from mlflow import MlflowClient
 
-    from pipeline.tracking import Tracker, cell_metrics
+    from pipeline.tracking.metrics import cell_metrics
+    from pipeline.tracking.tracker import Tracker
 
     cfg = _config(args.cells)
     cells = cfg.cells()

@@ -30,7 +30,7 @@ BINS_CM = (0.0, 1.0, 2.0, 4.0, 8.0, np.inf)  # xy distance of the held cube to i
 def rollout(env: Any, backbone: Any, episode: int, seed: int, replan: int) -> dict[str, Any]:
     """One stack_color episode driven by the policy; per inference while the top cube is held
     and lifted: (distance to the goal in cm, policy xy action, expert xy action)."""
-    from workers.envs.tabletop_layout import TABLE_TOP_Z
+    from workers.envs.suites.tabletop.layout import TABLE_TOP_Z
     from workers.experts.tabletop import CARRY_Z, expert_action
     from workers.observation import to_policy_observation
 
@@ -120,7 +120,7 @@ def main() -> None:
 
     configure_rendering()
     from workers.backbones.lerobot.adapter import LerobotBackbone
-    from workers.envs.tabletop import TabletopEnv
+    from workers.envs.suites.tabletop.env import TabletopEnv
 
     env = TabletopEnv(image_size=96, cameras=("agentview", "wrist"))
     out: dict[str, Any] = {

@@ -14,18 +14,19 @@ from typing import TYPE_CHECKING
 # imported, hence here, before anything imports it; a user's own setting stands.
 os.environ.setdefault("ARROW_DEFAULT_MEMORY_POOL", "system")
 
-from pipeline.config import ConfigError
 from pipeline.errors import RunError, is_disk_full
-from pipeline.signals import RunInterrupted, stop_on_signals
+from pipeline.execution.signals import RunInterrupted, stop_on_signals
+from pipeline.planning.config import ConfigError
+from pipeline.rundir import EPISODES_DIR, REPORT_MD
 
 if TYPE_CHECKING:
-    from pipeline.config import RunConfig
+    from pipeline.planning.config import RunConfig
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from pipeline.config import load_config
-    from pipeline.report import protocol_line
-    from pipeline.runner import execute, plan_run
+    from pipeline.execution.runner import execute, plan_run
+    from pipeline.planning.config import load_config
+    from pipeline.reporting.markdown import protocol_line
 
     cfg = load_config(args.config, args.overrides)
     run_dir = Path(args.out) if args.out else Path(cfg.output_root) / cfg.name
@@ -60,15 +61,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
         f"stored, {summary.errors} errors, {summary.retries} retries, "
         f"{summary.actors_replaced} actors replaced, {summary.timeouts} timeouts"
     )
-    print((run_dir / "report.md").read_text())
+    print((run_dir / REPORT_MD).read_text())
     print(_ui_hint(run_dir))
     return 0
 
 
 def _import_logging_libraries(cfg: RunConfig) -> None:
     """Import Ray and MLflow now, where the run uses them, and send their log records to the
-    run's log (pipeline.run_log): each installs its own terminal handler when imported."""
-    from pipeline.run_log import RUN_LOG
+    run's log (pipeline.execution.run_log): each installs its own terminal handler when imported."""
+    from pipeline.execution.run_log import RUN_LOG
 
     if cfg.executor.kind == "ray":
         import ray  # noqa: F401
@@ -79,7 +80,7 @@ def _import_logging_libraries(cfg: RunConfig) -> None:
 
 def _ui_hint(run_dir: Path) -> str:
     """Where the run's cells are side by side in the MLflow UI (or why they are not)."""
-    from pipeline.mlflow_ui import select, ui_base
+    from pipeline.tracking.ui import select, ui_base
 
     try:
         sel = select([run_dir])
@@ -90,12 +91,12 @@ def _ui_hint(run_dir: Path) -> str:
 
 
 def _cmd_compact(args: argparse.Namespace) -> int:
-    from pipeline.lock import RunDirLock
-    from pipeline.runner import compact_run_dir
-    from pipeline.store import RunStore
+    from pipeline.execution.lock import RunDirLock
+    from pipeline.execution.runner import compact_run_dir
+    from pipeline.results.store import RunStore
 
     run_dir = Path(args.run_dir)
-    if not (run_dir / "episodes").is_dir():
+    if not (run_dir / EPISODES_DIR).is_dir():
         raise ConfigError(f"{run_dir} is not a run dir (no episodes/ folder)")
     with RunDirLock(run_dir):  # never alongside a driver of this run dir
         merged = compact_run_dir(RunStore(run_dir))
@@ -104,10 +105,10 @@ def _cmd_compact(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    from pipeline.report import write_report
+    from pipeline.reporting.write import write_report
 
     run_dir = Path(args.run_dir)
-    if not (run_dir / "episodes").is_dir():
+    if not (run_dir / EPISODES_DIR).is_dir():
         raise ConfigError(f"{run_dir} is not a run dir (no episodes/ folder)")
     path = write_report(run_dir)
     print(path.read_text())
@@ -115,7 +116,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 
 def _cmd_sidecar(args: argparse.Namespace) -> int:
-    from pipeline import sidecar_report
+    from pipeline.reporting import sidecar as sidecar_report
 
     dirs = [Path(d) for d in args.dirs]
     for d in dirs:
@@ -146,10 +147,11 @@ def _cmd_sidecar(args: argparse.Namespace) -> int:
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
-    from pipeline.compare import TablesRefused, compare
+    from pipeline.reporting.compare import TablesRefused, compare
+    from pipeline.tracking.ui import mlflow_lines
 
     try:
-        text, _ = compare(args.run_dirs, out=args.out, n_boot=args.bootstrap)
+        text, _ = compare(args.run_dirs, out=args.out, n_boot=args.bootstrap, links=mlflow_lines)
     except TablesRefused as e:  # no table, but the UI can still show the runs side by side
         print(e.ui_text)
         raise
@@ -164,8 +166,8 @@ def _cmd_ui(args: argparse.Namespace) -> int:
     printing the Compare URL of their cells (``--open``: opened in a browser)."""
     import subprocess
 
-    from pipeline.mlflow_ui import LOCAL_HOSTS, check_store, remote_ui_help, select, ui_base
-    from pipeline.tracking import default_uri
+    from pipeline.tracking.store import check_store, default_uri
+    from pipeline.tracking.ui import LOCAL_HOSTS, remote_ui_help, select, ui_base
 
     sel = None
     if args.run_dirs:
@@ -306,7 +308,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.command != "run" or any("=" not in e for e in extra):
             parser.error(f"unrecognized arguments: {' '.join(extra)}")
         args.overrides = [*args.overrides, *extra]
-    from pipeline.run_log import RUN_LOG
+    from pipeline.execution.run_log import RUN_LOG
 
     RUN_LOG.install(verbose=args.verbose)
     try:

@@ -1,8 +1,6 @@
-"""Errors that stop a run on a fault outside the config (a full disk, a signal).
-
-``ConfigError`` (pipeline.config) is for bad input, found before any work starts; the errors
-here are for faults met while running. Both reach the user as one line naming the fix, never
-a traceback (``idr-eval`` exits 2 for a ConfigError, 1 for a RunError).
+"""The two kinds of error a user sees: bad input (:class:`ConfigError`, found before any work
+starts) and faults met while running (:class:`RunError`: a full disk, a signal). Both reach
+the user as one line naming the fix, never a traceback (``idr-eval`` exits 2 for a ConfigError, 1 for a RunError).
 """
 
 from __future__ import annotations
@@ -10,6 +8,10 @@ from __future__ import annotations
 import errno
 
 _NO_SPACE = {errno.ENOSPC, errno.EDQUOT}
+
+
+class ConfigError(ValueError):
+    """A config or override is invalid; the message names the field and the fix."""
 
 
 class RunError(RuntimeError):

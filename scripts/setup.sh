@@ -73,5 +73,5 @@ fi
 bash scripts/setup_openpi.sh
 
 # --- LIBERO offline: link packaged assets, write the config (never prompts) ----------------
-"$VENV/bin/python" -m workers.envs.libero_assets >/dev/null
+"$VENV/bin/python" -m workers.envs.suites.libero.assets >/dev/null
 log "ready: $VENV (Python $("$VENV/bin/python" -c 'import platform; print(platform.python_version())'))"

@@ -71,7 +71,7 @@ fi
 if [ -f "$VK/lvp.json" ]; then
     "$VENV/bin/python" -c "
 import sys; sys.path.insert(0, '.')
-from workers.envs import vulkan_cpu
+from workers.envs.suites.simpler import vulkan_cpu
 print(vulkan_cpu.configure('$VK'))
 import sapien.core as sapien
 sapien.SapienRenderer(offscreen_only=True)" >/dev/null 2>&1 \

@@ -50,3 +50,91 @@ def test_no_module_crosses_a_boundary(folder) -> None:
         if any(name == b or name.startswith(b + ".") for b in banned)
     ]
     assert not crossings, crossings
+
+
+# pipeline/ in layers: a module imports its own layer and the ones below, never one above
+# (the report <-> figures circle of the flat layout is what this catches). Lazy imports inside
+# functions count too: a circle through a function is still a circle.
+PIPELINE_LAYERS = (
+    ("pipeline.errors", "pipeline.rundir"),  # the two kinds of error; the run dir's names
+    ("pipeline.planning",),  # config, grid, plan, checkpoint fit: nothing run yet
+    ("pipeline.results",),  # the store and the statistics over it
+    ("pipeline.reporting",),  # markdown, figures, HTML slices, compare: views of results
+    ("pipeline.tracking",),  # MLflow: logs the same views
+    ("pipeline.execution",),  # runner, scheduler, writer, executors, cluster
+    ("pipeline.cli",),
+)
+
+
+def _layer(module: str) -> int | None:
+    for i, prefixes in enumerate(PIPELINE_LAYERS):
+        if any(module == p or module.startswith(p + ".") for p in prefixes):
+            return i
+    return None
+
+
+def test_pipeline_layers_import_only_downwards() -> None:
+    upward = []
+    for f in sorted((ROOT / "pipeline").rglob("*.py")):
+        mod = ".".join(f.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
+        own = _layer(mod)
+        if own is None:
+            continue
+        for name in sorted(_imports(f)):
+            theirs = _layer(name)
+            if theirs is not None and theirs > own:
+                upward.append(f"{mod} (layer {own}) imports {name} (layer {theirs})")
+    assert not upward, upward
+
+
+def test_every_pipeline_module_has_a_layer() -> None:
+    """A new folder or module is placed in a layer on purpose."""
+    unplaced = [
+        str(f.relative_to(ROOT))
+        for f in sorted((ROOT / "pipeline").rglob("*.py"))
+        if f.name != "__init__.py" or f.parent != ROOT / "pipeline"
+        if _layer(".".join(f.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__"))
+        is None
+    ]
+    assert not unplaced, unplaced
+
+
+def test_suites_do_not_import_each_other() -> None:
+    """One folder per suite (workers/envs/suites/<name>/); shared pieces live beside suites/."""
+    suites = ROOT / "workers/envs/suites"
+    names = [d.name for d in suites.iterdir() if d.is_dir() and d.name != "__pycache__"]
+    crossings = [
+        f"{f.relative_to(ROOT)} imports {name}"
+        for suite in names
+        for f in sorted((suites / suite).rglob("*.py"))
+        for name in sorted(_imports(f))
+        for other in names
+        if other != suite and name.startswith(f"workers.envs.suites.{other}")
+    ]
+    assert not crossings, crossings
+
+
+def test_no_import_circle_between_pipeline_modules() -> None:
+    """Within a layer too: modules import one way (lazy imports inside functions included)."""
+    graph: dict[str, set[str]] = {}
+    for f in sorted((ROOT / "pipeline").rglob("*.py")):
+        mod = ".".join(f.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
+        graph[mod] = {n for n in _imports(f) if n.startswith("pipeline.") and n != mod}
+    for mod in graph:
+        graph[mod] = {n for n in graph[mod] if n in graph}
+    seen: dict[str, int] = {}  # 1 on the stack, 2 done
+    circles: list[str] = []
+
+    def visit(mod: str, stack: list[str]) -> None:
+        seen[mod] = 1
+        for dep in sorted(graph[mod]):
+            if seen.get(dep) == 1:
+                circles.append(" -> ".join([*stack[stack.index(dep) :], dep]))
+            elif dep not in seen:
+                visit(dep, [*stack, dep])
+        seen[mod] = 2
+
+    for mod in sorted(graph):
+        if mod not in seen:
+            visit(mod, [mod])
+    assert not circles, circles

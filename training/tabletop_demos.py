@@ -69,7 +69,7 @@ def record(
     configure_rendering()
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from workers.envs.tabletop import TabletopEnv
+    from workers.envs.suites.tabletop.env import TabletopEnv
     from workers.experts.tabletop import PLACE_TOL, expert_action
     from workers.observation import to_policy_observation
 

@@ -23,7 +23,7 @@ import numpy as np
 
 from workers.backbones.base import backbone_member
 from workers.envs.base import env_member
-from workers.envs.remote import EnvServerError
+from workers.envs.server.client import EnvServerError
 from workers.episode import EpisodeResult, EpisodeRow, EpisodeSpec, StepRow, WorkerSpec
 
 log = logging.getLogger(__name__)
@@ -76,11 +76,11 @@ class EpisodeWorker:
         if spec.policy_actor is not None:  # shared: the model lives in a policy actor
             import ray
 
-            from workers.policy_actor import RemotePolicy
+            from workers.policy_actor import PolicyServiceClient
 
             info = ray.get(spec.policy_actor.describe.remote())
             self.backbone = None
-            self.policy: Any = RemotePolicy(spec.policy_actor, info)
+            self.policy: Any = PolicyServiceClient(spec.policy_actor, info)
             self.cameras = info["cameras"]
         else:
             self.backbone = make_backbone(spec.backbone_kind, spec.backbone_params)
@@ -154,9 +154,9 @@ class EpisodeWorker:
 
         policy = self.policy
         if self.spec.policy_actor is not None:  # one proxy per episode: threads share the actor
-            from workers.policy_actor import RemotePolicy
+            from workers.policy_actor import PolicyServiceClient
 
-            policy = RemotePolicy(self.spec.policy_actor, self.policy.info)
+            policy = PolicyServiceClient(self.spec.policy_actor, self.policy.info)
         if spec.task_id not in self.tasks:
             raise ValueError(f"task_id={spec.task_id!r} not in suite {self.spec.env_suite!r}")
         policy.set_config(spec.idr, spec.intervention)

@@ -1,7 +1,7 @@
 """What the driver sends to an actor (EpisodeSpec, WorkerSpec) and what comes back (typed rows).
 
 This module owns the row format. ``EpisodeRow`` and ``StepRow`` are the columns of the
-episodes and steps tables, in order; ``pipeline.store`` derives the Parquet schemas from them
+episodes and steps tables, in order; ``pipeline.results.store`` derives the Parquet schemas from them
 (field types map to Arrow types; ``F32`` marks a float stored as float32). Every row of an
 episode, the actor's own or the error row the scheduler stores for an actor that died under
 it, starts from :meth:`EpisodeRow.from_spec`, so the columns a spec determines agree wherever
@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import Annotated, Any
 
 from workers.envs.base import TaskSpec
-from workers.envs.remote import ServerSpec
+from workers.envs.server.client import ServerSpec
 from workers.idr import IDRConfig
 from workers.interventions import InterventionConfig
 

@@ -1,6 +1,6 @@
 """What an env gives a policy and what a checkpoint asks for, known without a simulator or weights.
 
-The driver reads both before any actor starts (``pipeline.compat`` matches them): an env from its
+The driver reads both before any actor starts (``pipeline.planning.checkpoint_fit`` matches them): an env from its
 params (``describe`` classmethod), a checkpoint from its ``config.json``. A mismatch (a camera the
 env does not have, another image size, state or action dims) is refused there, naming both sides.
 """

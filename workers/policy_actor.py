@@ -8,7 +8,7 @@ queueing, so the next batch starts at once. Ray restarts a policy
 actor that dies (``max_restarts``) and retries the calls it held (``max_task_retries``): a
 request is a pure function of its content, so a retry gives the same answer.
 
-:class:`RemotePolicy` is what an episode worker holds instead of an ``IDRPolicy`` in shared
+:class:`PolicyServiceClient` is what an episode worker holds instead of an ``IDRPolicy`` in shared
 mode: the same ``set_config`` / ``reset`` / ``infer``, one Ray call per inference (never per
 env step), the observation sent once as numpy.
 """
@@ -161,7 +161,7 @@ def _image_bytes(image: Any) -> Any:
     return x
 
 
-class RemotePolicy:
+class PolicyServiceClient:
     """The IDRPolicy interface over a policy actor (see the module docstring)."""
 
     def __init__(self, handle: Any, info: dict[str, Any]) -> None:

@@ -12,7 +12,10 @@ import difflib
 import importlib
 import inspect
 import typing
+import warnings
 from typing import Any
+
+from workers import moved
 
 
 def load_class(registry: dict[str, str], name: str, field: str) -> Any:
@@ -29,10 +32,29 @@ def load_class(registry: dict[str, str], name: str, field: str) -> Any:
     return _entry_point(registry[name], field)
 
 
+def _moved(module: str, attr: str, field: str) -> tuple[str, str]:
+    """An entry point of the flat layout (``workers.envs.tabletop:TabletopEnv``) mapped to where
+    its class lives now, with a warning naming the new spelling."""
+    for old in sorted(moved.MODULES, key=len, reverse=True):
+        if module == old or module.startswith(old + "."):
+            new_module = moved.MODULES[old] + module[len(old) :]
+            head, _, rest = attr.partition(".")
+            new_attr = moved.CLASSES.get(head, head) + (f".{rest}" if rest else "")
+            warnings.warn(
+                f"{field}: {module}:{attr} moved to {new_module}:{new_attr}; "
+                "write the new name (docs/architecture.md#migration)",
+                FutureWarning,
+                stacklevel=3,
+            )
+            return new_module, new_attr
+    return module, attr
+
+
 def _entry_point(spec: str, field: str) -> Any:
     module, _, attr = spec.partition(":")
     if not module or not attr or ":" in attr:
         raise ValueError(f"{field}={spec!r}: an entry point is written 'package.module:Class'")
+    module, attr = _moved(module, attr, field)
     try:
         mod = importlib.import_module(module)
     except Exception as e:  # ImportError, or a name Python cannot import (ValueError, ...)

@@ -2,7 +2,7 @@
 
 Ray streams what an actor prints to the driver's terminal, where robosuite's macro warnings,
 checkpoint loading lines and the like drown the run's progress. Each actor process instead
-sends its file descriptors 1 and 2 to its own file in the run dir (pipeline.run_log says what
+sends its file descriptors 1 and 2 to its own file in the run dir (pipeline.execution.run_log says what
 goes where): Python's and C libraries' output alike, and that of the processes it starts (an
 env server inherits them). Only inside a Ray actor: the inline executor runs episodes in the
 driver, whose terminal stays its own. On a node that does not see the run dir (a cluster

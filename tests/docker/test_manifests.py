@@ -19,8 +19,8 @@ import pytest
 import yaml
 
 from pipeline.cli import build_parser
-from pipeline.cluster import check_capacity
-from pipeline.config import load_config
+from pipeline.execution.cluster import check_capacity
+from pipeline.planning.config import load_config
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCKER = ROOT / "docker"
@@ -52,7 +52,9 @@ def test_images_build_with_the_readme_setup(kind: str) -> None:
     assert "bash scripts/setup.sh" in body
     assert not re.search(r"\b(pip|uv pip|conda|poetry)\s+install\b", body), "a second recipe"
     setup = (ROOT / "scripts" / "setup.sh").read_text()
-    assert "requirements.lock" in setup and "workers.envs.libero_assets" in setup  # assets baked
+    assert (
+        "requirements.lock" in setup and "workers.envs.suites.libero.assets" in setup
+    )  # assets baked
     # Python 3.12, a non-root numeric user, the renderer of the image, the CLI as entrypoint
     assert re.search(r"python:?3\.12|python3\.12", body)
     (user,) = re.findall(r"^USER\s+(\S+)", body, re.M)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from pipeline.executors import ExecutorStats, Outcome
+from pipeline.execution.executors import ExecutorStats, Outcome
 from workers.episode import EpisodeSpec
 
 # spec -> the outcomes the executor reports for it (several: a call Ray answered twice)

@@ -6,7 +6,7 @@ from __future__ import annotations
 from typing import Any
 
 from tests.doubles.instability import InjectsInstability
-from workers.envs.libero import LiberoEnv
+from workers.envs.suites.libero.env import LiberoEnv
 
 
 class UnstableLiberoEnv(InjectsInstability, LiberoEnv):

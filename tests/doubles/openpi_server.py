@@ -16,7 +16,7 @@ import traceback
 
 import numpy as np
 
-from workers.backbones.remote import codec
+from workers.backbones.websocket import codec
 
 
 def act(

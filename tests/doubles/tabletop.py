@@ -6,7 +6,7 @@ from __future__ import annotations
 from typing import Any
 
 from tests.doubles.instability import InjectsInstability
-from workers.envs.tabletop import TabletopEnv
+from workers.envs.suites.tabletop.env import TabletopEnv
 
 
 class UnstableTabletopEnv(InjectsInstability, TabletopEnv):

@@ -27,7 +27,7 @@ SIZE, STEPS, EPISODES, SEED, TAU = 64, 15, 2, 7, 1e9
 
 
 def _libero_env() -> dict[str, str]:
-    from workers.envs.libero_assets import ensure_config_env
+    from workers.envs.suites.libero.assets import ensure_config_env
     from workers.rendering import configure_rendering
 
     ensure_config_env()
@@ -79,8 +79,8 @@ def test_lerobot_eval_cli_runs_the_idr_type_on_libero(libero_act, tmp_path) -> N
 
 
 def _our_episodes(ckpt: Path, tmp_path: Path) -> tuple[list[list[np.ndarray]], list[list[float]]]:
-    from pipeline.config import config_from_dict
-    from pipeline.runner import plan_run
+    from pipeline.execution.runner import plan_run
+    from pipeline.planning.config import config_from_dict
     from workers.actor import EpisodeWorker
 
     cfg = config_from_dict(

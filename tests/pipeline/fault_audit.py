@@ -10,7 +10,7 @@ from typing import Any
 
 import pyarrow.parquet as pq
 
-from pipeline.store import EPISODE_SCHEMA, KEY
+from pipeline.results.store import EPISODE_SCHEMA, KEY
 
 
 def audit(run_dir: Path, expected: set[tuple[str, str, int]]) -> dict[str, Any]:

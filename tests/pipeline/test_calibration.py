@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.calibration import calibrate
-from pipeline.config import ConfigError, load_config
-from pipeline.grid import expand_grid
-from pipeline.runner import execute, plan_run
-from pipeline.store import KEY, RunStore
+from pipeline.execution.runner import execute, plan_run
+from pipeline.planning.config import ConfigError, load_config
+from pipeline.planning.grid import expand_grid
+from pipeline.results.calibration import calibrate
+from pipeline.results.store import KEY, RunStore
 from tests.doubles.rows import result as hand_made
 
 CONF = Path(__file__).resolve().parents[2] / "conf"

@@ -62,8 +62,8 @@ def test_bad_input_is_one_clear_error(tmp_path) -> None:
 
 def test_a_grid_over_max_cells_needs_yes(tmp_path, capsys) -> None:
     from pipeline import cli
-    from pipeline.config import load_config
-    from pipeline.runner import plan_run
+    from pipeline.execution.runner import plan_run
+    from pipeline.planning.config import load_config
 
     alpha = str(ROOT / "conf" / "grids" / "alpha.yaml")
     out = tmp_path / "x"

@@ -71,9 +71,9 @@ def test_bad_invocations_are_one_message_each(tmp_path, capsys) -> None:
 def test_a_worker_that_cannot_load_stops_a_ray_run(tmp_path, ray_local) -> None:
     """Ray: the same constructor error twice stops the run with that error (not after every
     retry, not as a Ray traceback)."""
-    from pipeline.config import load_config
     from pipeline.errors import RunError
-    from pipeline.runner import plan_run, run_episodes
+    from pipeline.execution.runner import plan_run, run_episodes
+    from pipeline.planning.config import load_config
 
     cfg = load_config(
         SMOKE,

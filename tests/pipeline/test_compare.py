@@ -11,10 +11,11 @@ import pytest
 from mlflow import MlflowClient
 
 from pipeline import cli
-from pipeline.compare import RunEpisodes, compare, compare_table, paired_avg_diff, render
-from pipeline.config import ConfigError, load_config
-from pipeline.runner import execute, plan_run
-from pipeline.store import RunStore
+from pipeline.execution.runner import execute, plan_run
+from pipeline.planning.config import ConfigError, load_config
+from pipeline.reporting.compare import RunEpisodes, compare, compare_table, paired_avg_diff, render
+from pipeline.results.store import RunStore
+from pipeline.tracking.ui import mlflow_lines
 from tests.doubles.rows import result as hand_made
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
@@ -129,7 +130,7 @@ def test_mlflow_selection_shows_the_same_numbers_side_by_side(tmp_path) -> None:
     for name, grid in (("r1", "[{mode: [baseline, E]}]"), ("r2", "[{mode: [baseline, F]}]")):
         cfg = load_config(CONF / "smoke.yaml", [*common, f"grid={grid}"])
         execute(plan_run(cfg, tmp_path / name))
-    text, table = compare([tmp_path / "r1", tmp_path / "r2"], n_boot=200)
+    text, table = compare([tmp_path / "r1", tmp_path / "r2"], n_boot=200, links=mlflow_lines)
     flt = next(line.strip() for line in text.splitlines() if "attributes.run_id IN" in line)
     client = MlflowClient(uri)
     exp = client.get_experiment_by_name("cmp")

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from pipeline.compat import fit_backbone_to_env, resolve_replan
-from pipeline.config import ConfigError
+from pipeline.planning.checkpoint_fit import fit_backbone_to_env, resolve_replan
+from pipeline.planning.config import ConfigError
 from workers.io_spec import ROBOSUITE_CAMERA_ALIASES, EnvIO, PolicyIO
 
 
@@ -140,8 +140,8 @@ def test_a_space_the_backbone_cannot_intervene_in_is_refused_before_work(tmp_pat
     """The wrapper's check, for every cell, in the pre-flight (was an error row per episode)."""
     from pathlib import Path
 
-    from pipeline.config import load_config
-    from pipeline.runner import plan_run
+    from pipeline.execution.runner import plan_run
+    from pipeline.planning.config import load_config
 
     conf = Path(__file__).resolve().parents[2] / "conf" / "smoke.yaml"
     cfg = load_config(conf, [where, "tracking.enabled=false"])

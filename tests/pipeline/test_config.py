@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.config import ConfigError, apply_overrides, config_from_dict, load_config
+from pipeline.planning.config import ConfigError, apply_overrides, config_from_dict, load_config
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 
@@ -21,7 +21,7 @@ def _base() -> dict:
 def test_presets_validate(name, tmp_path) -> None:
     """Each preset passes the whole pre-flight (suite, tasks, backbone and its params, the
     executor) and plans cells x tasks x episodes, each task in a named suite."""
-    from pipeline.runner import plan_run
+    from pipeline.execution.runner import plan_run
 
     cfg = load_config(CONF / name)
     plan = plan_run(cfg, tmp_path / "run")

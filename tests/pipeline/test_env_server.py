@@ -13,9 +13,9 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from pipeline.config import ConfigError, load_config
-from pipeline.runner import execute, plan_run
-from pipeline.store import RunStore
+from pipeline.execution.runner import execute, plan_run
+from pipeline.planning.config import ConfigError, load_config
+from pipeline.results.store import RunStore
 from tests.pipeline.test_runner import _episodes, _steps
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
@@ -31,7 +31,7 @@ def _servers() -> set[int]:
                 cmd = (d / "cmdline").read_bytes()
             except OSError:
                 continue
-            if b"workers.envs.server" in cmd:
+            if b"workers.envs.server.serve" in cmd:
                 found.add(int(d.name))
     return found
 
@@ -91,7 +91,7 @@ def test_a_server_dying_under_an_episode_is_restarted_and_the_episode_run_again(
 @pytest.mark.slow
 def test_ray_actors_start_servers_and_none_outlive_them(tmp_path, ray_local) -> None:
     from workers.actor import remote_worker_class
-    from workers.envs.remote import ServerSpec
+    from workers.envs.server.client import ServerSpec
     from workers.episode import WorkerSpec
 
     before = _servers()

@@ -19,7 +19,7 @@ from pydantic import BaseModel
 from pydantic.fields import FieldInfo
 
 from pipeline import cli
-from pipeline.config import RunConfig
+from pipeline.planning.config import RunConfig
 
 ROOT = Path(__file__).resolve().parents[2]
 SMOKE = str(ROOT / "conf" / "smoke.yaml")
@@ -110,18 +110,18 @@ def invalid_values(path: str, f: FieldInfo) -> st.SearchStrategy[Any]:
 def run_cli(tmp_path, monkeypatch, capsys):
     """``idr-eval run conf/smoke.yaml --out ... OVERRIDES`` in this process, with every way to
     start work replaced by a tripwire; returns (exit code or 'started', stderr)."""
-    import pipeline.cluster
-    import pipeline.runner
-    import pipeline.scheduler
+    import pipeline.execution.cluster
+    import pipeline.execution.runner
+    import pipeline.execution.scheduler
     import workers.actor
 
     def tripwire(*args: object, **kwargs: object) -> None:
         raise _WouldStart
 
-    monkeypatch.setattr(pipeline.runner, "execute", tripwire)
-    monkeypatch.setattr(pipeline.scheduler.Scheduler, "run_stage", tripwire)
+    monkeypatch.setattr(pipeline.execution.runner, "execute", tripwire)
+    monkeypatch.setattr(pipeline.execution.scheduler.Scheduler, "run_stage", tripwire)
     monkeypatch.setattr(workers.actor.EpisodeWorker, "__init__", tripwire)
-    monkeypatch.setattr(pipeline.cluster, "init_ray", tripwire)
+    monkeypatch.setattr(pipeline.execution.cluster, "init_ray", tripwire)
     out = tmp_path / "run"
 
     def run(*overrides: str, config: str = SMOKE) -> tuple[int | str, str]:

@@ -13,10 +13,10 @@ import pytest
 from fault_audit import assert_clean, audit
 
 from pipeline import cli
-from pipeline.config import load_config
 from pipeline.errors import DiskFullError
-from pipeline.runner import execute, plan_run
-from pipeline.store import RunStore
+from pipeline.execution.runner import execute, plan_run
+from pipeline.planning.config import load_config
+from pipeline.results.store import RunStore
 
 ROOT = Path(__file__).resolve().parents[2]
 

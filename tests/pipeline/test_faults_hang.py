@@ -10,10 +10,10 @@ from types import SimpleNamespace
 import pytest
 from fault_audit import assert_clean, audit
 
-from pipeline.config import load_config
-from pipeline.runner import plan_run, run_episodes
-from pipeline.store import RunStore
-from pipeline.timeouts import EpisodeTimeout, alarm
+from pipeline.execution.runner import plan_run, run_episodes
+from pipeline.execution.timeouts import EpisodeTimeout, alarm
+from pipeline.planning.config import load_config
+from pipeline.results.store import RunStore
 from tests.doubles.backbones import FaultyMarkerBackbone
 
 CONF = Path(__file__).resolve().parents[2] / "conf"

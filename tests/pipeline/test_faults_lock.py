@@ -14,9 +14,10 @@ from pathlib import Path
 import pytest
 from fault_audit import assert_clean, audit
 
-from pipeline.config import ConfigError
-from pipeline.lock import LOCK_FILE, RunDirLock
-from pipeline.store import RunStore
+from pipeline.execution.lock import RunDirLock
+from pipeline.planning.config import ConfigError
+from pipeline.results.store import RunStore
+from pipeline.rundir import LOCK_FILE
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -93,8 +94,8 @@ def test_a_dead_drivers_lock_is_taken_over(tmp_path, fault_log) -> None:
     dead.wait()
     out.mkdir()
     (out / LOCK_FILE).write_text(json.dumps({"host": os.uname().nodename, "pid": dead.pid}))
-    from pipeline.config import load_config
-    from pipeline.runner import execute, plan_run
+    from pipeline.execution.runner import execute, plan_run
+    from pipeline.planning.config import load_config
 
     cfg = load_config(
         ROOT / "conf" / "smoke.yaml", ["executor.kind=inline", "tracking.enabled=false"]

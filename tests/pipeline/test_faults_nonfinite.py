@@ -12,9 +12,9 @@ import pandas as pd
 import pytest
 from fault_audit import assert_clean, audit
 
-from pipeline.config import config_from_dict, load_config
-from pipeline.runner import plan_run, run_episodes
-from pipeline.store import VOLATILE_COLUMNS, RunStore
+from pipeline.execution.runner import plan_run, run_episodes
+from pipeline.planning.config import config_from_dict, load_config
+from pipeline.results.store import VOLATILE_COLUMNS, RunStore
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 GUARANTEE = (

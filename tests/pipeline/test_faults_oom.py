@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 from fault_audit import assert_clean, audit
 
-from pipeline.config import load_config
-from pipeline.runner import plan_run, run_episodes
-from pipeline.store import RunStore
+from pipeline.execution.runner import plan_run, run_episodes
+from pipeline.planning.config import load_config
+from pipeline.results.store import RunStore
 from tests.doubles.faults import exhaust_memory
 
 CONF = Path(__file__).resolve().parents[2] / "conf"

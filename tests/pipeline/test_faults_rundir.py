@@ -12,11 +12,11 @@ import pyarrow.parquet as pq
 import pytest
 from fault_audit import assert_clean, audit
 
-from pipeline import runner
-from pipeline.config import ConfigError, load_config
 from pipeline.errors import RunDirLostError
-from pipeline.runner import execute, plan_run, run_episodes
-from pipeline.store import RunStore
+from pipeline.execution import runner
+from pipeline.execution.runner import execute, plan_run, run_episodes
+from pipeline.planning.config import ConfigError, load_config
+from pipeline.results.store import RunStore
 
 ROOT = Path(__file__).resolve().parents[2]
 SMOKE = ROOT / "conf" / "smoke.yaml"
@@ -134,7 +134,7 @@ def test_a_run_dir_without_run_json_is_adopted_on_request(tmp_path, fault_log) -
 
 @pytest.mark.parametrize("table", ["episodes", "steps"])
 def test_unreadable_batches_are_quarantined_and_rerun(tmp_path, fault_log, table) -> None:
-    from pipeline.report import build_report
+    from pipeline.reporting.markdown import build_report
 
     out = tmp_path / "run"
     cfg = load_config(SMOKE, BASE)

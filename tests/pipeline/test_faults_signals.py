@@ -16,9 +16,9 @@ from pathlib import Path
 import pytest
 from fault_audit import assert_clean, audit
 
-from pipeline.config import load_config
-from pipeline.runner import execute, plan_run
-from pipeline.signals import RunInterrupted, stop_on_signals
+from pipeline.execution.runner import execute, plan_run
+from pipeline.execution.signals import RunInterrupted, stop_on_signals
+from pipeline.planning.config import load_config
 
 ROOT = Path(__file__).resolve().parents[2]
 EXPECTED = {(c, "reach", i) for c in ("baseline", "E") for i in range(3)}
@@ -132,7 +132,7 @@ def test_sigint_inline(tmp_path, fault_log) -> None:
 def test_a_signal_waits_for_the_batch_being_written() -> None:
     """Inside a critical section (a Parquet batch and its bookkeeping) the stop is held back
     and raised when the section ends; an error inside the section wins over it."""
-    from pipeline.signals import critical_section
+    from pipeline.execution.signals import critical_section
 
     done, before = [], signal.getsignal(signal.SIGTERM)
     with pytest.raises(RunInterrupted) as stop, stop_on_signals():

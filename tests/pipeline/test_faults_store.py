@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 from fault_audit import assert_clean, audit
 
-from pipeline.config import ConfigError, load_config
-from pipeline.runner import plan_run
+from pipeline.execution.runner import plan_run
+from pipeline.planning.config import ConfigError, load_config
 
 ROOT = Path(__file__).resolve().parents[2]
 CONF = ROOT / "conf"
@@ -80,7 +80,7 @@ def test_a_damaged_store_is_refused_before_anything_is_created(tmp_path, fault_l
     store = tmp_path / "mlflow.db"
     uri = f"sqlite:///{store}"
     cfg = load_config(CONF / "smoke.yaml", ["executor.kind=inline", f"tracking.uri={uri}"])
-    from pipeline.tracking import Tracker
+    from pipeline.tracking.tracker import Tracker
 
     Tracker(uri, "idr-eval", tmp_path)  # a real store, then truncated as a full disk leaves it
     data = store.read_bytes()
@@ -122,7 +122,7 @@ def test_store_paths_and_schemes_that_cannot_work_are_refused(tmp_path) -> None:
 def test_a_store_that_fails_mid_run_holds_updates_back(tmp_path) -> None:
     """A SQLite store that stops answering during a run (here: moved away) is an outage like a
     server's: updates are held back, nothing raises, and they are sent once it is back."""
-    from pipeline.tracking import Tracker
+    from pipeline.tracking.tracker import Tracker
 
     store = tmp_path / "mlflow.db"
     tracker = Tracker(f"sqlite:///{store}", "idr-eval", tmp_path, reconnect_wait_s=0)

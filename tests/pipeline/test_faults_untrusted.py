@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from pipeline import cli
-from pipeline.config import ConfigError, load_config
-from pipeline.runner import plan_run
+from pipeline.execution.runner import plan_run
+from pipeline.planning.config import ConfigError, load_config
 from workers.safe_load import load_numpy_array
 
 ROOT = Path(__file__).resolve().parents[2]

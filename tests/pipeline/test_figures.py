@@ -9,9 +9,9 @@ import pandas as pd
 import pytest
 from matplotlib.image import imread
 
-from pipeline import figures as F
-from pipeline.config import load_config
-from pipeline.runner import execute, plan_run
+from pipeline.execution.runner import execute, plan_run
+from pipeline.planning.config import load_config
+from pipeline.reporting import figures as F
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 # baseline, diagnose, and E / F at (alpha, tau) = (0.08, cal), (0.5, cal), (0.08, 999): an alpha

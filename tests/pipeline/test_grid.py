@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.config import load_config
-from pipeline.grid import TauSpec, expand_grid, parse_tau
+from pipeline.planning.config import load_config
+from pipeline.planning.grid import TauSpec, expand_grid, parse_tau
 
 
 def test_zip_within_cross_across() -> None:

@@ -12,9 +12,10 @@ from urllib.parse import parse_qs, urlsplit
 import pytest
 
 from pipeline import cli
-from pipeline.config import ConfigError, load_config
-from pipeline.mlflow_ui import Selection, check_store, select
-from pipeline.runner import execute, plan_run
+from pipeline.execution.runner import execute, plan_run
+from pipeline.planning.config import ConfigError, load_config
+from pipeline.tracking.store import check_store
+from pipeline.tracking.ui import Selection, select
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 
@@ -79,7 +80,7 @@ def _with_revision(tracked: Path, tmp_path: Path, revision: str) -> str:
 
 
 def test_a_store_of_another_mlflow_version_is_named(tracked, tmp_path) -> None:
-    from pipeline.mlflow_ui import _schema_revisions
+    from pipeline.tracking.store import _schema_revisions
 
     check_store(f"sqlite:///{tracked.parent / 'mlflow.db'}")  # this MLflow's: fine
     known, head = _schema_revisions()

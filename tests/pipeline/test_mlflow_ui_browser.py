@@ -21,8 +21,8 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.config import load_config
-from pipeline.runner import execute, plan_run
+from pipeline.execution.runner import execute, plan_run
+from pipeline.planning.config import load_config
 
 ROOT = Path(__file__).resolve().parents[2]
 CHROMIUM = shutil.which("chromium")
@@ -113,7 +113,7 @@ def test_the_printed_compare_url_shows_the_cells_with_mode_and_success(tracked_r
     from mlflow import MlflowClient
     from playwright.sync_api import sync_playwright
 
-    from pipeline.mlflow_ui import tracking_state
+    from pipeline.tracking.ui import tracking_state
 
     state = tracking_state(tracked_run)
     client = MlflowClient(state["uri"])

@@ -9,10 +9,10 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from pipeline.config import ConfigError, load_config
-from pipeline.report import build_report
-from pipeline.runner import execute, plan_run
-from pipeline.store import RunStore
+from pipeline.execution.runner import execute, plan_run
+from pipeline.planning.config import ConfigError, load_config
+from pipeline.reporting.markdown import build_report
+from pipeline.results.store import RunStore
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 INLINE = ["executor.kind=inline", "tracking.enabled=false", "episodes_per_task=2"]
@@ -82,7 +82,7 @@ def test_a_run_crosses_tasks_with_perturbations_and_pairs_within_each(tmp_path) 
 def test_mlflow_and_compare_break_results_down_by_perturbation(tmp_path) -> None:
     from mlflow import MlflowClient
 
-    from pipeline.compare import compare
+    from pipeline.reporting.compare import compare
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     cfg = load_config(

@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from pipeline import cli
-from pipeline.cluster import check_capacity, probe_address
-from pipeline.config import ConfigError, ExecutorConfig, load_config
+from pipeline.execution.cluster import check_capacity, probe_address
+from pipeline.planning.config import ConfigError, ExecutorConfig, load_config
 from workers.actor import EpisodeWorker, current_node, remote_worker_class
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
@@ -115,7 +115,7 @@ def test_auto_without_a_cluster_names_the_ways_to_get_one(monkeypatch) -> None:
 
 
 def test_inline_episodes_record_the_hostname(tmp_path) -> None:
-    from pipeline.runner import plan_run
+    from pipeline.execution.runner import plan_run
 
     cfg = load_config(CONF / "smoke.yaml", ["executor.kind=inline", "episodes_per_task=1"])
     plan = plan_run(cfg, tmp_path / "run")
@@ -130,7 +130,7 @@ def test_inline_episodes_record_the_hostname(tmp_path) -> None:
 def test_ray_address_without_executor_address_is_explained(monkeypatch) -> None:
     """Inside a Ray job (RAY_ADDRESS set) a config without executor.address would start a
     local Ray against that cluster: refused, naming the fix, before Ray is touched."""
-    from pipeline.cluster import connect
+    from pipeline.execution.cluster import connect
 
     monkeypatch.setenv("RAY_ADDRESS", "10.0.0.1:6379")
     with pytest.raises(ConfigError, match=r"add executor\.address=auto"):
@@ -143,8 +143,8 @@ def test_replacement_waiting_for_a_lost_node_hands_its_episode_on(tmp_path, monk
     the started actor; with no started actor it waits, up to STARTUP_TIMEOUT_S."""
     import ray
 
-    from pipeline.executors import ray_pool
-    from pipeline.runner import plan_run
+    from pipeline.execution.executors import ray_pool
+    from pipeline.execution.runner import plan_run
 
     cfg = load_config(CONF / "smoke.yaml", ["tracking.enabled=false"])
     plan = plan_run(cfg, tmp_path / "run")

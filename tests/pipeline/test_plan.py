@@ -6,8 +6,8 @@ from __future__ import annotations
 import tracemalloc
 from pathlib import Path
 
-from pipeline.config import load_config
-from pipeline.runner import plan_run
+from pipeline.execution.runner import plan_run
+from pipeline.planning.config import load_config
 
 SMOKE = Path(__file__).resolve().parents[2] / "conf" / "smoke.yaml"
 BASE = ["tracking.enabled=false", "executor.kind=inline"]

@@ -6,7 +6,7 @@ import logging
 
 import pytest
 
-from pipeline.progress import EtaModel, Progress
+from pipeline.execution.progress import EtaModel, Progress
 
 
 def test_eta_weights_each_task_by_its_own_episode_time() -> None:

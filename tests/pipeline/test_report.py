@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import json
 
-from pipeline.report import build_report, protocol_line
-from pipeline.store import RunStore
+from pipeline.reporting.markdown import build_report, protocol_line
+from pipeline.results.store import RunStore
 from tests.doubles.rows import result
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.run_log import RunLog
+from pipeline.execution.run_log import RunLog
 
 ROOT = Path(__file__).resolve().parents[2]
 

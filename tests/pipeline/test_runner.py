@@ -7,9 +7,9 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from pipeline.config import ConfigError, load_config
-from pipeline.runner import execute, plan_run
-from pipeline.store import VOLATILE_COLUMNS, RunStore
+from pipeline.execution.runner import execute, plan_run
+from pipeline.planning.config import ConfigError, load_config
+from pipeline.results.store import VOLATILE_COLUMNS, RunStore
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 
@@ -112,7 +112,7 @@ def test_preflight_does_not_import_a_simulator(preset, tmp_path) -> None:
     import sys
 
     code = (
-        "import sys; from pipeline.config import load_config; from pipeline.runner import plan_run;"
+        "import sys; from pipeline.planning.config import load_config; from pipeline.execution.runner import plan_run;"
         f"plan_run(load_config({str(CONF / preset)!r}), {str(tmp_path / 'run')!r});"
         "print(sorted(m for m in ('mujoco', 'robosuite', 'OpenGL') if m in sys.modules))"
     )

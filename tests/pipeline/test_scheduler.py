@@ -15,10 +15,10 @@ import pyarrow.parquet as pq
 import pytest
 from fault_audit import assert_clean, audit
 
-from pipeline.config import load_config
-from pipeline.executors.ray_pool import RayActorPool
-from pipeline.runner import plan_run, run_episodes
-from pipeline.store import RunStore
+from pipeline.execution.executors.ray_pool import RayActorPool
+from pipeline.execution.runner import plan_run, run_episodes
+from pipeline.planning.config import load_config
+from pipeline.results.store import RunStore
 
 ROOT = Path(__file__).resolve().parents[2]
 CONF = ROOT / "conf"

@@ -7,12 +7,12 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.config import load_config
-from pipeline.executors import Outcome
-from pipeline.runner import plan_run
-from pipeline.scheduler import Scheduler
-from pipeline.store import RunStore
-from pipeline.writer import BatchWriter
+from pipeline.execution.executors import Outcome
+from pipeline.execution.runner import plan_run
+from pipeline.execution.scheduler import Scheduler
+from pipeline.execution.writer import BatchWriter
+from pipeline.planning.config import load_config
+from pipeline.results.store import RunStore
 from tests.doubles.executors import ScriptedExecutor
 from workers.episode import SPEC_COLUMNS, EpisodeResult, EpisodeRow, EpisodeSpec
 

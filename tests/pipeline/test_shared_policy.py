@@ -10,10 +10,10 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from pipeline.cluster import check_capacity
-from pipeline.config import ConfigError, load_config
-from pipeline.runner import execute, plan_run
-from pipeline.store import RunStore
+from pipeline.execution.cluster import check_capacity
+from pipeline.execution.runner import execute, plan_run
+from pipeline.planning.config import ConfigError, load_config
+from pipeline.results.store import RunStore
 from tests.pipeline.test_runner import _episodes, _steps
 
 CONF = Path(__file__).resolve().parents[2] / "conf"

@@ -11,8 +11,8 @@ import pytest
 from idr_core.mark import mark
 from idr_core.sidecar import SidecarWriter
 
-from pipeline import sidecar_report
 from pipeline.cli import main
+from pipeline.reporting import sidecar as sidecar_report
 
 
 def _write(directory, episodes: int, envs: int, mode: str, t0: float = 1000.0) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pyarrow.parquet as pq
 import pytest
 
-from pipeline.store import EPISODE_SCHEMA, STEP_SCHEMA, RunStore
+from pipeline.results.store import EPISODE_SCHEMA, STEP_SCHEMA, RunStore
 from tests.doubles import rows
 from workers.episode import EpisodeResult, EpisodeRow
 

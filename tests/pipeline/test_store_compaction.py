@@ -12,7 +12,7 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 
-from pipeline.store import KEY, SOURCES_KEY, RunStore
+from pipeline.results.store import KEY, SOURCES_KEY, RunStore
 from tests.doubles.rows import result
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -71,7 +71,7 @@ def test_compaction_keeps_every_row_in_one_file_per_cell_and_table(tmp_path) -> 
 
 KILLER = """
 import os, pathlib, signal, sys
-from pipeline import store as S
+from pipeline.results import store as S
 k, n = int(sys.argv[2]), [0]
 def step():
     if n[0] == k:
@@ -136,8 +136,8 @@ def test_readers_project_columns(tmp_path) -> None:
 def test_a_cell_is_compacted_as_soon_as_its_last_episode_is_stored(tmp_path) -> None:
     """Cells run one after another: when the E cell's first batch lands, the baseline cell
     (all 6 episodes stored) is already one file per table; a resume changes nothing."""
-    from pipeline.config import load_config
-    from pipeline.runner import plan_run, run_episodes
+    from pipeline.execution.runner import plan_run, run_episodes
+    from pipeline.planning.config import load_config
 
     cfg = load_config(
         ROOT / "conf" / "smoke.yaml",

@@ -8,9 +8,9 @@ import pandas as pd
 import pytest
 from mlflow import MlflowClient
 
-from pipeline.config import ConfigError, load_config
-from pipeline.runner import execute, plan_run
-from pipeline.store import RunStore
+from pipeline.execution.runner import execute, plan_run
+from pipeline.planning.config import ConfigError, load_config
+from pipeline.results.store import RunStore
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 

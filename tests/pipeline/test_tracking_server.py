@@ -18,10 +18,12 @@ from pathlib import Path
 import pytest
 from mlflow import MlflowClient
 
-from pipeline import tracking
-from pipeline.config import load_config
-from pipeline.runner import execute, plan_run
-from pipeline.store import RunStore
+from pipeline.execution.runner import execute, plan_run
+from pipeline.planning.config import load_config
+from pipeline.results.store import RunStore
+from pipeline.rundir import TRACKING_FILE
+from pipeline.tracking import tracker as tracking
+from pipeline.tracking.store import default_uri
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from localcluster import MlflowServer, Postgres, postgres_bin
@@ -114,7 +116,7 @@ def test_postgres_server_like_sqlite_and_survives_going_down(tmp_path, caplog) -
     # the same run on the default SQLite store logs the same things
     sqlite_run = tmp_path / "local" / "run"
     execute(plan_run(load_config(CONF / "smoke.yaml", SMOKE), sqlite_run))
-    local = _shape(tracking.default_uri(sqlite_run))
+    local = _shape(default_uri(sqlite_run))
     assert remote == local
     assert remote["parent"]["status"] == "FINISHED" and remote["episodes_stored"] == 12
     assert {"report.md", "config.yaml"} <= set(remote["artifacts"])
@@ -178,7 +180,7 @@ def test_ui_of_a_remote_server_says_how_to_open_it(tmp_path, capsys) -> None:
 
     from pipeline import cli
 
-    (tmp_path / tracking.TRACKING_FILE).write_text(
+    (tmp_path / TRACKING_FILE).write_text(
         json.dumps({"uri": "http://mlflow.idr-eval.svc.cluster.local:5000", "parent": "p"})
     )
     assert cli.main(["ui", str(tmp_path)]) == 0  # starts nothing: the server has its own UI

@@ -94,9 +94,9 @@ def test_cells_see_common_random_numbers(tmp_path) -> None:
     """Paired cells: at the same task, episode and inference the baseline, diagnose and E
     cells draw the same noise, so diagnose (which executes a_base) retraces the baseline
     exactly and E's first base action equals the baseline's."""
-    from pipeline.config import load_config
-    from pipeline.runner import plan_run, run_episodes
-    from pipeline.store import RunStore
+    from pipeline.execution.runner import plan_run, run_episodes
+    from pipeline.planning.config import load_config
+    from pipeline.results.store import RunStore
 
     cfg = load_config(
         CONF / "smoke.yaml",

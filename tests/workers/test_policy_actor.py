@@ -12,7 +12,7 @@ from workers.envs.fakes import FakeMarkerEnv
 from workers.idr import IDRConfig
 from workers.idr_policy import IDRPolicy
 from workers.observation import image_to_tensor, to_policy_observation
-from workers.policy_actor import RemotePolicy, _image_bytes, policy_actor_class
+from workers.policy_actor import PolicyServiceClient, _image_bytes, policy_actor_class
 
 
 def test_images_cross_as_their_bytes_and_come_back_the_same_floats():
@@ -29,7 +29,7 @@ def test_images_cross_as_their_bytes_and_come_back_the_same_floats():
 def test_concurrent_requests_share_forwards_and_get_their_own_answers(ray_local):
     params = {"chunk_len": 4, "gain": 5.0, "noise_std": 0.2, "delay_s": 0.05}
     actor = policy_actor_class(0.5, 0).remote("fake_marker", params, None, 16, 20.0)
-    remote = RemotePolicy(actor, ray_local.get(actor.describe.remote()))
+    remote = PolicyServiceClient(actor, ray_local.get(actor.describe.remote()))
     env = FakeMarkerEnv()
     observations = [
         to_policy_observation(env.reset("reach", e, 0), env.instruction) for e in range(12)

@@ -45,3 +45,15 @@ def test_an_entry_point_env_keeps_its_own_suite_name() -> None:
 
 def test_the_expert_is_registered_outside_backbones_and_envs() -> None:
     assert BACKBONES["tabletop_expert"].startswith("workers.experts.")
+
+
+def test_an_entry_point_of_the_flat_layout_loads_the_moved_class_with_a_warning():
+    """``module:Class`` strings copied from the flat layout keep working (workers.moved)."""
+    from workers.envs.suites.tabletop.env import TabletopEnv
+
+    with pytest.warns(FutureWarning, match="workers.envs.suites.tabletop.env:TabletopEnv"):
+        cls = load_class({}, "workers.envs.tabletop:TabletopEnv", "env.suite")
+    assert cls is TabletopEnv
+    with pytest.warns(FutureWarning, match="WebsocketBackbone"):
+        cls = load_class({}, "workers.backbones.remote.client:RemoteBackbone", "backbone.kind")
+    assert cls.__name__ == "WebsocketBackbone"

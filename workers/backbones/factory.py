@@ -12,7 +12,7 @@ BACKBONES: dict[str, str] = {
     "noop": "workers.backbones.noop:NoopBackbone",
     "lerobot": "workers.backbones.lerobot.adapter:LerobotBackbone",
     # a policy server speaking openpi's websocket protocol (OpenVLA-OFT, openpi's JAX pi0.5...)
-    "remote": "workers.backbones.remote.client:RemoteBackbone",
+    "remote": "workers.backbones.websocket.client:WebsocketBackbone",
     # env-side: reads the tabletop env's privileged state
     "tabletop_expert": "workers.experts.tabletop:TabletopExpertBackbone",
 }

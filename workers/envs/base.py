@@ -170,7 +170,7 @@ OPTIONAL_ENV_MEMBERS: dict[str, tuple[Any, str]] = {
     ),
     "perturbation_kinds": (
         (),
-        "tuple[str, ...]: the scene perturbations the env applies (workers/envs/perturbations.py; "
+        "tuple[str, ...]: the scene perturbations the env applies (workers/envs/wrappers/perturbations.py; "
         "image kinds need nothing of the env)",
     ),
     "set_perturbation": (

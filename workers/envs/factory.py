@@ -9,14 +9,14 @@ from workers.envs.base import Env, TaskSpec, env_member
 from workers.registry import check_params_bind, load_class
 
 if TYPE_CHECKING:
-    from workers.envs.remote import ServerSpec
+    from workers.envs.server.client import ServerSpec
 
 ENVS: dict[str, str] = {
     "fake_marker": "workers.envs.fakes:FakeMarkerEnv",
-    "tabletop": "workers.envs.tabletop:TabletopEnv",
-    "libero": "workers.envs.libero:LiberoEnv",
-    "calvin": "workers.envs.calvin:CalvinEnv",  # in an env server: env.python (Python 3.11)
-    "simpler": "workers.envs.simpler:SimplerEnv",  # in an env server: env.python (Python 3.11)
+    "tabletop": "workers.envs.suites.tabletop.env:TabletopEnv",
+    "libero": "workers.envs.suites.libero.env:LiberoEnv",
+    "calvin": "workers.envs.suites.calvin.env:CalvinEnv",  # in an env server: env.python (Python 3.11)
+    "simpler": "workers.envs.suites.simpler.env:SimplerEnv",  # in an env server: env.python (Python 3.11)
 }
 
 
@@ -67,15 +67,15 @@ def make_env(
 ) -> Env:
     """The env of ``suite``: in this process, or behind an env server started from
     ``server.python`` (``env.python``); with ``perturbations`` (``none`` and ``kind:severity``
-    texts), its tasks crossed with them (workers/envs/perturbations.py)."""
+    texts), its tasks crossed with them (workers/envs/wrappers/perturbations.py)."""
     if server is not None:
-        from workers.envs.remote import RemoteEnv
+        from workers.envs.server.client import EnvServerClient
 
-        env: Env = RemoteEnv(env_entry(suite), params, server)
+        env: Env = EnvServerClient(env_entry(suite), params, server)
     else:
         env = env_class(suite)(**params)
     if perturbations:
-        from workers.envs.perturbations import PerturbedEnv, parse
+        from workers.envs.wrappers.perturbations import PerturbedEnv, parse
 
         return PerturbedEnv(env, [parse(p) for p in perturbations])  # type: ignore[return-value]
     return env

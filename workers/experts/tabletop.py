@@ -17,7 +17,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from workers.envs.tabletop_layout import BIN_CENTER, CUBE_HALF, TABLE_TOP_Z
+from workers.envs.suites.tabletop.layout import BIN_CENTER, CUBE_HALF, TABLE_TOP_Z
 
 HOVER_Z = TABLE_TOP_Z + 0.12  # eef height for travel (clears the bin walls with a cube held)
 CARRY_Z = 0.09  # a held cube is lifted to this height above the table before it travels

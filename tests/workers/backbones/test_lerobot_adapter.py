@@ -14,7 +14,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 from lerobot_fixtures import build_act, build_diffusion
 
-from pipeline.config import ConfigError
+from pipeline.planning.config import ConfigError
 from workers.backbones.base import Observation
 from workers.idr import IDRConfig
 from workers.idr_policy import IDRPolicy
@@ -252,8 +252,8 @@ def test_camera_and_shape_mismatch_name_both_sides(ckpts) -> None:
 
 
 def test_runner_refuses_a_missing_checkpoint_before_work(tmp_path) -> None:
-    from pipeline.config import ConfigError, load_config
-    from pipeline.runner import plan_run
+    from pipeline.execution.runner import plan_run
+    from pipeline.planning.config import ConfigError, load_config
 
     conf = Path(__file__).resolve().parents[3] / "conf" / "smoke.yaml"
     cfg = load_config(
@@ -326,8 +326,8 @@ def test_a_checkpoint_that_cannot_fit_libero_is_refused_before_work(
 
 
 def test_the_preflight_takes_cameras_size_and_replan_from_the_checkpoint(tmp_path) -> None:
-    from pipeline.config import load_config
-    from pipeline.runner import plan_run
+    from pipeline.execution.runner import plan_run
+    from pipeline.planning.config import load_config
 
     root = Path(__file__).resolve().parents[3]
     ckpt = build_act(tmp_path / "ckpt", image=96, cams=("image", "image2"), n_action_steps=6)

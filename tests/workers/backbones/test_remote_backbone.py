@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from workers.backbones.remote import codec
-from workers.backbones.remote.client import RemoteBackbone, RemoteBackboneError
+from workers.backbones.websocket import codec
+from workers.backbones.websocket.client import RemoteBackboneError, WebsocketBackbone
 from workers.envs.fakes import FakeMarkerEnv
 from workers.idr import IDRConfig
 from workers.idr_policy import IDRPolicy
@@ -124,7 +124,7 @@ def test_codec_round_trips_through_openpi_clients_own():
 def test_idr_through_the_real_openpi_server_package(flags):
     server = Server(*flags, real=True)
     try:
-        backbone = RemoteBackbone(port=server.port, key_map=KEYS)
+        backbone = WebsocketBackbone(port=server.port, key_map=KEYS)
         policy = IDRPolicy(backbone)
         policy.set_config(IDRConfig(mode="E"))
         raw, obs = _obs(2)
@@ -147,7 +147,7 @@ def _obs(e: int = 0):
 
 @pytest.mark.parametrize("server", [(), ("--batch",)], indirect=True, ids=["per-row", "batched"])
 def test_idr_effects_through_the_server_equal_the_closed_form(server):
-    backbone = RemoteBackbone(port=server.port, key_map=KEYS)
+    backbone = WebsocketBackbone(port=server.port, key_map=KEYS)
     policy = IDRPolicy(backbone)
     policy.set_config(IDRConfig(mode="E"))
     raw, obs = _obs()
@@ -163,7 +163,7 @@ def test_idr_effects_through_the_server_equal_the_closed_form(server):
 
 @pytest.mark.parametrize("server", [("--noise",), ("--noise", "--batch")], indirect=True)
 def test_shared_noise_leaves_the_effects_exact_and_is_reproducible(server):
-    backbone = RemoteBackbone(port=server.port, key_map=KEYS)
+    backbone = WebsocketBackbone(port=server.port, key_map=KEYS)
     policy = IDRPolicy(backbone)
     policy.set_config(IDRConfig(mode="E"))
     raw, obs = _obs(1)
@@ -180,13 +180,13 @@ def test_an_unreachable_server_is_one_error_within_seconds():
     with pytest.raises(
         ValueError, match=r"policy server ws://127.0.0.1:\d+ \(backbone.params.host/port\)"
     ):
-        RemoteBackbone.check_params({"port": _free_port(), "timeout_s": 3})
+        WebsocketBackbone.check_params({"port": _free_port(), "timeout_s": 3})
     assert time.monotonic() - t0 < 10
 
 
 @pytest.mark.parametrize("server", [("--fail-on", "2")], indirect=True)
 def test_a_server_traceback_becomes_the_error_in_its_words(server):
-    backbone = RemoteBackbone(port=server.port, key_map=KEYS)
+    backbone = WebsocketBackbone(port=server.port, key_map=KEYS)
     _, obs = _obs()
     backbone.predict_chunk(obs)
     with pytest.raises(RemoteBackboneError, match="injected failure in the fake policy"):
@@ -196,7 +196,7 @@ def test_a_server_traceback_becomes_the_error_in_its_words(server):
 def test_a_server_that_dies_mid_episode_fails_the_call_and_the_next_connects_anew():
     server = Server("--exit-on", "2")
     try:
-        backbone = RemoteBackbone(port=server.port, key_map=KEYS, timeout_s=5)
+        backbone = WebsocketBackbone(port=server.port, key_map=KEYS, timeout_s=5)
         _, obs = _obs()
         backbone.predict_chunk(obs)
         with pytest.raises(RemoteBackboneError):
@@ -225,9 +225,9 @@ def test_the_cli_runs_idr_through_a_policy_server_and_survives_its_crash(tmp_pat
     again, every key stored once, no error row."""
     import threading
 
-    from pipeline.config import load_config
-    from pipeline.runner import execute, plan_run
-    from pipeline.store import RunStore
+    from pipeline.execution.runner import execute, plan_run
+    from pipeline.planning.config import load_config
+    from pipeline.results.store import RunStore
 
     flags = ("--action-dim", "2", "--horizon", "4")
     server = Server(*flags, "--exit-on", "30")
@@ -256,8 +256,8 @@ def test_the_cli_runs_idr_through_a_policy_server_and_survives_its_crash(tmp_pat
 
 
 def test_an_unreachable_server_is_refused_before_any_work(tmp_path):
-    from pipeline.config import ConfigError, load_config
-    from pipeline.runner import plan_run
+    from pipeline.execution.runner import plan_run
+    from pipeline.planning.config import ConfigError, load_config
 
     cfg = load_config(ROOT / "conf" / "smoke.yaml", _remote_overrides(_free_port()))
     with pytest.raises(ConfigError, match=r"policy server ws://127\.0\.0\.1"):
@@ -266,8 +266,8 @@ def test_an_unreachable_server_is_refused_before_any_work(tmp_path):
 
 
 def test_an_action_dim_that_does_not_fit_the_env_is_refused_naming_both_sides(tmp_path):
-    from pipeline.config import ConfigError, load_config
-    from pipeline.runner import plan_run
+    from pipeline.execution.runner import plan_run
+    from pipeline.planning.config import ConfigError, load_config
 
     server = Server()  # 7-d actions; the fake marker env takes 2-d ones
     try:
@@ -278,7 +278,7 @@ def test_an_action_dim_that_does_not_fit_the_env_is_refused_naming_both_sides(tm
         ):
             plan_run(cfg, tmp_path / "run")
         # undeclared, a reply of another size than declared is the episode's error, named
-        backbone = RemoteBackbone(port=server.port, key_map=KEYS, action_dim=2)
+        backbone = WebsocketBackbone(port=server.port, key_map=KEYS, action_dim=2)
         with pytest.raises(RemoteBackboneError, match="answered 7-d actions but declared 2"):
             backbone.predict_chunk(_obs()[1])
     finally:
@@ -291,9 +291,9 @@ def test_the_tabletop_through_the_real_openpi_server_with_its_dry_run(tmp_path):
     """The CLI's pre-flight sends a dry run shaped like the tabletop's observation (two 96 px
     cameras, 8-d state): a 2-d answer is refused naming both sides; a 7-d one runs, and IDR's
     effects are in the rows."""
-    from pipeline.config import ConfigError, load_config
-    from pipeline.runner import execute, plan_run
-    from pipeline.store import RunStore
+    from pipeline.execution.runner import execute, plan_run
+    from pipeline.planning.config import ConfigError, load_config
+    from pipeline.results.store import RunStore
 
     def cfg(port: int):
         return load_config(

@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.config import ConfigError, load_config
-from pipeline.runner import plan_run
-from workers.envs import calvin
-from workers.envs.calvin import (
+from pipeline.execution.runner import plan_run
+from pipeline.planning.config import ConfigError, load_config
+from workers.envs.suites.calvin import env as calvin
+from workers.envs.suites.calvin.env import (
     CalvinEnv,
     binarize_gripper,
     condition_seed,
@@ -153,10 +153,10 @@ def test_the_preset_is_refused_before_any_work_without_its_interpreter(tmp_path,
 
 
 SERVER_SIDE = [
-    "workers/envs/wire.py",
-    "workers/envs/server.py",
+    "workers/envs/server/wire.py",
+    "workers/envs/server/serve.py",
     "workers/envs/base.py",
-    "workers/envs/calvin.py",
+    "workers/envs/suites/calvin/env.py",
     "workers/io_spec.py",
     "workers/registry.py",
 ]

@@ -17,13 +17,13 @@ import numpy as np
 import pytest
 
 from workers.envs.base import check_env
-from workers.envs.calvin import load_sequences
-from workers.envs.remote import RemoteEnv, ServerSpec
+from workers.envs.server.client import EnvServerClient, ServerSpec
+from workers.envs.suites.calvin.env import load_sequences
 
 ROOT = Path(__file__).resolve().parents[3]
 PYTHON = Path(os.environ.get("IDR_CALVIN_PYTHON", ROOT / ".venv-calvin" / "bin" / "python"))
 CHECKOUT = os.environ.get("CALVIN_ENV")
-ENTRY = "workers.envs.calvin:CalvinEnv"
+ENTRY = "workers.envs.suites.calvin.env:CalvinEnv"
 
 if not PYTHON.exists():
     pytestmark = pytest.mark.skip(reason=f"no CALVIN interpreter at {PYTHON}: make setup-calvin")
@@ -38,7 +38,7 @@ OPEN, CLOSE = 1.0, -1.0
 
 @pytest.fixture(scope="module")
 def env():
-    e = RemoteEnv(ENTRY, {"renderer": "tiny"}, SERVER)
+    e = EnvServerClient(ENTRY, {"renderer": "tiny"}, SERVER)
     yield e
     e.close()
 
@@ -107,7 +107,7 @@ def test_a_sequence_does_not_depend_on_what_ran_before(env):
         again = run()
         assert all(np.array_equal(a, b) for a, b in zip(first[0], again[0], strict=True))
         assert np.array_equal(first[1], again[1])
-    fresh = RemoteEnv(ENTRY, {"renderer": "tiny"}, SERVER)  # a new process: no history at all
+    fresh = EnvServerClient(ENTRY, {"renderer": "tiny"}, SERVER)  # a new process: no history at all
     try:
         fresh.reset("scene_D", 7, 0)
         states = [fresh.step(a).state for a in actions]
@@ -120,7 +120,7 @@ _SAME_AS_ENV_STEP = textwrap.dedent(
     """
     import json, sys
     import numpy as np
-    from workers.envs.calvin import CalvinEnv, binarize_gripper
+    from workers.envs.suites.calvin.env import CalvinEnv, binarize_gripper
     env = CalvinEnv(renderer="tiny")
     actions = np.random.default_rng(1).uniform(-1, 1, (30, 7))
     env.reset("scene_D", 3, 0)
@@ -228,9 +228,9 @@ def test_the_smoke_preset_runs_end_to_end(tmp_path):
     chain aggregation reports Avg Len 0, the renderer and the env server are recorded."""
     import pandas as pd
 
-    from pipeline.config import load_config
-    from pipeline.runner import execute, plan_run
-    from pipeline.store import RunStore
+    from pipeline.execution.runner import execute, plan_run
+    from pipeline.planning.config import load_config
+    from pipeline.results.store import RunStore
 
     cfg = load_config(
         ROOT / "conf" / "calvin_smoke.yaml",

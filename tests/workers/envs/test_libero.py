@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 
 from workers.envs.base import check_env
-from workers.envs.libero import LiberoEnv, quat_to_axis_angle, state_vector
-from workers.envs.libero_assets import LiberoSetupError, ensure_config_env
+from workers.envs.suites.libero.assets import LiberoSetupError, ensure_config_env
+from workers.envs.suites.libero.env import LiberoEnv, quat_to_axis_angle, state_vector
 
 SIZE = 64
 # The openpi / OpenVLA-OFT protocol, written out here so a change of the defaults shows up.
@@ -105,7 +105,7 @@ def gl_renders(monkeypatch) -> list[int]:
 @pytest.mark.slow
 def test_suite_tasks_lists_40_tasks_without_importing_mujoco() -> None:
     code = (
-        "import json, sys; from workers.envs.libero import LiberoEnv;"
+        "import json, sys; from workers.envs.suites.libero.env import LiberoEnv;"
         "ts = LiberoEnv.suite_tasks();"
         "print(json.dumps({'tasks': [[t.task_id, t.suite, t.instruction, t.max_steps, t.name]"
         " for t in ts], 'sim_imported': [m for m in ('mujoco', 'robosuite') if m in sys.modules]}))"
@@ -183,7 +183,7 @@ def test_unknown_task_id_lists_valid_ones() -> None:
 
 def test_missing_config_names_the_fix(tmp_path, monkeypatch) -> None:
     monkeypatch.setenv("LIBERO_CONFIG_PATH", str(tmp_path))
-    with pytest.raises(LiberoSetupError, match=r"python -m workers.envs.libero_assets"):
+    with pytest.raises(LiberoSetupError, match=r"python -m workers.envs.suites.libero.assets"):
         LiberoEnv.suite_tasks()
 
 
@@ -314,7 +314,7 @@ def test_scene_perturbations_and_bit_identical_none(env) -> None:
     """Scene kinds on LIBERO: the table (libero_10/0: the living room's unnamed table mesh) recoloured
     through its material, the objects jittered; ``none`` right after them is the unperturbed
     episode to the bit. Reuses the module's simulator (the last task above)."""
-    from workers.envs.perturbations import PerturbedEnv, parse
+    from workers.envs.wrappers.perturbations import PerturbedEnv, parse
 
     task = "libero_10/0"
     kinds = ["table_color:0.8", "init_jitter:0.02"]

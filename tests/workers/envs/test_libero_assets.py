@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from workers.envs.libero_assets import LiberoSetupError, ensure_config_env, prepare
+from workers.envs.suites.libero.assets import LiberoSetupError, ensure_config_env, prepare
 
 
 def test_prepare_is_idempotent_and_points_at_packaged_assets(tmp_path) -> None:
@@ -28,7 +28,7 @@ def test_missing_config_names_the_fix(tmp_path, monkeypatch) -> None:
     monkeypatch.setenv("LIBERO_CONFIG_PATH", str(tmp_path / "nowhere"))
     with pytest.raises(
         LiberoSetupError,
-        match=r"config.yaml is missing: run `python -m workers.envs.libero_assets`",
+        match=r"config.yaml is missing: run `python -m workers.envs.suites.libero.assets`",
     ):
         ensure_config_env()
 
@@ -36,7 +36,7 @@ def test_missing_config_names_the_fix(tmp_path, monkeypatch) -> None:
 @pytest.mark.slow
 def test_libero_imports_offline_without_prompting() -> None:
     code = (
-        "from workers.envs.libero_assets import ensure_config_env; ensure_config_env();"
+        "from workers.envs.suites.libero.assets import ensure_config_env; ensure_config_env();"
         "from libero.libero import benchmark, get_libero_path;"
         "d = benchmark.get_benchmark_dict();"
         "print([d[s]().n_tasks for s in ('libero_spatial','libero_object','libero_goal','libero_10')]);"

@@ -34,8 +34,8 @@ def _lerobot_episodes(ckpt: Path) -> tuple[list[dict], dict]:
 
 
 def _our_episodes(ckpt: Path, tmp_path: Path) -> tuple[list[dict], list, dict]:
-    from pipeline.config import config_from_dict
-    from pipeline.runner import plan_run
+    from pipeline.execution.runner import plan_run
+    from pipeline.planning.config import config_from_dict
     from workers.actor import EpisodeWorker
 
     cfg = config_from_dict(
@@ -118,7 +118,7 @@ def test_float32_state_arithmetic_is_lerobots(tmp_path) -> None:
     import torch
     from lerobot.processor.env_processor import LiberoProcessorStep
 
-    from workers.envs.libero_protocol import quat_to_axis_angle_f32
+    from workers.envs.suites.libero.protocol import quat_to_axis_angle_f32
 
     rng = np.random.default_rng(0)
     quats = rng.normal(size=(500, 4))

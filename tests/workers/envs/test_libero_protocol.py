@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from workers.envs.libero import LiberoEnv
-from workers.envs.libero_protocol import (
+from workers.envs.suites.libero.env import LiberoEnv
+from workers.envs.suites.libero.protocol import (
     PROTOCOLS,
     LiberoProtocol,
     quat_to_axis_angle,

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from workers.envs.perturbations import (
+from workers.envs.wrappers.perturbations import (
     KINDS,
     Perturbation,
     PerturbedImages,
@@ -64,8 +64,8 @@ def test_tabletop_scene_kinds_and_bit_identical_none() -> None:
     from workers.rendering import configure_rendering
 
     configure_rendering()
-    from workers.envs.perturbations import PerturbedEnv
-    from workers.envs.tabletop import TabletopEnv
+    from workers.envs.suites.tabletop.env import TabletopEnv
+    from workers.envs.wrappers.perturbations import PerturbedEnv
 
     def episode(env, task_id: str, n: int = 3) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         obs = env.reset(task_id, 2, 0)

@@ -19,11 +19,11 @@ import pytest
 
 from workers.envs.base import check_env
 from workers.envs.fakes import FakeMarkerEnv
-from workers.envs.remote import (
+from workers.envs.server.client import (
+    EnvServerClient,
     EnvServerDied,
     EnvServerStartError,
     EnvServerTimeout,
-    RemoteEnv,
     ServerSpec,
     probe_server,
 )
@@ -50,7 +50,7 @@ def _gone(pid: int, within_s: float = 5.0) -> bool:
 
 @pytest.fixture
 def remote():
-    env = RemoteEnv("workers.envs.fakes:FakeMarkerEnv", {}, SERVER)
+    env = EnvServerClient("workers.envs.fakes:FakeMarkerEnv", {}, SERVER)
     yield env
     env.close()
 
@@ -91,7 +91,7 @@ def test_errors_of_the_env_keep_their_type_and_say_where(remote):
 
 def test_images_are_rendered_lazily_per_camera_and_only_while_current(tmp_path):
     log = tmp_path / "renders.log"
-    env = RemoteEnv(FAULTY, {"render_log": str(log)}, SERVER)
+    env = EnvServerClient(FAULTY, {"render_log": str(log)}, SERVER)
     try:
         obs = env.reset("reach", 0, 0)
         for _ in range(3):  # open-loop steps: nobody reads their images
@@ -106,7 +106,7 @@ def test_images_are_rendered_lazily_per_camera_and_only_while_current(tmp_path):
 
 
 def test_a_stale_image_cannot_be_read_after_a_step(tmp_path):
-    env = RemoteEnv(FAULTY, {"render_log": str(tmp_path / "r.log")}, SERVER)
+    env = EnvServerClient(FAULTY, {"render_log": str(tmp_path / "r.log")}, SERVER)
     try:
         obs = env.reset("reach", 0, 0)
         env.step(np.zeros(2, dtype=np.float32))
@@ -117,7 +117,7 @@ def test_a_stale_image_cannot_be_read_after_a_step(tmp_path):
 
 
 def test_a_server_that_dies_mid_episode_is_an_error_of_the_server_with_its_output():
-    env = RemoteEnv(FAULTY, {"exit_at_step": 3}, SERVER)
+    env = EnvServerClient(FAULTY, {"exit_at_step": 3}, SERVER)
     pid = env.pid
     try:
         env.reset("reach", 0, 0)
@@ -133,7 +133,7 @@ def test_a_server_that_dies_mid_episode_is_an_error_of_the_server_with_its_outpu
 
 
 def test_a_server_that_hangs_is_killed_after_the_timeout():
-    env = RemoteEnv(FAULTY, {"hang_at_step": 2}, ServerSpec(sys.executable, timeout_s=1.0))
+    env = EnvServerClient(FAULTY, {"hang_at_step": 2}, ServerSpec(sys.executable, timeout_s=1.0))
     pid = env.pid
     try:
         env.reset("reach", 0, 0)
@@ -157,10 +157,10 @@ def test_close_is_idempotent_and_leaves_no_process(remote):
 _PARENT = textwrap.dedent(
     """
     import sys, threading, time
-    from workers.envs.remote import RemoteEnv, ServerSpec
+    from workers.envs.server.client import EnvServerClient, ServerSpec
     box = {}
     def start():
-        box["env"] = RemoteEnv("workers.envs.fakes:FakeMarkerEnv", {}, ServerSpec(sys.executable))
+        box["env"] = EnvServerClient("workers.envs.fakes:FakeMarkerEnv", {}, ServerSpec(sys.executable))
     if sys.argv[1] == "thread":  # no PR_SET_PDEATHSIG from a thread: the watchdog must do it
         t = threading.Thread(target=start); t.start(); t.join()
     else:
@@ -196,25 +196,27 @@ def test_an_interpreter_without_the_wire_packages_is_refused_clearly(tmp_path):
     bare.write_text(f'#!/bin/sh\nexec {sys.executable} -S -I "$@"\n')  # no site-packages
     bare.chmod(0o755)
     with pytest.raises(EnvServerStartError, match="needs numpy and msgpack"):
-        RemoteEnv("workers.envs.fakes:FakeMarkerEnv", {}, ServerSpec(str(bare), timeout_s=10))
+        EnvServerClient("workers.envs.fakes:FakeMarkerEnv", {}, ServerSpec(str(bare), timeout_s=10))
 
 
 def test_a_server_of_another_protocol_version_is_refused(tmp_path):
     other = tmp_path / "other-version-python"
     code = (
-        "import sys, workers.envs.wire as w; w.PROTOCOL_VERSION = 99; "
-        "from workers.envs.server import main; sys.exit(main(sys.argv[1:]))"
+        "import sys, workers.envs.server.wire as w; w.PROTOCOL_VERSION = 99; "
+        "from workers.envs.server.serve import main; sys.exit(main(sys.argv[1:]))"
     )
-    # called as `python -m workers.envs.server --fd ...`: drop the -m and the module name
+    # called as `python -m workers.envs.server.serve --fd ...`: drop the -m and the module name
     other.write_text(f"#!/bin/sh\nshift 2\nexec {sys.executable} -c '{code}' \"$@\"\n")
     other.chmod(0o755)
     with pytest.raises(EnvServerStartError, match="speaks protocol version 99"):
-        RemoteEnv("workers.envs.fakes:FakeMarkerEnv", {}, ServerSpec(str(other), timeout_s=10))
+        EnvServerClient(
+            "workers.envs.fakes:FakeMarkerEnv", {}, ServerSpec(str(other), timeout_s=10)
+        )
 
 
 def test_a_missing_interpreter_is_refused():
     with pytest.raises(EnvServerStartError, match="cannot start the env server"):
-        RemoteEnv("workers.envs.fakes:FakeMarkerEnv", {}, ServerSpec("/nonexistent/python"))
+        EnvServerClient("workers.envs.fakes:FakeMarkerEnv", {}, ServerSpec("/nonexistent/python"))
 
 
 def test_probe_runs_the_envs_runtime_check_in_the_server(tmp_path):

@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.config import ConfigError, load_config
-from pipeline.runner import plan_run
-from workers.envs import simpler_protocol as sp
-from workers.envs import vulkan_cpu
-from workers.envs.simpler import SimplerEnv, missing_assets
+from pipeline.execution.runner import plan_run
+from pipeline.planning.config import ConfigError, load_config
+from workers.envs.suites.simpler import protocol as sp
+from workers.envs.suites.simpler import vulkan_cpu
+from workers.envs.suites.simpler.env import SimplerEnv, missing_assets
 
 ROOT = Path(__file__).resolve().parents[3]
 FAKE = ROOT / "tests" / "doubles" / "fake_simpler_sim.py"
@@ -245,7 +245,7 @@ def test_through_an_env_server(tmp_path) -> None:
     """The adapter in an env server (this Python standing in for .venv-simpler): the wire
     carries the task list with its episode counts, the observation and the success rule."""
     from workers.envs.factory import make_env
-    from workers.envs.remote import ServerSpec
+    from workers.envs.server.client import ServerSpec
 
     root = _checkout(tmp_path, [DRAWER])
     log = tmp_path / "fake.jsonl"

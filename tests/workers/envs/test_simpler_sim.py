@@ -13,14 +13,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from workers.envs import vulkan_cpu
 from workers.envs.base import check_env
-from workers.envs.remote import RemoteEnv, ServerSpec, probe_server
+from workers.envs.server.client import EnvServerClient, ServerSpec, probe_server
+from workers.envs.suites.simpler import vulkan_cpu
 
 ROOT = Path(__file__).resolve().parents[3]
 PYTHON = Path(os.environ.get("IDR_SIMPLER_PYTHON", ROOT / ".venv-simpler" / "bin" / "python"))
 CHECKOUT = os.environ.get("MS2_REAL2SIM")
-ENTRY = "workers.envs.simpler:SimplerEnv"
+ENTRY = "workers.envs.suites.simpler.env:SimplerEnv"
 OPEN_TOP = "google_robot_open_top_drawer/visual_matching"
 
 if not PYTHON.exists():
@@ -35,7 +35,7 @@ else:
 
 @pytest.fixture(scope="module")
 def env():
-    e = RemoteEnv(
+    e = EnvServerClient(
         ENTRY, {"maniskill2_real2sim": CHECKOUT, "shader": "ibl"}, ServerSpec(str(PYTHON), 300)
     )
     yield e

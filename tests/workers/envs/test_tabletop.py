@@ -13,7 +13,7 @@ def env():
     from workers.rendering import configure_rendering
 
     configure_rendering()
-    from workers.envs.tabletop import TabletopEnv
+    from workers.envs.suites.tabletop.env import TabletopEnv
 
     e = TabletopEnv(image_size=64, cameras=("agentview", "wrist"))
     yield e
@@ -155,7 +155,7 @@ def test_images_render_only_when_read(env) -> None:
     ],
 )
 def test_bad_params(kwargs, pattern) -> None:
-    from workers.envs.tabletop import TabletopEnv
+    from workers.envs.suites.tabletop.env import TabletopEnv
 
     with pytest.raises(ValueError, match=pattern):
         TabletopEnv(**kwargs)
@@ -173,7 +173,7 @@ def test_an_episode_does_not_depend_on_the_one_before(env) -> None:
     """Paired cells and resumed runs rely on (task, episode, seed) fixing the whole trajectory,
     whichever episode an actor ran before on the same scene (robosuite's gripper keeps its
     integrated command across soft resets unless the scene clears it)."""
-    from workers.envs.tabletop import TabletopEnv
+    from workers.envs.suites.tabletop.env import TabletopEnv
 
     def roll(e, episode: int, gripper: float) -> np.ndarray:
         e.reset("pick_color", episode, 0)

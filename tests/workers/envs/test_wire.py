@@ -8,7 +8,7 @@ import struct
 import numpy as np
 import pytest
 
-from workers.envs import wire
+from workers.envs.server import wire
 
 
 @pytest.mark.parametrize(

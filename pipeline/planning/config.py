@@ -1,0 +1,464 @@
+"""Run configuration: typed, validated before any work starts, saved with every run.
+
+A config is YAML (see ``conf/``) validated by pydantic models that forbid unknown keys.
+Command-line overrides are dotted ``key=value`` pairs whose values are parsed as YAML
+(``executor.workers=4``, ``grid=[{mode: [baseline, E]}]``). Every validation error names
+the field and what is allowed, in one message (:class:`ConfigError`).
+"""
+
+from __future__ import annotations
+
+import difflib
+import hashlib
+import json
+import re
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from pipeline.errors import ConfigError
+from pipeline.planning.grid import INTERVENTION_KEYS, Cell, expand_grid
+from workers.idr import GUIDANCES, MODES
+from workers.interventions import SPACES, STRATEGIES
+
+
+class _Model(BaseModel):
+    # inf / nan in a typed number (gpus_per_worker=.inf) is always a mistake
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+DEFAULT_REPLAN_STEPS = 4  # actions per inference where neither the config nor the env says
+
+
+class BackboneConfig(_Model):
+    kind: str = Field(description="backbone type, e.g. fake_marker, lerobot")
+    params: dict[str, Any] = Field(default_factory=dict, description="passed to the backbone")
+    replan_steps: int | Literal["chunk"] | None = Field(
+        default=None,
+        description="actions executed per inference: a number, 'chunk' (the whole chunk the "
+        "backbone returns: a lerobot checkpoint's n_action_steps), or None: the env "
+        f"protocol's rule (LIBERO openpi 5, lerobot 'chunk'), else {DEFAULT_REPLAN_STEPS}",
+    )
+    batched: bool | None = Field(default=None, description="one 3B forward (None: if it can)")
+
+    @field_validator("replan_steps")
+    @classmethod
+    def _replan_positive(cls, v: int | str | None) -> int | str | None:
+        if isinstance(v, int) and v < 1:
+            raise ValueError(f"must be >= 1, 'chunk' or null (got {v})")
+        return v
+
+
+class EnvConfig(_Model):
+    suite: str = Field(description="env suite, e.g. fake_marker, tabletop, libero_spatial")
+    tasks: list[str] | None = Field(default=None, description="task ids; None = all of the suite")
+    params: dict[str, Any] = Field(default_factory=dict)
+    python: str | None = Field(
+        default=None,
+        min_length=1,
+        description="interpreter of an env server: the simulator runs in a child process of "
+        "each actor started from it (another venv, e.g. .venv-calvin/bin/python for PyBullet on "
+        "Python 3.11); None: in the actor's own process. Results are the same either way",
+    )
+    server_timeout_s: float = Field(
+        default=120.0,
+        gt=0,
+        description="env server: a start or a request taking longer is killed (an actor-level "
+        "fault: the server is restarted and the episode run again)",
+    )
+    perturbations: list[Any] = Field(
+        default_factory=lambda: ["none"],
+        description="every task crossed with these: none (the task as it is) or KIND:SEVERITY "
+        "(or {kind, severity}), e.g. [none, camera_shift:0.12, image_noise:0.3]; a task of "
+        "env.tasks may name its own: pick_color@light_dim:0.4",
+    )
+
+    @field_validator("perturbations")
+    @classmethod
+    def _perturbations(cls, values: list[Any]) -> list[str]:
+        from workers.envs.wrappers.perturbations import parse
+
+        if not values:
+            raise ValueError("give at least one (none: the tasks as they are)")
+        out = []
+        for v in values:
+            p = parse(v)
+            out.append("none" if p is None else p.text)
+        if len(set(out)) != len(out):
+            raise ValueError(f"{out} lists a perturbation twice")
+        return out
+
+
+class InterventionSettings(_Model):
+    strategy: Literal["zero", "mean", "gaussian"] = "zero"
+    image_space: Literal["raw", "normalized"] = "raw"
+    state_space: Literal["raw", "normalized"] = "raw"
+    noise_scale: float = Field(default=0.5, ge=0)
+
+
+class ExecutorConfig(_Model):
+    kind: Literal["ray", "inline"] = "ray"
+    workers: int = Field(default=2, ge=1, description="actors (each holds a backbone and an env)")
+    cpus_per_worker: float = Field(default=1.0, gt=0)
+    gpus_per_worker: float = Field(default=0.0, ge=0)
+    address: str | None = Field(default=None, description="existing Ray cluster; None = local")
+    max_in_flight: int | None = Field(
+        default=None, ge=1, description="episodes running at once; None: one per worker"
+    )
+    max_attempts: int = Field(default=3, ge=1, description="tries per episode before giving up")
+    oversubscribe: bool = Field(
+        default=False, description="allow more local worker CPUs than this machine has"
+    )
+    flush_every: int = Field(default=8, ge=1, description="episodes per Parquet batch")
+    episode_timeout_s: float | None = Field(
+        default=None,
+        gt=0,
+        description="wall-clock limit per episode: a hung episode's actor is replaced and the "
+        "episode retried (inline: SIGALRM, main thread only); None: no limit",
+    )
+    # -- where the model lives
+    policy: Literal["in_actor", "shared"] = Field(
+        default="in_actor",
+        description="in_actor: each actor holds a backbone and an env (the default; small "
+        "policies, one machine); shared: actors hold only envs and send each inference to "
+        "policy actors that batch many episodes' requests into one forward (a GPU per policy "
+        "actor, or executor.actors_per_gpu of them per GPU); the same results",
+    )
+    policy_actors: int = Field(default=1, ge=1, description="shared: policy actors")
+    envs_per_worker: int = Field(
+        default=1,
+        ge=1,
+        description="shared: envs each actor holds, each episode in a thread of its own, so one "
+        "steps while another waits for its inference (in_actor: 1)",
+    )
+    policy_cpus: float = Field(default=1.0, gt=0, description="shared: CPUs per policy actor")
+    max_batch: int = Field(
+        default=32, ge=1, description="shared: requests (episodes) per forward at most"
+    )
+    batch_wait_ms: float = Field(
+        default=2.0,
+        ge=0,
+        description="shared: how long a policy actor gathers requests for one forward",
+    )
+    # -- placement on a cluster (pipeline.execution.cluster checks it against the nodes before any work)
+    actors_per_gpu: int | None = Field(
+        default=None,
+        ge=1,
+        description="actors sharing one GPU: each asks for 1/n of a GPU (instead of "
+        "gpus_per_worker); None: gpus_per_worker decides",
+    )
+    resources: dict[str, float] = Field(
+        default_factory=dict,
+        description="custom Ray resources per actor, e.g. {node_type_gpu: 0.01} to pin actors "
+        "to nodes started with --resources (a local run declares them on its one node)",
+    )
+    placement: Literal["default", "spread"] = Field(
+        default="default",
+        description="spread: actors on as many nodes as possible (Ray's SPREAD strategy); "
+        "default: Ray's (fill a node, then the next)",
+    )
+    autoscaling: bool = Field(
+        default=False,
+        description="the cluster adds nodes on demand (Ray autoscaler, KubeRay): do not refuse "
+        "a run that the nodes up now cannot hold",
+    )
+
+    @field_validator("resources")
+    @classmethod
+    def _custom_resources(cls, v: dict[str, float]) -> dict[str, float]:
+        for name, amount in v.items():
+            if name in ("CPU", "GPU", "memory", "object_store_memory"):
+                raise ValueError(
+                    f"{name!r} is not a custom resource: use cpus_per_worker / gpus_per_worker / "
+                    "actors_per_gpu"
+                )
+            if not (amount > 0 and amount == amount and amount != float("inf")):
+                raise ValueError(f"resources.{name}: must be a finite number > 0 (got {amount})")
+        return v
+
+    @model_validator(mode="after")
+    def _one_gpu_setting(self) -> ExecutorConfig:
+        if self.actors_per_gpu is not None and self.gpus_per_worker not in (
+            0,
+            1 / self.actors_per_gpu,
+        ):
+            raise ValueError(
+                f"actors_per_gpu={self.actors_per_gpu} and gpus_per_worker="
+                f"{self.gpus_per_worker:g} disagree: set one of them"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _envs_need_a_shared_policy(self) -> ExecutorConfig:
+        if self.envs_per_worker > 1 and self.policy != "shared":
+            raise ValueError(
+                f"envs_per_worker={self.envs_per_worker} needs policy=shared: in_actor, an "
+                "actor's one backbone serves one episode at a time"
+            )
+        return self
+
+    @property
+    def gpu_share(self) -> float:
+        """GPUs asked for by one actor (fractional when actors share a GPU)."""
+        return 1 / self.actors_per_gpu if self.actors_per_gpu else self.gpus_per_worker
+
+    def actor_demand(self) -> dict[str, float]:
+        """What one (episode) actor asks the cluster for, as Ray resource names; with a shared
+        policy it holds only an env: no GPU."""
+        gpu = 0.0 if self.policy == "shared" else self.gpu_share
+        return {"CPU": self.cpus_per_worker, "GPU": gpu, **self.resources}
+
+    def actor_groups(self) -> list[tuple[str, int, dict[str, float]]]:
+        """(what, how many, what each asks for) of every kind of actor the run starts."""
+        groups = [("executor.workers", self.workers, self.actor_demand())]
+        if self.policy == "shared":
+            demand = {"CPU": self.policy_cpus, "GPU": self.gpu_share}
+            groups.insert(0, ("executor.policy_actors", self.policy_actors, demand))
+        return groups
+
+    def local_cpus(self) -> float:
+        """CPUs a local Ray is started with: every actor's."""
+        return sum(n * d["CPU"] for _, n, d in self.actor_groups())
+
+
+class TrackingConfig(_Model):
+    enabled: bool = True
+    uri: str | None = Field(
+        default=None, description="MLflow URI; None = sqlite in the output root"
+    )
+    experiment: str = "idr-eval"
+    reconnect_wait_s: float = Field(
+        default=60.0,
+        ge=0,
+        description="a tracking server that goes down mid-run: at the end of the run, wait this "
+        "long for it to come back before leaving MLflow to a rerun (the Parquet files are "
+        "written either way)",
+    )
+
+
+class RunConfig(_Model):
+    name: str = Field(
+        default="run", description="run name; the default RUN_DIR is <output_root>/<name>"
+    )
+    backbone: BackboneConfig
+    env: EnvConfig
+    episodes_per_task: int = Field(default=1, ge=1)
+    seed: int = Field(default=0, ge=0, le=2**63 - 1)  # stored as int64
+    idr: dict[str, Any] = Field(
+        default_factory=dict, description="IDR parameters shared by all cells (alpha, beta, ...)"
+    )
+    intervention: InterventionSettings = InterventionSettings()
+    grid: list[dict[str, Any]] = Field(
+        default_factory=lambda: [{"mode": ["baseline", "E"]}],
+        description="groups of parameter lists: zipped within a group, crossed across groups",
+    )
+    executor: ExecutorConfig = ExecutorConfig()
+    tracking: TrackingConfig = TrackingConfig()
+    output_root: str = "runs"
+    max_cells: int = Field(
+        default=16,
+        ge=1,
+        description="a grid with more cells is refused unless confirmed (`idr-eval run --yes`)",
+    )
+    max_episodes: int = Field(
+        default=100_000,
+        ge=1,
+        description="a plan of more episodes (cells x tasks x episodes_per_task) is refused "
+        "before it is built, unless confirmed (`idr-eval run --yes`)",
+    )
+
+    @field_validator("name")
+    @classmethod
+    def _name_is_one_path_component(cls, v: str) -> str:
+        if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}", v):
+            raise ValueError(
+                f"{v!r} must be one path component (letters, digits, '.', '_', '-'; no '/' or "
+                "'..'): the default RUN_DIR is <output_root>/<name>"
+            )
+        return v
+
+    @field_validator("idr")
+    @classmethod
+    def _idr_keys(cls, v: dict[str, Any]) -> dict[str, Any]:
+        from pipeline.planning.grid import CELL_KEYS
+
+        for key in v:
+            if key not in CELL_KEYS:
+                raise ValueError(f"unknown IDR parameter {key!r}; allowed: {sorted(CELL_KEYS)}")
+        if "tau" in v:
+            from pipeline.planning.grid import parse_tau
+
+            parse_tau(v["tau"])  # a clear error for a misspelt calibrated form
+        return v
+
+    @model_validator(mode="after")
+    def _cells_valid(self) -> RunConfig:
+        cells = self.cells()  # raises ValueError naming the bad grid entry
+        calibrated = [c for c in cells if c.calibrated_tau is not None]
+        if calibrated and not any(c.idr.mode == "diagnose" for c in cells):
+            raise ValueError(
+                "tau: calibrated needs a diagnose cell in the grid to measure E_img on "
+                "(add mode diagnose, e.g. grid=[{mode: [diagnose, E]}])"
+            )
+        for c in calibrated:
+            if c.calibration_source(cells) is None:
+                iv = ", ".join(f"{k}={v}" for k, v in c.params().items() if k in INTERVENTION_KEYS)
+                raise ValueError(
+                    f"cell {c.cell_id!r} has tau: {c.calibrated_tau.text} but no diagnose cell "
+                    f"measures its intervention ({iv}, eps={c.idr.eps:g}); the effects depend on "
+                    "it: put mode diagnose in a group crossed with the intervention parameters, "
+                    "e.g. grid=[{mode: [diagnose, E]}, {strategy: [zero, mean]}]"
+                )
+        return self
+
+    def cells(self) -> list[Cell]:
+        return expand_grid(self.grid, base={**self.idr, **self.intervention.model_dump()})
+
+    def fingerprint(self) -> str:
+        """Hash of what determines results; a run dir may be resumed only with the same one."""
+        keep = self.model_dump(
+            exclude={
+                "executor": True,
+                "tracking": True,
+                "output_root": True,
+                "name": True,
+                "max_cells": True,
+                "max_episodes": True,
+                # where the simulator runs does not change results (in-process or env server)
+                "env": {"python", "server_timeout_s"},
+            }
+        )
+        if keep["env"].get("perturbations") == ["none"]:  # the default: as before it existed
+            del keep["env"]["perturbations"]
+        return hashlib.sha256(json.dumps(keep, sort_keys=True, default=str).encode()).hexdigest()[
+            :16
+        ]
+
+
+ALLOWED_VALUES = {"mode": MODES, "guidance": GUIDANCES, "strategy": STRATEGIES, "space": SPACES}
+
+
+def _format_errors(err: ValidationError, source: str) -> str:
+    lines = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"]) or "<root>"
+        msg = e["msg"].removeprefix("Value error, ")
+        if e["type"] == "extra_forbidden":
+            parent = RunConfig
+            for part in e["loc"][:-1]:
+                field = parent.model_fields.get(str(part)) if isinstance(parent, type) else None
+                ann = getattr(field, "annotation", None)
+                parent = ann if isinstance(ann, type) and issubclass(ann, BaseModel) else None
+            known = list(parent.model_fields) if parent else []
+            close = difflib.get_close_matches(str(e["loc"][-1]), known, n=1)
+            hint = (
+                f"; did you mean {close[0]!r}?"
+                if close
+                else (f"; known keys: {known}" if known else "")
+            )
+            msg = f"unknown key{hint}"
+        elif e["type"] == "missing":
+            msg = "required field is missing"
+        elif "input" in e and e["type"] not in ("value_error",):
+            msg = f"{msg} (got {e['input']!r})"
+        lines.append(f"  {loc}: {msg}")
+    return f"invalid config {source}:\n" + "\n".join(lines)
+
+
+class _NoAliasLoader(yaml.SafeLoader):
+    """YAML without aliases: a 1 KB file of nested aliases ("billion laughs") expands to
+    gigabytes once copied or validated; a config has no need for them. Refused while parsing,
+    before anything is copied."""
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise ConfigError(
+                f"YAML alias *{event.anchor} at line {event.start_mark.line + 1}: aliases (and "
+                "anchors used through them) are not accepted in configs, since nested ones "
+                "expand exponentially; write the values out"
+            )
+        return super().compose_node(parent, index)
+
+
+def safe_load_yaml(text: str) -> Any:
+    """``yaml.safe_load`` without aliases (ConfigError on one)."""
+    loader = _NoAliasLoader(text)  # a SafeLoader: no Python objects are ever constructed
+    try:
+        return loader.get_single_data()
+    finally:
+        loader.dispose()
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    if "=" not in text:
+        raise ConfigError(
+            f"override {text!r} must look like key.sub=value (e.g. executor.workers=4)"
+        )
+    key, raw = text.split("=", 1)
+    path = key.strip().split(".")
+    if not all(path):
+        raise ConfigError(f"override {text!r} has an empty key part")
+    try:
+        value = safe_load_yaml(raw)
+    except yaml.YAMLError as e:
+        why = getattr(e, "problem", None) or str(e).splitlines()[0]  # ReaderError: no .problem
+        raise ConfigError(f"override {text!r}: value is not valid YAML ({why})") from None
+    return path, value
+
+
+def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
+    data = json.loads(json.dumps(data))  # deep copy of plain data
+    for text in overrides:
+        path, value = parse_override(text)
+        node = data
+        for part in path[:-1]:
+            child = node.get(part)
+            if child is None:
+                child = node[part] = {}
+            if not isinstance(child, dict):
+                raise ConfigError(f"override {text!r}: {part!r} is not a section")
+            node = child
+        node[path[-1]] = value
+    return data
+
+
+def load_config(path: str | Path, overrides: list[str] | None = None) -> RunConfig:
+    """Read a YAML config, apply dotted overrides, validate. Raises ConfigError."""
+    path = Path(path)
+    if not path.is_file():
+        presets = (
+            sorted(p.name for p in Path("conf").glob("*.yaml")) if Path("conf").is_dir() else []
+        )
+        close = difflib.get_close_matches(path.name, presets, n=1)
+        hint = (
+            f"; did you mean conf/{close[0]}?"
+            if close
+            else (f"; presets: {presets}" if presets else "")
+        )
+        raise ConfigError(f"config file {str(path)!r} not found{hint}")
+    try:
+        data = safe_load_yaml(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise ConfigError(f"config {path} is not valid YAML: {e}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"config {path} must be a mapping of keys, got {type(data).__name__}")
+    return config_from_dict(apply_overrides(data, overrides or []), source=str(path))
+
+
+def config_from_dict(data: dict[str, Any], source: str = "<dict>") -> RunConfig:
+    try:
+        return RunConfig.model_validate(data)
+    except ValidationError as e:
+        raise ConfigError(_format_errors(e, source)) from None
+
+
+class _NoAliasDumper(yaml.SafeDumper):
+    def ignore_aliases(self, data: Any) -> bool:
+        return True  # a value used twice is written twice: the file loads without aliases
+
+
+def dump_config(cfg: RunConfig) -> str:
+    return yaml.dump(cfg.model_dump(mode="json"), Dumper=_NoAliasDumper, sort_keys=False)

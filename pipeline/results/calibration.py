@@ -1,0 +1,128 @@
+"""tau calibration, the paper's rule: tau := mean E_img of the diagnose cell over its steps.
+
+The diagnose cell executes the base action (with shared noise it is also the baseline) and
+records E_img at every inference; cells with ``tau: calibrated`` are scheduled after it, with
+that mean as their threshold. The value is written to RUN_DIR/calibration.json, logged to
+MLflow, and recorded in every episode row (column ``tau``).
+
+Calibration is per backbone x suite (a run has one backbone; a LIBERO run spans several
+suites, and each gets its own tau), and per calibrated cell: its spec may ask for a multiple
+or a percentile (``calibrated*2``, ``calibrated_q90``); the statistic is of the guided effect
+(E_img, or E_prop under ``guidance: proprio``, since the gate thresholds the guided effect);
+and the source is the diagnose cell with the cell's intervention settings.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+import pyarrow.compute as pc
+
+from pipeline.planning.grid import Cell
+from pipeline.results.store import RunStore
+from pipeline.rundir import CALIBRATION_FILE, write_text_atomic
+
+
+def mean_e_img(store: RunStore, cell_id: str) -> tuple[float, int]:
+    """Mean E_img over all stored inferences of ``cell_id`` and how many there were."""
+    steps = store.steps(columns=["cell_id", "e_img"])
+    steps = steps.filter(pc.and_(pc.equal(steps["cell_id"], cell_id), pc.is_valid(steps["e_img"])))
+    n = steps.num_rows
+    if n == 0:
+        return math.nan, 0
+    return float(pc.mean(steps["e_img"]).as_py()), n
+
+
+def effects_by_suite(store: RunStore, cell_id: str) -> pd.DataFrame:
+    """Per inference of ``cell_id``: backbone, suite, e_img, e_prop (suite from its episode)."""
+    steps = store.steps(columns=["cell_id", "task_id", "episode_index", "e_img", "e_prop"])
+    steps = steps.filter(pc.equal(steps["cell_id"], cell_id)).to_pandas()
+    eps = store.episodes(columns=["cell_id", "task_id", "episode_index", "backbone", "suite"])
+    eps = eps.filter(pc.equal(eps["cell_id"], cell_id)).to_pandas()
+    df = steps.merge(eps, on=["cell_id", "task_id", "episode_index"], how="inner")
+    return df[["backbone", "suite", "e_img", "e_prop"]]
+
+
+def calibrate(store: RunStore, cells: list[Cell]) -> dict[str, Any]:
+    """tau of every calibrated cell, per suite, from its diagnose cell's stored inferences.
+
+    Returns (and writes to RUN_DIR/calibration.json) ``{"cells": {cell_id: {"spec", "effect",
+    "source_cell", "tau": {suite: value}}}, "groups": [per diagnose cell x backbone x suite:
+    inferences, mean E_img, mean E_prop]}`` plus, for the first diagnose cell pooled over
+    suites, ``tau`` (mean E_img), ``inferences`` and ``source_cell``.
+    Raises RuntimeError when a diagnose cell stored no effects for a suite.
+    """
+    calibrated = [c for c in cells if c.calibrated_tau is not None]
+    sources = {c.cell_id: c.calibration_source(cells) for c in calibrated}
+    missing = [cid for cid, src in sources.items() if src is None]
+    if missing:
+        raise RuntimeError(f"tau calibration: no diagnose cell for {missing}")
+    effects = {
+        src.cell_id: effects_by_suite(store, src.cell_id)
+        for src in sources.values()
+        if src is not None
+    }
+    diagnose = [c.cell_id for c in cells if c.idr.mode == "diagnose"]
+    groups: list[dict[str, Any]] = []
+    for source, df in effects.items():
+        df = df.dropna(subset=["e_img"])
+        if df.empty:
+            raise RuntimeError(
+                f"tau calibration: the diagnose cell {source!r} stored no E_img (all its episodes "
+                "errored?); see the errors in the report"
+            )
+        for (backbone, suite), g in df.groupby(["backbone", "suite"], sort=True):
+            groups.append(
+                {
+                    "source_cell": source,
+                    "backbone": backbone,
+                    "suite": suite,
+                    "inferences": len(g),
+                    "e_img_mean": float(g["e_img"].astype(float).mean()),
+                    "e_prop_mean": float(g["e_prop"].astype(float).mean()),
+                }
+            )
+    per_cell: dict[str, Any] = {}
+    for c in calibrated:
+        spec, src = c.calibrated_tau, sources[c.cell_id]
+        assert spec is not None and src is not None
+        effect = "e_img" if c.idr.guidance == "visual" else "e_prop"
+        df = effects[src.cell_id].dropna(subset=[effect])
+        taus = {
+            str(suite): spec.resolve(g[effect].to_numpy(dtype=float))
+            for suite, g in df.groupby("suite", sort=True)
+        }
+        bad = {k: v for k, v in taus.items() if not math.isfinite(v)}
+        if not taus or bad:
+            raise RuntimeError(
+                f"tau calibration of {c.cell_id!r}: no finite {effect} from {src.cell_id!r} "
+                f"for suites {sorted(bad) or 'any'}"
+            )
+        per_cell[c.cell_id] = {
+            "spec": spec.text,
+            "effect": effect,
+            "source_cell": src.cell_id,
+            "tau": taus,
+        }
+    first = diagnose[0] if diagnose else next(iter(effects), "")
+    tau, n = mean_e_img(store, first) if first else (math.nan, 0)
+    result = {
+        "rule": "tau := statistic of the diagnose cell's guided effect per backbone x suite",
+        "tau": tau,
+        "inferences": n,
+        "source_cell": first,
+        "cells": per_cell,
+        "groups": groups,
+    }
+    write_text_atomic(Path(store.run_dir) / CALIBRATION_FILE, json.dumps(result, indent=2) + "\n")
+    return result
+
+
+def read_calibration(run_dir: str | Path) -> dict[str, Any] | None:
+    """RUN_DIR/calibration.json, or None when the run calibrated nothing."""
+    path = Path(run_dir) / CALIBRATION_FILE
+    return json.loads(path.read_text()) if path.is_file() else None

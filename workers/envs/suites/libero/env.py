@@ -1,0 +1,515 @@
+"""LIBERO (hf-libero) as an Env: the four 10-task suites in one env, under a named protocol.
+
+Task ids are ``"<suite>/<index>"`` (``libero_spatial/0`` .. ``libero_10/9``), the index being the
+position in the suite's default task order. ``protocol`` (``openpi``, the default, or
+``lerobot``; see ``workers.envs.suites.libero.protocol``) pins the seed rule, max steps, no-ops, render
+size, replan rule and state arithmetic; the params below override single figures of it:
+
+- ``reset(task_id, episode_index, seed)``: seed the env (``seed``, or ``seed + episode_index``
+  under ``lerobot``), reset it, set the suite's fixed init state ``episode_index % n_init_states``,
+  then run ``num_noops`` no-op actions ``[0, 0, 0, 0, 0, 0, -1]`` so objects settle; the no-ops
+  do not count as steps.
+- Episode ends at success (LIBERO's own goal check) or after the suite's max steps.
+- Images rendered at ``image_size`` px and flipped 180 degrees (both axes): robosuite renders
+  with OpenGL's bottom-up rows, and policies trained on openpi / OFT / lerobot data see the
+  flipped view. Rendered lazily by default (``lazy_render``): a camera costs ~110-170 ms per
+  render on OSMesa and open-loop chunk steps read no image, so a camera is rendered only when
+  its image is read, with the same pixels robosuite's camera observables give (see
+  ``LiberoEnv.__init__``).
+- State (8,): end-effector position (3), end-effector orientation as axis-angle (3),
+  gripper finger positions (2). Action (7,): OSC_POSE deltas (6) + gripper (-1 open, +1 close).
+
+One simulator (``OffScreenRenderEnv``, 5-20 s to build) is kept for the current task and reused
+across its episodes; switching task closes it and builds the next. ``suite_tasks`` lists tasks
+from LIBERO's benchmark tables without importing MuJoCo; ``describe`` says what the env gives a
+policy (for the pre-flight check against a checkpoint).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import io
+import os
+import types
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from workers.envs.base import EnvObservation, LazyImages, TaskSpec, checked_action
+from workers.envs.mujoco.stability import mujoco_instability, raise_if_unstable
+from workers.envs.suites.libero.assets import LiberoSetupError, ensure_config_env
+from workers.envs.suites.libero.protocol import (
+    CAMERAS,
+    PROTOCOLS,
+    SUITES,
+    SUPPORTED_SUITES,
+    LiberoProtocol,
+    quat_to_axis_angle,
+    state_vector,
+)
+from workers.io_spec import ROBOSUITE_CAMERA_ALIASES, EnvIO
+
+__all__ = [
+    "CAMERAS",
+    "PROTOCOLS",
+    "SUITES",
+    "SUPPORTED_SUITES",
+    "LiberoEnv",
+    "LiberoProtocol",
+    "quat_to_axis_angle",
+    "state_vector",
+]
+
+NOOP_ACTION: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0)
+SETUP_COMMAND = "python -m workers.envs.suites.libero.assets"
+# Lazy rendering snapshots the simulator when robosuite samples this observable. All observables
+# sample at control_hz in lockstep, once per control step, at a substep that is not always the
+# last (the 24th of 25 here, by the phase of their timers); the camera observables did the same.
+SNAPSHOT_OBSERVABLE = "robot0_eef_pos"
+
+
+class _Frame:
+    """The simulator as robosuite's observables sampled it: what a camera observable rendered.
+    Its ``MjData`` goes back to the pool when the last observation holding it is dropped."""
+
+    def __init__(self, pool: _Snapshots, sim: Any, data: Any) -> None:
+        self.pool, self.sim, self.data = pool, sim, data
+
+    def __del__(self) -> None:
+        self.pool.recycle(self.sim, self.data)
+
+
+class _Snapshots:
+    """``MjData`` copies of one simulator taken at robosuite's sampling moments; ``latest`` is
+    the last one. Copies go into recycled ``MjData``: each holds LIBERO's 1.3 GB (virtual)
+    arena, too much to allocate per step; the pool stays at 2-3 while observations are dropped
+    a step or two after they are made. No reference back to the env."""
+
+    def __init__(self) -> None:
+        self.latest: _Frame | None = None
+        self._sim: Any = None
+        self._free: list[Any] = []
+
+    def take(self, sim: Any) -> None:
+        import mujoco
+
+        if sim is not self._sim:  # a hard reset built a new simulator: start a new pool
+            self._sim, self._free = sim, []
+        model = sim.model._model
+        data = self._free.pop() if self._free else mujoco.MjData(model)
+        mujoco.mj_copyData(data, model, sim.data._data)
+        self.latest = _Frame(self, sim, data)
+
+    def recycle(self, sim: Any, data: Any) -> None:
+        if sim is self._sim and len(self._free) < 4:
+            self._free.append(data)
+
+    def clear(self) -> None:
+        self.latest, self._sim, self._free = None, None, []
+
+
+def _libero_benchmark_module() -> Any:
+    """``libero.libero.benchmark``, imported only after its config is in place (never prompts)."""
+    ensure_config_env()
+    from libero.libero import benchmark
+
+    return benchmark
+
+
+@functools.cache
+def _suite(name: str) -> Any:
+    """The suite's Benchmark object (task table; no simulator). Its constructor prints the task
+    order on every call: built once per process, quietly."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        return _libero_benchmark_module().get_benchmark(name)()
+
+
+def _init_states(bench: Any, index: int) -> np.ndarray:
+    """The task's fixed init states, as hf-libero's ``get_task_init_states`` finds them but
+    loaded without running pickled code (hf-libero unpickles them with weights_only=False)."""
+    from libero.libero import get_libero_path
+
+    from workers.safe_load import load_numpy_array
+
+    task = bench.get_task(index)
+    path = os.path.join(get_libero_path("init_states"), task.problem_folder, task.init_states_file)
+    return load_numpy_array(path)
+
+
+def _table_geoms(model: Any) -> list[str | int]:
+    """The geoms ``table_color`` tints: the visible (group 1) geoms of the scene's table, named
+    by the geom or its body (``table_visual`` and legs; the living room's unnamed mesh on
+    ``living_room_table_col``), else the floor (LIBERO-Object's scenes have no table)."""
+    import mujoco
+
+    def name(kind: Any, i: int) -> str:
+        return mujoco.mj_id2name(model, kind, i) or ""
+
+    table: list[str | int] = [
+        g
+        for g in range(model.ngeom)
+        if model.geom_group[g] == 1
+        and "table"
+        in name(mujoco.mjtObj.mjOBJ_GEOM, g)
+        + name(mujoco.mjtObj.mjOBJ_BODY, int(model.geom_bodyid[g]))
+    ]
+    return table or ["floor"]
+
+
+def _list_tasks(protocol: LiberoProtocol) -> list[TaskSpec]:
+    ensure_config_env()  # every time: the suite tables below are cached per process
+    return [
+        TaskSpec(
+            task_id=f"{suite}/{i}",
+            name=task.name,
+            max_steps=protocol.max_steps[suite],
+            suite=suite,
+            instruction=task.language,
+        )
+        for suite in protocol.suites
+        for i, task in enumerate(_suite(suite).tasks)
+    ]
+
+
+def _check_assets() -> None:
+    """hf-libero downloads its assets when ``libero/libero/assets`` is absent: refuse instead."""
+    ensure_config_env()
+    import libero.libero
+
+    scenes = Path(libero.libero.__file__).parent / "assets" / "scenes"
+    if not scenes.is_dir():
+        raise LiberoSetupError(
+            f"LIBERO assets are missing ({scenes} not found) and nothing may download: "
+            f"run `{SETUP_COMMAND}` (part of `make setup`)"
+        )
+
+
+class LiberoEnv:
+    """The LIBERO suites behind the Env protocol (see the module docstring for the protocol)."""
+
+    suite = "libero"
+    action_dim = 7
+    state_dim = 8
+    gripper_index = 6  # -1 open, +1 close
+    #: scene perturbations this suite applies (workers/envs/wrappers/perturbations.py): the main
+    #: camera is ``agentview``; ``table_color`` tints the table (the floor in scenes without,
+    #: see ``_table_geoms``)
+    perturbation_kinds = ("camera_shift", "camera_pitch", "light_dim", "table_color", "init_jitter")
+
+    def __init__(
+        self,
+        protocol: str = "openpi",
+        suites: Sequence[str] = SUITES,
+        image_size: int | None = None,
+        cameras: Sequence[str] = ("agentview", "wrist"),
+        num_noops: int | None = None,
+        max_steps: Mapping[str, int] | None = None,
+        flip_images: bool = True,
+        control_hz: float = 20.0,
+        lazy_render: bool = True,
+    ) -> None:
+        """``protocol`` names the evaluation convention (``openpi`` or ``lerobot``); the other
+        params left at None take its figures, and given ones override them (logged with the
+        run): ``max_steps`` maps suite -> steps per suite, ``image_size`` None renders at the
+        protocol's size (``lerobot``: the checkpoint's, filled in by the driver's pre-flight;
+        360 without a checkpoint). ``cameras=()`` renders nothing (state-only observations: for
+        physics benchmarks; ``check_env`` requires at least one camera). The env's random seed
+        comes from ``reset``'s ``seed`` by the protocol's rule.
+
+        ``lazy_render`` (default): observations carry ``LazyImages``; a camera is rendered when
+        its image is first read, so reset (its no-ops included) and steps whose images nobody
+        reads render nothing. The pixels equal the eager path's (tested with ``array_equal``):
+        robosuite samples its observables at a substep inside the control step, not after the
+        last one, so rendering the final state would show a different arm pose. Instead the
+        simulator is built without camera observables, ``MjData`` is copied (<1 ms) each time
+        robosuite samples ``SNAPSHOT_OBSERVABLE``, and a read renders that copy with the call
+        the camera sensor makes (``sim.render``, same context, MSAA, lights, size and
+        ``macros.IMAGE_CONVENTION``). Images must be read before the next ``reset`` or
+        ``close`` (RuntimeError after). ``lazy_render=False``: robosuite renders every camera
+        on every step and on reset (its camera observables), as before."""
+        self.protocol = LiberoProtocol.from_params(
+            protocol, suites, image_size, cameras, num_noops, max_steps, flip_images, control_hz
+        )
+        self.lazy_render = bool(lazy_render)
+        self._snapshots = _Snapshots()
+        self.cameras = self.protocol.cameras
+        self.control_hz = self.protocol.control_hz
+        self._specs = {t.task_id: t for t in _list_tasks(self.protocol)}
+        self._sim: Any = None  # OffScreenRenderEnv of self._sim_task
+        self._sim_task: str | None = None
+        self._init_states: np.ndarray | None = None
+        self._task: TaskSpec | None = None
+        self._init_index = 0
+        self._perturbation: Any = None  # for the next reset (set_perturbation)
+        self._perturber: Any = None  # MujocoScenePerturber of the model last perturbed
+        self._init_suffix = ""  # the layout perturbation, in init_state_id
+        self._steps = 0
+        self._success = False
+
+    @classmethod
+    def _protocol_of(cls, params: dict[str, Any]) -> LiberoProtocol:
+        """The validated protocol of constructor params (``lazy_render`` changes nothing; a
+        subclass's own params are left to its constructor)."""
+        import inspect
+
+        sig = inspect.signature(LiberoEnv.__init__)
+        own = {  # a subclass's own named params (a test double's fault settings)
+            name
+            for name, p in inspect.signature(cls.__init__).parameters.items()
+            if p.kind is not p.VAR_KEYWORD and name not in sig.parameters
+        }
+        bound = sig.bind(None, **{k: v for k, v in params.items() if k not in own})
+        bound.apply_defaults()
+        args = dict(bound.arguments)
+        for name in ("self", "lazy_render"):
+            args.pop(name)
+        return LiberoProtocol.from_params(**args)
+
+    @classmethod
+    def suite_tasks(cls, **params: Any) -> list[TaskSpec]:
+        """The tasks these constructor params give, from LIBERO's tables: no simulator, no
+        MuJoCo import."""
+        return _list_tasks(cls._protocol_of(params))
+
+    @classmethod
+    def describe(cls, **params: Any) -> EnvIO:
+        """What an env of these params gives a policy, with its protocol (no simulator)."""
+        p = cls._protocol_of(params)
+        return EnvIO(
+            cameras=p.cameras,
+            image_size=p.image_size,
+            state_dim=cls.state_dim,
+            action_dim=cls.action_dim,
+            camera_aliases={c: ROBOSUITE_CAMERA_ALIASES[c] for c in p.cameras},
+            image_size_from_checkpoint=p.image_size_from_checkpoint,
+            replan=p.replan,
+            protocol=p.record(),
+        )
+
+    def tasks(self) -> list[TaskSpec]:
+        return list(self._specs.values())
+
+    # -- simulator lifecycle -------------------------------------------------------------
+
+    def _spec(self, task_id: str) -> TaskSpec:
+        spec = self._specs.get(task_id)
+        if spec is None:
+            raise ValueError(f"task_id={task_id!r} unknown; valid: {list(self._specs)}")
+        return spec
+
+    def _open(self, spec: TaskSpec) -> None:
+        """Make the simulator of ``spec`` current, reusing it when it already is."""
+        if self._sim is not None and self._sim_task == spec.task_id:
+            return
+        self._close_sim()
+        suite, index = spec.suite, int(spec.task_id.rsplit("/", 1)[1])
+        bench = _suite(suite)
+        self._init_states = _init_states(bench, index)
+        self._sim = self._make_sim(bench.get_task_bddl_file_path(index), spec.max_steps)
+        self._sim_task = spec.task_id
+
+    def _make_sim(self, bddl_file: str, max_steps: int) -> Any:
+        from workers.rendering import configure_rendering
+
+        configure_rendering()  # before robosuite/MuJoCo are imported (no-op if already chosen)
+        _check_assets()
+        from libero.libero.envs import OffScreenRenderEnv
+
+        p = self.protocol
+        if not os.path.isfile(bddl_file):
+            raise LiberoSetupError(f"{bddl_file} is missing: reinstall hf-libero")
+        lazy = self.lazy_render and bool(p.cameras)
+        sim = OffScreenRenderEnv(
+            bddl_file_name=bddl_file,
+            camera_names=[CAMERAS[c][0] for c in p.cameras],
+            camera_heights=p.image_size,
+            camera_widths=p.image_size,
+            # lazy: no camera observables, so robosuite renders nothing by itself (not on
+            # build, reset, no-ops or steps); the offscreen context is made all the same
+            use_camera_obs=bool(p.cameras) and not lazy,
+            control_freq=p.control_hz,
+            # robosuite refuses to step past its horizon (default 1000): make room for the
+            # longest episode this protocol allows.
+            horizon=max(1000, max_steps + p.num_noops),
+        )
+        if lazy:
+            self._install_snapshot(sim.env)
+        return sim
+
+    def _install_snapshot(self, inner: Any) -> None:
+        """Copy ``MjData`` whenever robosuite samples ``SNAPSHOT_OBSERVABLE``: the moments its
+        camera observables rendered at. A filter doubles as an observer (robosuite's own
+        words) and survives hard resets, which replace only sensors."""
+        snapshots = self._snapshots
+
+        def snapshot(value: Any) -> Any:
+            snapshots.take(inner.sim)
+            return value
+
+        inner.modify_observable(SNAPSHOT_OBSERVABLE, "filter", snapshot)
+
+    def _close_sim(self) -> None:
+        self._snapshots.clear()
+        self._perturber = None
+        sim, self._sim, self._sim_task = self._sim, None, None
+        if sim is not None:
+            sim.close()
+
+    def close(self) -> None:
+        """Idempotent."""
+        self._close_sim()
+        self._task = None
+
+    # -- episodes -------------------------------------------------------------------------
+
+    def reset(self, task_id: str, episode_index: int, seed: int) -> EnvObservation:
+        spec = self._spec(task_id)
+        if episode_index < 0:
+            raise ValueError(f"episode_index must be >= 0, got {episode_index}")
+        self._task = None  # an exception below leaves no half-reset episode behind
+        self._open(spec)
+        assert self._init_states is not None
+        self._init_index = episode_index % len(self._init_states)
+        self._sim.seed(self.protocol.reset_seed(seed, episode_index))
+        self._sim.reset()
+        mujoco_instability(self._sim.env.sim.data._data)  # what an earlier episode left
+        p, self._init_suffix = self._perturbation, ""
+        self._perturb_scene(p)
+        raw = self._sim.set_init_state(self._init_states[self._init_index])
+        if p is not None and p.kind == "init_jitter":
+            raw = self._jitter(p, task_id, episode_index, seed)
+        for _ in range(self.protocol.num_noops):
+            raw, _, _, _ = self._sim.step(list(NOOP_ACTION))
+        # a scene that diverges while settling is as unscorable as one that diverges later
+        raise_if_unstable(
+            self._sim.env.sim.data._data,
+            f"in the no-ops after reset of {task_id} episode {episode_index}",
+        )
+        self._task, self._steps, self._success = spec, 0, False
+        return self._observe(raw)
+
+    # -- perturbations (workers/envs/wrappers/perturbations.py) ---------------------------------------
+
+    def set_perturbation(self, p: Any) -> None:
+        """The scene perturbation of the next reset (None: the unperturbed scene)."""
+        if p is not None and p.kind not in self.perturbation_kinds:
+            raise ValueError(f"libero cannot apply {p.kind}; it applies {self.perturbation_kinds}")
+        self._perturbation = p
+
+    def _perturb_scene(self, p: Any) -> None:
+        """Camera, light and table kinds on the model ``reset`` left; before the init state is
+        set, whose forward pass places camera and lights. LIBERO's hard reset builds a new
+        model each time; a model that outlived a perturbed episode is restored first."""
+        model = self._sim.env.sim.model._model
+        if self._perturber is not None and self._perturber.model is model:
+            self._perturber.restore()
+        if p is None or p.kind == "init_jitter":
+            return
+        if self._perturber is None or self._perturber.model is not model:
+            from workers.envs.wrappers.perturbations import MujocoScenePerturber
+
+            self._perturber = MujocoScenePerturber(
+                model, CAMERAS["agentview"][0], _table_geoms(model)
+            )
+        self._perturber.apply(p, self._sim.env.sim.data._data)
+
+    def _jitter(self, p: Any, task_id: str, episode_index: int, seed: int) -> Any:
+        """Every free object (the robot has a fixed base) moved by up to the severity in x and
+        y from its fixed init state, seeded; the no-ops that follow let it settle."""
+        import mujoco
+
+        from workers.envs.wrappers.perturbations import join_task
+
+        sim = self._sim.env.sim
+        model, qpos = sim.model._model, sim.data._data.qpos
+        rng = p.rng(seed, join_task(task_id, p), episode_index)
+        for j in range(model.njnt):
+            if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE:
+                adr = model.jnt_qposadr[j]
+                qpos[adr : adr + 2] += rng.uniform(-p.severity, p.severity, 2)
+        self._init_suffix = join_task("", p)
+        return self._sim.set_init_state(self._sim.get_sim_state())
+
+    def step(self, action: np.ndarray) -> EnvObservation:
+        a = checked_action(action, self.action_dim, self._task is not None, self.done)
+        raw, _, goal_reached, _ = self._sim.step(a)
+        self._steps += 1
+        # MuJoCo resets a diverged simulation and carries on: an error row, not a failure
+        raise_if_unstable(
+            self._sim.env.sim.data._data, f"at step {self._steps} of {self._task.task_id}"
+        )
+        self._success = bool(goal_reached)  # hf-libero's done is its goal check
+        return self._observe(raw)
+
+    def _observe(self, raw: Mapping[str, np.ndarray]) -> EnvObservation:
+        images: Mapping[str, np.ndarray]
+        if self.lazy_render and self.cameras:
+            frame = self._snapshots.latest
+            assert frame is not None, "robosuite sampled no observable"
+            images = LazyImages(self.cameras, functools.partial(self._render, frame))
+        else:
+            images = {cam: self._finish(raw[CAMERAS[cam][1]]) for cam in self.cameras}
+        return EnvObservation(images=images, state=state_vector(raw, self.protocol.float32_state))
+
+    def _finish(self, img: np.ndarray) -> np.ndarray:
+        """An image as robosuite's camera observable gives it -> as observations carry it."""
+        return np.ascontiguousarray(img[::-1, ::-1] if self.protocol.flip_images else img)
+
+    def _render(self, frame: _Frame, cam: str) -> np.ndarray:
+        """``cam`` of ``frame`` as robosuite's camera sensor (``robot_env._create_camera_sensors``)
+        renders it, then ``_finish``: the same ``sim.render`` call on the same context, with
+        ``MjData`` swapped for the frame's copy, the only thing the render reads from it."""
+        if self._sim is None or frame.sim is not self._sim.env.sim:
+            raise RuntimeError(
+                f"camera {cam!r}: this observation is from before the last reset() or close(), "
+                "and its images were not read in time: its simulator is gone"
+            )
+        from robosuite import macros
+        from robosuite.utils.mjcf_utils import IMAGE_CONVENTION_MAPPING
+
+        size = self.protocol.image_size
+        ctx = frame.sim._render_context_offscreen
+        ctx.gl_ctx.make_current()  # another env in this process may have made its own current
+        live = ctx.data
+        ctx.data = types.SimpleNamespace(_data=frame.data)
+        try:
+            img = frame.sim.render(camera_name=CAMERAS[cam][0], width=size, height=size)
+        finally:
+            ctx.data = live
+        return self._finish(img[:: IMAGE_CONVENTION_MAPPING[macros.IMAGE_CONVENTION]])
+
+    # -- status ---------------------------------------------------------------------------
+
+    @property
+    def task(self) -> TaskSpec:
+        if self._task is None:
+            raise RuntimeError("no task: call reset() first")
+        return self._task
+
+    @property
+    def instruction(self) -> str:
+        return str(self.task.instruction)
+
+    @property
+    def init_state_id(self) -> str:
+        """Which fixed init state this episode started from, e.g. ``libero_spatial/0/init3``."""
+        return f"{self.task.task_id}/init{self._init_index}{self._init_suffix}"
+
+    @property
+    def success(self) -> bool:
+        return self._success
+
+    @property
+    def done(self) -> bool:
+        return self._task is not None and (self._success or self._steps >= self._task.max_steps)
+
+    @property
+    def subtasks_done(self) -> int:
+        return int(self._success)
+
+    @property
+    def steps(self) -> int:
+        return self._steps

@@ -1,0 +1,422 @@
+"""The ``tabletop`` suite: tasks that need the image and the instruction, on robosuite.
+
+Panda with OSC_POSE control at 20 Hz; action 7-d (end-effector position and axis-angle
+deltas in [-1, 1], gripper -1 open / +1 close); state 8-d like LIBERO's (end-effector
+position, axis-angle, two gripper joint positions); an agent-view and a wrist camera.
+
+- ``pick_color``: red, green and blue cubes at random places; "pick up the <color> cube" with
+  the color drawn per episode. Without the image the cube cannot be found; without the
+  instruction the wrong one is picked two times out of three.
+- ``stack_color``: "stack the <a> cube on the <b> cube" (a, b drawn per episode).
+- ``organize``: five cubes and a bin; "put the <c1>, <c2>, <c3>, <c4> and <c5> cubes in the
+  bin, in that order": a chain of five subtasks, CALVIN-style. The episode stops at the
+  first failure: a cube put in the bin out of order, or a subtask not done within
+  ``subtask_budget`` steps.
+
+Initial states come from (seed, episode index, task), so every cell of a grid sees the same
+scenes. The env also exposes privileged simulator state (``EnvObservation.privileged``) for
+the scripted experts; policies never see it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+
+from workers.envs.base import EnvObservation, LazyImages, LazyState, TaskSpec
+from workers.envs.mujoco.stability import mujoco_instability, raise_if_unstable
+from workers.envs.suites.tabletop.layout import BIN_CENTER, BIN_INNER_HALF, CUBE_HALF, TABLE_TOP_Z
+from workers.io_spec import ROBOSUITE_CAMERA_ALIASES, EnvIO
+
+SUITE = "tabletop"
+CAMERAS = {"agentview": "agentview", "wrist": "robot0_eye_in_hand"}
+DEFAULT_MAX_STEPS = {"pick_color": 120, "stack_color": 220, "organize": 1000}
+DEFAULT_SUBTASK_BUDGET = 200
+LIFT_HEIGHT = 0.05  # pick_color: the cube's bottom this far above the table counts as picked
+
+
+@dataclass
+class _Episode:
+    task_id: str
+    colors: tuple[str, ...]
+    cube_xy: np.ndarray
+    instruction: str
+    targets: list[int]  # pick: [cube]; stack: [top, bottom]; organize: the order
+    steps: int = 0
+    subtasks_done: int = 0
+    last_progress_step: int = 0
+    success: bool = False
+    failed: str | None = None  # why the episode ended early (text)
+    failed_cause: str | None = None  # the same as a stable code: wrong_order | subtask_budget
+    init_state_id: str = ""
+    scene_key: str = ""  # which scene: the task's, or the task's with distractors
+
+    def __post_init__(self) -> None:
+        self.scene_key = self.scene_key or self.task_id
+
+    placed: set[int] = field(default_factory=set)
+
+
+def _sample_xy(
+    rng: np.random.Generator,
+    n: int,
+    x: tuple[float, float],
+    y: tuple[float, float],
+    min_dist: float,
+) -> np.ndarray:
+    """n points in the box, pairwise at least min_dist apart (rejection sampling)."""
+    for _ in range(1000):
+        pts = np.stack([rng.uniform(*x, size=n), rng.uniform(*y, size=n)], axis=1)
+        d = np.linalg.norm(pts[:, None] - pts[None], axis=-1) + np.eye(n) * 1e9
+        if d.min() >= min_dist:
+            return pts
+    raise RuntimeError("could not place the cubes apart; widen the placement range")
+
+
+def _free_spots(rng: np.random.Generator, taken: np.ndarray, n: int, with_bin: bool) -> np.ndarray:
+    """n (x, y) spots on the table at least a cube's spacing from the task's cubes, each
+    other and (organize) the bin: where the distractors go."""
+    spots: list[np.ndarray] = []
+    for _ in range(10_000):
+        if len(spots) == n:
+            return np.array(spots)
+        xy = np.array([rng.uniform(-0.15, 0.15), rng.uniform(-0.28, 0.14)])
+        others = [*taken, *spots]
+        if min(np.linalg.norm(np.asarray(others) - xy, axis=1)) < 0.07:
+            continue
+        if with_bin and np.abs(xy - BIN_CENTER).max() < BIN_INNER_HALF + 0.06:
+            continue
+        spots.append(xy)
+    raise RuntimeError(f"could not place {n} distractors apart from the task's cubes")
+
+
+class TabletopEnv:
+    """The tabletop suite behind the Env protocol (one robosuite scene per task, reused)."""
+
+    suite = SUITE
+    control_hz = 20.0
+    action_dim = 7
+    state_dim = 8
+    gripper_index = 6
+
+    #: scene perturbations this suite applies (workers/envs/wrappers/perturbations.py)
+    perturbation_kinds = (
+        "camera_shift",
+        "camera_pitch",
+        "light_dim",
+        "table_color",
+        "init_jitter",
+        "distractors",
+    )
+
+    TASK_COLORS: ClassVar[dict[str, tuple[str, ...]]] = {
+        "pick_color": ("red", "green", "blue"),
+        "stack_color": ("red", "green", "blue"),
+        "organize": ("red", "green", "blue", "yellow", "purple"),
+    }
+    TASK_NAMES: ClassVar[dict[str, str]] = {
+        "pick_color": "pick up the named cube",
+        "stack_color": "stack one named cube on another",
+        "organize": "put five cubes in the bin in the instructed order",
+    }
+
+    def __init__(
+        self,
+        image_size: int = 96,
+        cameras: tuple[str, ...] | list[str] = ("agentview", "wrist"),
+        max_steps: dict[str, int] | None = None,
+        subtask_budget: int = DEFAULT_SUBTASK_BUDGET,
+        fast_render: bool = True,
+    ) -> None:
+        if image_size <= 0:
+            raise ValueError(f"env.params.image_size={image_size} must be > 0")
+        unknown = [c for c in cameras if c not in CAMERAS]
+        if unknown or not cameras:
+            raise ValueError(
+                f"env.params.cameras={list(cameras)}: choose one or more of {list(CAMERAS)}"
+            )
+        self._max_steps = self._check_max_steps(max_steps)
+        if subtask_budget <= 0:
+            raise ValueError(f"env.params.subtask_budget={subtask_budget} must be > 0")
+        self.subtask_budget = subtask_budget
+        self.image_size = image_size
+        self.cameras = tuple(cameras)
+        self.fast_render = fast_render  # no MSAA/reflections/skybox/shadows: ~3x cheaper on OSMesa
+        self._scenes: dict[str, Any] = {}
+        self._renderers: dict[str, Any] = {}
+        self._perturbers: dict[str, Any] = {}
+        self._perturbation: Any = None  # for the next reset (set_perturbation)
+        self._ep: _Episode | None = None
+
+    @staticmethod
+    def _check_max_steps(max_steps: dict[str, int] | None) -> dict[str, int]:
+        merged = {**DEFAULT_MAX_STEPS, **(max_steps or {})}
+        bad = {k: v for k, v in merged.items() if k not in DEFAULT_MAX_STEPS or int(v) <= 0}
+        if bad:
+            raise ValueError(
+                f"env.params.max_steps={bad}: tasks are {list(DEFAULT_MAX_STEPS)}, steps > 0"
+            )
+        return {k: int(v) for k, v in merged.items()}
+
+    @classmethod
+    def suite_tasks(cls, max_steps: dict[str, int] | None = None, **_: Any) -> list[TaskSpec]:
+        steps = cls._check_max_steps(max_steps)
+        return [
+            TaskSpec(t, cls.TASK_NAMES[t], steps[t], 5 if t == "organize" else 1, suite=SUITE)
+            for t in DEFAULT_MAX_STEPS
+        ]
+
+    @classmethod
+    def describe(
+        cls,
+        image_size: int = 96,
+        cameras: tuple[str, ...] | list[str] = ("agentview", "wrist"),
+        **_: Any,
+    ) -> EnvIO:
+        """What the suite gives a policy (the README's table): images uint8 at ``image_size``
+        px, not flipped; state and action as LIBERO's; no protocol beyond its params."""
+        return EnvIO(
+            cameras=tuple(cameras),
+            image_size=int(image_size),
+            state_dim=cls.state_dim,
+            action_dim=cls.action_dim,
+            camera_aliases={c: ROBOSUITE_CAMERA_ALIASES[c] for c in cameras if c in CAMERAS},
+        )
+
+    def tasks(self) -> list[TaskSpec]:
+        return self.suite_tasks(self._max_steps)
+
+    # -- scenes ----------------------------------------------------------------------------
+    def _scene(self, key: str) -> Any:
+        """The scene of a task (``pick_color``), or of a task with n distractor cubes
+        (``pick_color+d2``: a scene of its own, so that the task's own scene never has them)."""
+        if key not in self._scenes:
+            from workers.envs.suites.tabletop.sim import FastRenderer, make_scene
+
+            task_id, _, n = key.partition("+d")
+            scene = make_scene(
+                self.TASK_COLORS[task_id], with_bin=task_id == "organize", n_distractors=int(n or 0)
+            )
+            self._scenes[key] = scene
+            cams = {c: CAMERAS[c] for c in self.cameras}
+            self._renderers[key] = FastRenderer(scene, cams, self.image_size, self.fast_render)
+        return self._scenes[key]
+
+    def set_perturbation(self, p: Any) -> None:
+        """The scene perturbation of the next reset (None: the unperturbed scene)."""
+        if p is not None and p.kind not in self.perturbation_kinds:
+            raise ValueError(
+                f"tabletop cannot apply {p.kind}; it applies {self.perturbation_kinds}"
+            )
+        self._perturbation = p
+
+    def _perturber(self, task_id: str, scene: Any) -> Any:
+        if task_id not in self._perturbers:
+            from workers.envs.wrappers.perturbations import MujocoScenePerturber
+
+            self._perturbers[task_id] = MujocoScenePerturber(
+                scene.sim.model._model, CAMERAS["agentview"], ["table_visual"]
+            )
+        return self._perturbers[task_id]
+
+    # -- episode -----------------------------------------------------------------------------
+    def _new_episode(self, task_id: str, episode_index: int, seed: int) -> _Episode:
+        task_index = list(DEFAULT_MAX_STEPS).index(task_id)
+        rng = np.random.default_rng([seed, episode_index, task_index, 20])
+        colors = self.TASK_COLORS[task_id]
+        if task_id == "organize":
+            xy = _sample_xy(rng, 5, (-0.13, 0.13), (-0.27, 0.06), 0.075)
+            order = [int(i) for i in rng.permutation(5)]
+            names = [colors[i] for i in order]
+            text = (
+                f"put the {', '.join(names[:-1])} and {names[-1]} cubes in the bin, in that order"
+            )
+            targets = order
+        else:
+            xy = _sample_xy(rng, 3, (-0.13, 0.13), (-0.25, 0.12), 0.08)
+            if task_id == "pick_color":
+                targets = [int(rng.integers(3))]
+                text = f"pick up the {colors[targets[0]]} cube"
+            else:
+                top, bottom = (int(i) for i in rng.permutation(3)[:2])
+                targets = [top, bottom]
+                text = f"stack the {colors[top]} cube on the {colors[bottom]} cube"
+        return _Episode(
+            task_id, colors, xy, text, targets, init_state_id=f"{task_id}/{seed}/{episode_index}"
+        )
+
+    def _spec(self, task_id: str) -> TaskSpec:
+        for t in self.tasks():
+            if t.task_id == task_id:
+                return t
+        raise ValueError(
+            f"task_id={task_id!r} is not a tabletop task; valid: {list(DEFAULT_MAX_STEPS)}"
+        )
+
+    def reset(self, task_id: str, episode_index: int, seed: int) -> EnvObservation:
+        self._spec(task_id)
+        ep = self._new_episode(task_id, episode_index, seed)
+        p = self._perturbation
+        if p is not None and p.kind == "distractors":
+            ep.scene_key = f"{task_id}+d{int(p.severity)}"
+        scene = self._scene(ep.scene_key)
+        if self._perturbers or p is not None:  # a perturbed episode ran here: undo it first
+            self._perturber(ep.scene_key, scene).restore()
+        distractor_xy = None
+        if p is not None and p.kind in ("init_jitter", "distractors"):  # the layout changes
+            from workers.envs.wrappers.perturbations import join_task
+
+            rng = p.rng(seed, join_task(task_id, p), episode_index)
+            if p.kind == "init_jitter":  # each cube moved by up to severity
+                ep.cube_xy = ep.cube_xy + rng.uniform(-p.severity, p.severity, ep.cube_xy.shape)
+            else:
+                distractor_xy = _free_spots(rng, ep.cube_xy, int(p.severity), task_id == "organize")
+            ep.init_state_id = join_task(ep.init_state_id, p)
+        scene.place_cubes(ep.cube_xy, distractor_xy)
+        self._last_obs = scene.reset()
+        if p is not None and p.kind not in ("init_jitter", "distractors"):
+            self._perturber(ep.scene_key, scene).apply(p, scene.sim.data._data)
+        mujoco_instability(scene.sim.data._data)  # clear what earlier episodes left
+        self._ep = ep
+        return self._observe()
+
+    def step(self, action: np.ndarray) -> EnvObservation:
+        action = np.asarray(action, dtype=np.float64)
+        if action.shape != (self.action_dim,):
+            raise ValueError(f"action must have shape ({self.action_dim},), got {action.shape}")
+        if self._ep is None:
+            raise RuntimeError("step() before reset()")
+        if self.done:
+            raise RuntimeError("step() after the episode is done; call reset()")
+        if not np.isfinite(action).all():
+            raise ValueError(f"non-finite action {action.tolist()}")
+        scene = self._scenes[self._ep.scene_key]
+        data = scene.sim.data._data
+        self._last_obs, _, _, _ = scene.step(np.clip(action, -1.0, 1.0))
+        self._ep.steps += 1
+        raise_if_unstable(data, f"at step {self._ep.steps} of {self._ep.init_state_id}")
+        self._update_progress(scene)
+        return self._observe()
+
+    def _update_progress(self, scene: Any) -> None:
+        ep = self._ep
+        pos = scene.cube_positions()
+
+        if ep.task_id == "pick_color":
+            if pos[ep.targets[0], 2] - CUBE_HALF > TABLE_TOP_Z + LIFT_HEIGHT:
+                ep.success, ep.subtasks_done = True, 1
+        elif ep.task_id == "stack_color":
+            top, bottom = ep.targets
+            d = pos[top] - pos[bottom]
+            on_top = np.linalg.norm(d[:2]) < 0.025 and 1.6 * CUBE_HALF < d[2] < 2.4 * CUBE_HALF
+            if on_top and not scene.is_grasped(top) and not scene.is_grasped(bottom):
+                ep.success, ep.subtasks_done = True, 1
+        else:
+            inside = (np.abs(pos[:, :2] - BIN_CENTER).max(axis=1) < BIN_INNER_HALF) & (
+                pos[:, 2] < TABLE_TOP_Z + 3 * CUBE_HALF
+            )
+            for i in np.flatnonzero(inside):
+                i = int(i)
+                if i in ep.placed or scene.is_grasped(i):
+                    continue
+                expected = ep.targets[ep.subtasks_done]
+                if i != expected:
+                    ep.failed = (
+                        f"{ep.colors[i]} cube put in the bin before the {ep.colors[expected]} one"
+                    )
+                    ep.failed_cause = "wrong_order"
+                    return
+                ep.placed.add(i)
+                ep.subtasks_done += 1
+                ep.last_progress_step = ep.steps
+                if ep.subtasks_done == 5:
+                    ep.success = True
+                    return
+            if ep.steps - ep.last_progress_step >= self.subtask_budget:
+                ep.failed = (
+                    f"subtask {ep.subtasks_done + 1} not done within {self.subtask_budget} steps"
+                )
+                ep.failed_cause = "subtask_budget"
+
+    def _observe(self) -> EnvObservation:
+        from robosuite.utils.transform_utils import quat2axisangle
+
+        o = self._last_obs
+        state = np.concatenate(
+            [o["robot0_eef_pos"], quat2axisangle(o["robot0_eef_quat"]), o["robot0_gripper_qpos"]]
+        ).astype(np.float32)
+        # rendering and the privileged state read the live simulator: valid until the next step
+        ep, steps = self._ep, self._ep.steps
+
+        def current() -> bool:
+            return self._ep is ep and ep.steps == steps
+
+        images = LazyImages(self.cameras, self._renderers[ep.scene_key].render_one, current)
+        return EnvObservation(
+            images=images, state=state, privileged=LazyState(self.privileged, current)
+        )
+
+    def privileged(self) -> dict[str, Any]:
+        """Simulator state for the scripted experts (never for learned policies)."""
+        ep = self._ep
+        scene = self._scenes[ep.scene_key]
+        return {
+            "task_id": ep.task_id,
+            "cube_pos": scene.cube_positions(),
+            "targets": list(ep.targets),
+            "subtasks_done": ep.subtasks_done,
+            "eef_pos": np.asarray(self._last_obs["robot0_eef_pos"], dtype=float),
+            "gripper_qpos": np.asarray(self._last_obs["robot0_gripper_qpos"], dtype=float),
+            "grasped": [scene.is_grasped(i) for i in range(len(ep.colors))],
+        }
+
+    # -- status ------------------------------------------------------------------------------
+    @property
+    def task(self) -> TaskSpec:
+        if self._ep is None:
+            raise RuntimeError("no task: call reset() first")
+        return self._spec(self._ep.task_id)
+
+    @property
+    def instruction(self) -> str:
+        return self._ep.instruction if self._ep else ""
+
+    @property
+    def success(self) -> bool:
+        return bool(self._ep and self._ep.success)
+
+    @property
+    def failure_reason(self) -> str | None:
+        return self._ep.failed if self._ep else None
+
+    @property
+    def failure_cause(self) -> str | None:
+        """Why the episode ended before max_steps, as a code the report counts (None: it did
+        not end early)."""
+        return self._ep.failed_cause if self._ep else None
+
+    @property
+    def done(self) -> bool:
+        ep = self._ep
+        return bool(ep and (ep.success or ep.failed or ep.steps >= self._max_steps[ep.task_id]))
+
+    @property
+    def subtasks_done(self) -> int:
+        return self._ep.subtasks_done if self._ep else 0
+
+    @property
+    def steps(self) -> int:
+        return self._ep.steps if self._ep else 0
+
+    @property
+    def init_state_id(self) -> str:
+        return self._ep.init_state_id if self._ep else ""
+
+    def close(self) -> None:
+        for r in self._renderers.values():
+            r.close()
+        for s in self._scenes.values():
+            s.close()
+        self._renderers, self._scenes, self._ep = {}, {}, None
