@@ -92,6 +92,11 @@ class EpisodeRow:
     suite: str
     task_id: str
     task_name: str
+    # the perturbation the task runs under (kind and severity; "none": unperturbed). Rows of
+    # run dirs written before these columns existed hold nulls: the aggregation reads their
+    # task ids (task@kind:severity) instead
+    perturbation: str | None = None
+    severity: float | None = None
     instruction: str | None = None
     episode_index: int
     seed: int
@@ -142,6 +147,8 @@ class EpisodeRow:
             suite=task.suite or "",
             task_id=task.task_id,
             task_name=task.name,
+            perturbation=task.perturbation or "none",
+            severity=task.severity,
             episode_index=spec.episode_index,
             seed=spec.seed,
             max_steps=task.max_steps,
@@ -177,6 +184,8 @@ SPEC_COLUMNS = (
     "suite",
     "task_id",
     "task_name",
+    "perturbation",
+    "severity",
     "episode_index",
     "seed",
     "max_steps",

@@ -238,7 +238,7 @@ class TablesRefused(ConfigError):
 
 def perturbation_lines(runs: list[RunEpisodes]) -> list[str]:
     """Success (%) per (run, cell) x perturbation where the runs' tasks are perturbed."""
-    if not any(agg.any_perturbed(r.episodes["task_id"]) for r in runs):
+    if not any(agg.any_perturbed(r.episodes) for r in runs):
         return []
     rows = pd.concat(
         [agg.success_by_perturbation(r.episodes).assign(run=r.label) for r in runs],

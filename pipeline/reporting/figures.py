@@ -184,7 +184,7 @@ def rimg_matrix(effects: pd.DataFrame) -> pd.DataFrame:
     """backbone x suite table of R_img = mean E_img / (mean E_img + mean E_prop + eps) (the
     paper's ratio of time averages, not the average of per-step ratios)."""
     effects = effects.dropna(subset=["e_img", "e_prop"])
-    if "task_id" in effects and agg.any_perturbed(effects["task_id"]):
+    if "task_id" in effects and agg.any_perturbed(effects):
         # perturbed tasks: a column per suite x perturbation (the paper's observation 2)
         tagged = agg.with_perturbation(effects)
         effects = tagged.assign(suite=tagged["suite"].astype(str) + "\n" + tagged["perturbation"])

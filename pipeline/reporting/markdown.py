@@ -67,7 +67,7 @@ def main_table(episodes: pd.DataFrame) -> str:
 def perturbation_section(episodes: pd.DataFrame) -> list[str]:
     """Success per cell x perturbation (%, with the paired Δ against the reference on the
     same perturbed tasks) where the run's tasks are perturbed; nothing otherwise."""
-    if not agg.any_perturbed(episodes["task_id"]):
+    if not agg.any_perturbed(episodes):
         return []
     tagged = agg.with_perturbation(episodes)
     rates = agg.success_by_perturbation(tagged)

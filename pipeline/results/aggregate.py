@@ -105,11 +105,31 @@ def success_by_suite(episodes: pa.Table | pd.DataFrame) -> pd.DataFrame:
     return _rate_rows(_frame(episodes), ["cell_id", "suite"])
 
 
-def any_perturbed(task_ids: pd.Series) -> bool:
-    """Whether any task id names a perturbation (``task@kind:severity``)."""
-    from workers.envs.wrappers.perturbations import SEP
+def any_perturbed(episodes: pd.DataFrame) -> bool:
+    """Whether any episode ran under a perturbation."""
+    return bool((perturbation_labels(episodes) != "none").any())
 
-    return bool(task_ids.astype(str).str.contains(SEP, regex=False).any())
+
+def perturbation_labels(df: pd.DataFrame) -> pd.Series:
+    """Each row's perturbation as ``kind:severity`` (``none`` for none), from the
+    ``perturbation`` and ``severity`` columns; rows without them (run dirs written before the
+    columns existed) are read off their task ids (``task@kind:severity``)."""
+    from workers.envs.wrappers.perturbations import Perturbation, perturbation_of
+
+    from_ids = df["task_id"].astype(str).map(perturbation_of)
+    if "perturbation" not in df:
+        return from_ids
+    sevs = df["severity"] if "severity" in df else pd.Series([None] * len(df), index=df.index)
+
+    def label(kind: object, severity: object, from_id: str) -> str:
+        if not isinstance(kind, str):
+            return from_id  # an old row: no columns
+        if kind == "none" or ":" in kind:  # none, or already a label (a tagged frame)
+            return kind
+        return Perturbation(kind, float(severity)).text  # type: ignore[arg-type]
+
+    labels = [label(*t) for t in zip(df["perturbation"], sevs, from_ids, strict=True)]
+    return pd.Series(labels, index=df.index, dtype=object)
 
 
 def as_percent(df: pd.DataFrame, columns: tuple[str, ...] = RATE_COLUMNS) -> pd.DataFrame:
@@ -123,11 +143,9 @@ def as_percent(df: pd.DataFrame, columns: tuple[str, ...] = RATE_COLUMNS) -> pd.
 
 
 def with_perturbation(df: pd.DataFrame) -> pd.DataFrame:
-    """``df`` with a ``perturbation`` column read off its task ids (``none`` for plain ones)."""
-    from workers.envs.wrappers.perturbations import perturbation_of
-
+    """``df`` with its ``perturbation`` column as a label, ``kind:severity`` or ``none``."""
     out = df.copy()
-    out["perturbation"] = out["task_id"].map(perturbation_of)
+    out["perturbation"] = perturbation_labels(df)
     return out
 
 

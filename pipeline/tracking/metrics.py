@@ -72,7 +72,7 @@ def cell_metrics(
         out[r.cell_id][metric_key("success", r.suite)] = 100 * r.success_rate
     for cell, g in suites.groupby("cell_id"):  # the paper's Avg: the mean of the suites' rates
         out[cell]["success_avg"] = 100 * float(g["success_rate"].mean())
-    if agg.any_perturbed(episodes["task_id"]):
+    if agg.any_perturbed(episodes):
         for r in agg.success_by_perturbation(episodes).itertuples():
             out[r.cell_id][metric_key("success", "perturbation", r.perturbation)] = (
                 100 * r.success_rate

@@ -203,3 +203,21 @@ def test_bootstrap_by_counts_matches_resampling_episodes() -> None:
     assert lo < continuous.mean() < hi and hi - lo == pytest.approx(
         2 * 1.96 * continuous.std() / np.sqrt(200), rel=0.15
     )
+
+
+def test_perturbation_labels_read_the_columns_and_old_rows_their_task_ids() -> None:
+    """Rows with the perturbation columns use them; rows of run dirs written before the
+    columns existed (nulls) are read off their task ids; a tagged frame stays as it is."""
+    df = pd.DataFrame(
+        {
+            "task_id": ["a@image_blur:1.5", "a", "b@image_noise:0.2", "b"],
+            "perturbation": ["image_blur", "none", None, None],
+            "severity": [1.5, None, None, None],
+        }
+    )
+    labels = agg.perturbation_labels(df)
+    assert labels.tolist() == ["image_blur:1.5", "none", "image_noise:0.2", "none"]
+    assert agg.perturbation_labels(agg.with_perturbation(df)).tolist() == labels.tolist()
+    assert agg.any_perturbed(df) and not agg.any_perturbed(df.iloc[[1, 3]])
+    old = df.drop(columns=["perturbation", "severity"])
+    assert agg.perturbation_labels(old).tolist() == labels.tolist()

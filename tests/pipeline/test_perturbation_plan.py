@@ -66,6 +66,11 @@ def test_a_run_crosses_tasks_with_perturbations_and_pairs_within_each(tmp_path) 
     # the sensor noise changes what the policy sees, so it changes outcomes on the fake
     rate = eps.groupby("task_id")["success"].mean()
     assert rate["reach"] == 1.0 and rate["reach_chain@image_blur:1.5"] < 1.0
+    # kind and severity are columns of the episode rows, not only a part of the task id
+    blurred = eps[eps.task_id.str.endswith("@image_blur:1.5")]
+    assert set(blurred.perturbation) == {"image_blur"} and set(blurred.severity) == {1.5}
+    plain = eps[~eps.task_id.str.contains("@")]
+    assert set(plain.perturbation) == {"none"} and plain.severity.isna().all()
     text = build_report(tmp_path / "r")
     assert "## Success rate (%) by perturbation" in text
     assert "| cell | none | image_blur:1.5 | image_noise:0.2 |" in text

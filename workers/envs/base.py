@@ -29,6 +29,8 @@ class TaskSpec:
     suite: str | None = None  # benchmark suite of this task when an env spans several (LIBERO)
     instruction: str | None = None  # fixed instruction, when known without a simulator
     episodes_total: int | None = None  # a fixed list of episodes (CALVIN, SIMPLER); None: any
+    perturbation: str | None = None  # the kind applied to this task (its id names it too)
+    severity: float | None = None  # the kind's severity, in its unit
 
 
 class LazyImages(Mapping[str, np.ndarray]):

@@ -169,7 +169,13 @@ def perturbed_task(task: Any, p: Perturbation | None) -> Any:
 
     if p is None:
         return task
-    return replace(task, task_id=join_task(task.task_id, p), name=f"{task.name} [{p.text}]")
+    return replace(
+        task,
+        task_id=join_task(task.task_id, p),
+        name=f"{task.name} [{p.text}]",
+        perturbation=p.kind,
+        severity=p.severity,
+    )
 
 
 # -- in a MuJoCo simulator --------------------------------------------------------------------
