@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import pandas as pd
@@ -29,7 +30,11 @@ def _num(x: float, digits: int = 3) -> str:
     return "–" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{digits}g}"
 
 
-def _md(headers: list[str], rows: list[list[str]]) -> str:
+def _ci(low: float, high: float) -> str:
+    return f"[{_pct(low)}, {_pct(high)}]"
+
+
+def _md(headers: list[str], rows: list[list[object]]) -> str:
     lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
     lines += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
     return "\n".join(lines)
@@ -62,6 +67,107 @@ def main_table(episodes: pd.DataFrame) -> str:
         r.append(str(int(o["errors"])))
         rows.append(r)
     return _md(headers, rows)
+
+
+# -- the tables after the main one: each a function of the episodes -> (title, headers, rows),
+# or None when it has nothing to show; the report prints them in TABLES' order -----------------
+Table = tuple[str, list[str], list[list[object]]]
+
+
+def task_table(episodes: pd.DataFrame) -> Table:
+    t = agg.success_by_task(episodes)
+    rows = [
+        [
+            r.cell_id,
+            r.suite,
+            r.task_id,
+            r.n,
+            _pct(r.success_rate),
+            _ci(r.ci_low, r.ci_high),
+            r.errors,
+        ]
+        for r in t.itertuples()
+    ]
+    headers = ["cell", "suite", "task", "n", "success", "95% CI", "errors"]
+    return "Success by task (%, Wilson 95% interval)", headers, rows
+
+
+def chain_table(episodes: pd.DataFrame) -> Table | None:
+    chains = agg.chain_metrics(episodes)
+    if chains.empty:
+        return None
+    total = int(chains["subtasks_total"].max())
+    levels = [f"rate_{i}of{total}" for i in range(1, total + 1)]
+    rows = [
+        [
+            r["cell_id"],
+            r["task_id"],
+            r["n"],
+            *[_pct(r.get(c, float("nan"))) for c in levels],
+            f"{r['avg_len']:.2f} [{r['avg_len_low']:.2f}, {r['avg_len_high']:.2f}]",
+        ]
+        for r in chains.to_dict("records")
+    ]
+    headers = ["cell", "task", "n", *[f"{i}/{total}" for i in range(1, total + 1)], "Avg Len"]
+    return "Chains: i/N completion rates (%) and Avg Len (bootstrap 95%)", headers, rows
+
+
+def cause_table(episodes: pd.DataFrame) -> Table | None:
+    causes = agg.failure_causes(episodes)
+    if causes.empty:
+        return None
+    cols = list(causes.columns[len(agg.FAILURE_KEYS) :])
+    rows = [
+        [r["cell_id"], r["task_id"], r["n"], r["failed"], *[r[c] for c in cols]]
+        for r in causes.to_dict("records")
+    ]
+    title = "Failures by cause (episodes without success; errors excluded)"
+    return title, ["cell", "task", "n", "failed", *cols], rows
+
+
+def time_table(episodes: pd.DataFrame) -> Table:
+    rows = [
+        [
+            r.cell_id,
+            r.suite,
+            _num(r.sim_seconds_to_success),
+            _num(r.wall_seconds_mean),
+            _num(r.inference_ms_mean),
+        ]
+        for r in agg.completion_times(episodes).itertuples()
+    ]
+    headers = ["cell", "suite", "sim s to success", "wall s / episode", "inference ms"]
+    return "Completion time", headers, rows
+
+
+def diagnostics_table(episodes: pd.DataFrame) -> Table:
+    rows = [
+        [r.cell_id, _num(r.gate_rate), _num(r.e_img_mean), _num(r.e_prop_mean), _num(r.r_img_mean)]
+        for r in agg.diagnostics_by_cell(episodes).itertuples()
+    ]
+    headers = ["cell", "gate rate", "E_img", "E_prop", "R_img"]
+    return "Diagnostics (means over episodes)", headers, rows
+
+
+def error_table(episodes: pd.DataFrame) -> Table | None:
+    errs = agg.errors(episodes)
+    if errs.empty:
+        return None
+    rows = [
+        [r.cell_id, r.task_id, r.episode_index, r.attempt, str(r.error).splitlines()[0][:120]]
+        for r in errs.itertuples()
+    ]
+    title = "Errors (not counted as failures)"
+    return title, ["cell", "task", "episode", "attempts", "error"], rows
+
+
+TABLES: tuple[Callable[[pd.DataFrame], Table | None], ...] = (
+    task_table,
+    chain_table,
+    cause_table,
+    time_table,
+    diagnostics_table,
+)
 
 
 def perturbation_section(episodes: pd.DataFrame) -> list[str]:
@@ -204,111 +310,13 @@ def build_report(
         "## Success by task (%, Wilson 95% interval)",
         "",
     ]
-    t = agg.success_by_task(episodes)
-    parts.append(
-        _md(
-            ["cell", "suite", "task", "n", "success", "95% CI", "errors"],
-            [
-                [
-                    r.cell_id,
-                    r.suite,
-                    r.task_id,
-                    r.n,
-                    _pct(r.success_rate),
-                    f"[{_pct(r.ci_low)}, {_pct(r.ci_high)}]",
-                    r.errors,
-                ]
-                for r in t.itertuples()
-            ],
-        )
-    )
-    chains = agg.chain_metrics(episodes)
-    if not chains.empty:
-        total = int(chains["subtasks_total"].max())
-        parts += ["", "## Chains: i/N completion rates (%) and Avg Len (bootstrap 95%)", ""]
-        parts.append(
-            _md(
-                ["cell", "task", "n", *[f"{i}/{total}" for i in range(1, total + 1)], "Avg Len"],
-                [
-                    [
-                        r["cell_id"],
-                        r["task_id"],
-                        r["n"],
-                        *[
-                            _pct(r.get(f"rate_{i}of{total}", float("nan")))
-                            for i in range(1, total + 1)
-                        ],
-                        f"{r['avg_len']:.2f} [{r['avg_len_low']:.2f}, {r['avg_len_high']:.2f}]",
-                    ]
-                    for r in chains.to_dict("records")
-                ],
-            )
-        )
-    causes = agg.failure_causes(episodes)
-    if not causes.empty:
-        cause_cols = list(causes.columns[len(agg.FAILURE_KEYS) :])
-        parts += ["", "## Failures by cause (episodes without success; errors excluded)", ""]
-        parts.append(
-            _md(
-                ["cell", "task", "n", "failed", *cause_cols],
-                [
-                    [r["cell_id"], r["task_id"], r["n"], r["failed"], *[r[c] for c in cause_cols]]
-                    for r in causes.to_dict("records")
-                ],
-            )
-        )
-    times = agg.completion_times(episodes)
-    parts += ["", "## Completion time", ""]
-    parts.append(
-        _md(
-            ["cell", "suite", "sim s to success", "wall s / episode", "inference ms"],
-            [
-                [
-                    r.cell_id,
-                    r.suite,
-                    _num(r.sim_seconds_to_success),
-                    _num(r.wall_seconds_mean),
-                    _num(r.inference_ms_mean),
-                ]
-                for r in times.itertuples()
-            ],
-        )
-    )
-    diag = agg.diagnostics_by_cell(episodes)
-    parts += ["", "## Diagnostics (means over episodes)", ""]
-    parts.append(
-        _md(
-            ["cell", "gate rate", "E_img", "E_prop", "R_img"],
-            [
-                [
-                    r.cell_id,
-                    _num(r.gate_rate),
-                    _num(r.e_img_mean),
-                    _num(r.e_prop_mean),
-                    _num(r.r_img_mean),
-                ]
-                for r in diag.itertuples()
-            ],
-        )
-    )
+    for table in TABLES:
+        if (built := table(episodes)) is not None:
+            title, headers, rows = built
+            parts += ["", f"## {title}", "", _md(headers, rows)]
     parts += [] if focus else calibration_section(run_dir)
     parts += figures_section(figures)
-    errs = agg.errors(episodes)
-    if not errs.empty:
-        parts += ["", "## Errors (not counted as failures)", ""]
-        parts.append(
-            _md(
-                ["cell", "task", "episode", "attempts", "error"],
-                [
-                    [
-                        r.cell_id,
-                        r.task_id,
-                        r.episode_index,
-                        r.attempt,
-                        str(r.error).splitlines()[0][:120],
-                    ]
-                    for r in errs.itertuples()
-                ],
-            )
-        )
+    if (built := error_table(episodes)) is not None:
+        title, headers, rows = built
+        parts += ["", f"## {title}", "", _md(headers, rows)]
     return "\n".join(parts) + "\n"
