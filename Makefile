@@ -3,8 +3,15 @@ SHELL := /bin/bash
 VENV ?= .venv
 RUN_DIR ?= runs/default
 PYTEST_ARGS ?=
+# both cores: the tests are spread over 2 processes (pytest-xdist), each test file on one
+# process (the module-scoped fixtures, a local Ray among them, are built once per file)
+PYTEST_WORKERS ?= 2
+PYTEST := $(VENV)/bin/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile
+# the calvin_env checkout the CALVIN simulator tests use where none is given (CALVIN_ENV): the
+# one beside the project in ../shared/third_party (skipped, with the reason, where neither is)
+CALVIN_CHECKOUT := $(firstword $(wildcard $(CURDIR)/../shared/third_party/calvin/calvin_env))
 
-.PHONY: setup setup-calvin setup-simpler run test lint bench clean
+.PHONY: setup setup-calvin setup-simpler run test test-fast docs docs-serve lint bench clean
 
 setup:
 	@bash scripts/setup.sh
@@ -21,14 +28,27 @@ setup-simpler:
 run: setup
 	$(VENV)/bin/idr-eval run conf/default.yaml --out $(RUN_DIR)
 
+# the whole suite (what CI runs), with the CALVIN simulator tests where a calvin_env checkout is
 test: setup
-	$(VENV)/bin/ruff check pipeline workers training tests benchmarks lerobot_policy_idr
-	$(VENV)/bin/ruff format --check pipeline workers training tests benchmarks lerobot_policy_idr
-	$(VENV)/bin/python -m pytest $(PYTEST_ARGS)
+	$(VENV)/bin/ruff check pipeline workers training tests benchmarks lerobot_policy_idr scripts docs/hooks
+	$(VENV)/bin/ruff format --check pipeline workers training tests benchmarks lerobot_policy_idr scripts docs/hooks
+	@if [ -z "$${CALVIN_ENV:-}" ] && [ -n "$(CALVIN_CHECKOUT)" ]; then bash scripts/setup_calvin.sh; fi
+	CALVIN_ENV=$${CALVIN_ENV:-$(CALVIN_CHECKOUT)} $(PYTEST) $(PYTEST_ARGS)
+
+# the development loop: the tests not marked slow or sim (no real simulator or model run)
+test-fast: setup
+	$(PYTEST) -m "not slow and not sim" $(PYTEST_ARGS)
+
+# the documentation site (docs/, mkdocs.yml): a broken link or page fails the build
+docs: setup
+	$(VENV)/bin/mkdocs build --strict -d site
+
+docs-serve: setup
+	$(VENV)/bin/mkdocs serve
 
 lint: setup
-	$(VENV)/bin/ruff check --fix pipeline workers training tests benchmarks lerobot_policy_idr
-	$(VENV)/bin/ruff format pipeline workers training tests benchmarks lerobot_policy_idr
+	$(VENV)/bin/ruff check --fix pipeline workers training tests benchmarks lerobot_policy_idr scripts docs/hooks
+	$(VENV)/bin/ruff format pipeline workers training tests benchmarks lerobot_policy_idr scripts docs/hooks
 
 bench: setup
 	$(VENV)/bin/python benchmarks/bench_idr_passes.py
@@ -48,4 +68,4 @@ bench: setup
 	$(VENV)/bin/python benchmarks/fault_report.py
 
 clean:
-	rm -rf runs .pytest_cache
+	rm -rf runs site .pytest_cache

@@ -5,7 +5,7 @@ MuJoCo simulation, SIGTERM / SIGINT / SIGKILL to the driver, a full tmpfs, an al
 past RLIMIT_AS, a killed or crashing actor, fuzzed configs, hostile paths and pickles) and
 records its outcome: episodes lost or duplicated, unreadable or left-over files.
 
-Writes ``benchmarks/results/faults.json`` and prints the README's table. Usage:
+Writes ``benchmarks/results/faults.json`` and prints its table (docs/guarantees.md renders it from the JSON). Usage:
 ``python benchmarks/fault_report.py`` (about 5 minutes on the 2-core machine).
 """
 

@@ -232,6 +232,15 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="idr-eval", description=__doc__)
     p.add_argument("-v", "--verbose", action="store_true")
     sub = p.add_subparsers(dest="command", required=True)
+    for add in (_add_run, _add_results, _add_sidecar, _add_compare, _add_ui):
+        add(sub)
+    return p
+
+
+Subparsers = "argparse._SubParsersAction[argparse.ArgumentParser]"
+
+
+def _add_run(sub: Subparsers) -> None:
     run = sub.add_parser("run", help="run (or resume) the episodes of a config")
     run.add_argument("config", help="YAML config, e.g. conf/smoke.yaml")
     run.add_argument("--out", help="RUN_DIR (default: <output_root>/<name>); rerun to resume")
@@ -254,6 +263,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="resume a run dir made by another code version (git describe) of idr-eval",
     )
     run.set_defaults(func=_cmd_run)
+
+
+def _add_results(sub: Subparsers) -> None:
     rep = sub.add_parser("report", help="rebuild RUN_DIR/report.md from the Parquet files")
     rep.add_argument("run_dir")
     rep.set_defaults(func=_cmd_report)
@@ -262,6 +274,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     cpt.add_argument("run_dir")
     cpt.set_defaults(func=_cmd_compact)
+
+
+def _add_sidecar(sub: Subparsers) -> None:
     car = sub.add_parser(
         "sidecar",
         help="report IDR's diagnostics sidecars (the idr lerobot policy on a robot or lerobot-eval)",
@@ -276,6 +291,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     car.add_argument("--label", action="append", help="a cell name per folder, in order")
     car.set_defaults(func=_cmd_sidecar)
+
+
+def _add_compare(sub: Subparsers) -> None:
     cmp = sub.add_parser(
         "compare", help="one table across runs: success per suite, Avg, Δ vs baseline, p"
     )
@@ -283,6 +301,9 @@ def build_parser() -> argparse.ArgumentParser:
     cmp.add_argument("--out", help="folder for compare.md and the R_img heatmap across runs")
     cmp.add_argument("--bootstrap", type=int, default=2000, help="bootstrap resamples for the CI")
     cmp.set_defaults(func=_cmd_compare)
+
+
+def _add_ui(sub: Subparsers) -> None:
     ui = sub.add_parser(
         "ui",
         help="MLflow UI for run dirs' store (default: runs/mlflow.db), at their cells' Compare page",
@@ -297,7 +318,6 @@ def build_parser() -> argparse.ArgumentParser:
         "--workers", type=int, default=1, help="server processes (MLflow's default 4; one user: 1)"
     )
     ui.set_defaults(func=_cmd_ui)
-    return p
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -19,7 +19,7 @@ pinned_venv "$VENV" 3.11 requirements-calvin.lock "PyBullet, hydra, numpy..." sc
     || die "$VENV cannot import pybullet/msgpack/numpy/hydra: remove it and run again"
 log "ready: $VENV (Python $("$VENV/bin/python" -c 'import platform; print(platform.python_version())'))"
 if [ -z "${CALVIN_ENV:-}" ]; then
-    log "next: point CALVIN_ENV at a calvin_env checkout (see the README: CALVIN), then"
+    log "next: point CALVIN_ENV at a calvin_env checkout (docs/suites/calvin.md), then"
 else
     log "CALVIN_ENV=$CALVIN_ENV"
 fi

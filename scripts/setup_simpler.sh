@@ -79,5 +79,5 @@ sapien.SapienRenderer(offscreen_only=True)" >/dev/null 2>&1 \
     log "SAPIEN renders on lavapipe ($(cat "$VK/VERSION")): $VK"
 fi
 log "ready: $VENV (Python $("$VENV/bin/python" -c 'import platform; print(platform.python_version())'))"
-[ -n "${MS2_REAL2SIM:-}${SIMPLER_ENV:-}" ] || log "next: point MS2_REAL2SIM at a ManiSkill2_real2sim checkout (README: SIMPLER), then"
+[ -n "${MS2_REAL2SIM:-}${SIMPLER_ENV:-}" ] || log "next: point MS2_REAL2SIM at a ManiSkill2_real2sim checkout (docs/suites/simpler.md), then"
 log "run: idr-eval run conf/simpler_smoke.yaml --out runs/simpler_smoke"

@@ -6,7 +6,7 @@ the project's lerobot adapter loads it like any other policy. The whole dataset 
 memory as uint8 tensors (a few GB at most for the tabletop demos), which makes CPU training
 fast; images get a random shift of a few pixels as augmentation.
 
-Reproduce the shipped checkpoint (see README):
+Reproduce the shipped checkpoint (docs/tiny-vla.md):
 
     python -m training.train_tiny_vla --data data/tabletop_demos_po data/tabletop_demos_org \
         --out checkpoints/tiny_vla --steps 4000 --batch-size 64 --seed 0

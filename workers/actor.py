@@ -16,13 +16,14 @@ import sys
 import time
 import traceback
 import zlib
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
 
 from workers.backbones.base import backbone_member
-from workers.envs.base import env_member
+from workers.envs.base import episode_info, suite_info
 from workers.envs.server.client import EnvServerError
 from workers.episode import EpisodeResult, EpisodeRow, EpisodeSpec, StepRow, WorkerSpec
 
@@ -56,6 +57,16 @@ def _to_numpy(x: Any) -> np.ndarray:
     if type(x).__module__.startswith("torch"):
         return x.detach().float().cpu().numpy()
     return np.asarray(x, dtype=np.float32)
+
+
+@dataclass
+class _Rollout:
+    """What an episode's rollout has gathered so far."""
+
+    obs: Any  # the env's last observation
+    steps: list[StepRow] = field(default_factory=list)  # one row per inference
+    success_step: int | None = None  # the first step at which the env said success
+    crn: Any = None  # the last inference's common-random-numbers flag
 
 
 class EpisodeWorker:
@@ -98,7 +109,7 @@ class EpisodeWorker:
         for env in self._all_envs:
             self._envs.put(env)
         # an env with its own renderer (PyBullet...) says so; MuJoCo envs use the worker's
-        self.render_backend = env_member(self.env, "render_backend") or self.render_backend
+        self.render_backend = suite_info(self.env).render_backend or self.render_backend
         self.tasks = {t.task_id: t for t in self.env.tasks()}
         self.worker_id = f"{socket.gethostname()}:{os.getpid()}"
         self.node = current_node()
@@ -150,8 +161,6 @@ class EpisodeWorker:
     def _rollout(self, spec: EpisodeSpec, env: Any) -> tuple[list[StepRow], dict[str, Any]]:
         """Run one episode: infer a chunk, execute ``replan_steps`` of it, until the env is
         done. Returns the step rows and the episode's outcome columns."""
-        from workers.observation import to_policy_observation
-
         policy = self.policy
         if self.spec.policy_actor is not None:  # one proxy per episode: threads share the actor
             from workers.policy_actor import PolicyServiceClient
@@ -161,71 +170,88 @@ class EpisodeWorker:
             raise ValueError(f"task_id={spec.task_id!r} not in suite {self.spec.env_suite!r}")
         policy.set_config(spec.idr, spec.intervention)
         policy.reset()
-        obs = env.reset(spec.task_id, spec.episode_index, spec.seed)
+        ep = _Rollout(obs=env.reset(spec.task_id, spec.episode_index, spec.seed))
         instruction = env.instruction  # the episode's first (CALVIN: one per subtask)
-        per_subtask = env_member(env, "policy_reset_per_subtask")
-        gripper_index = env_member(env, "gripper_index")
-        cameras = self.cameras
-        steps: list[StepRow] = []
-        success_step = None
-        k = 0
-        crn = None
+        info = suite_info(env)
         while not env.done:
-            out = policy.infer(
-                to_policy_observation(obs, env.instruction, cameras),
-                step_seed(spec.seed, spec.task_id, spec.episode_index, k),
+            chunk = self._infer(policy, env, spec, ep, info.gripper_index)
+            self._execute(policy, env, chunk, ep, info.policy_reset_per_subtask)
+        return ep.steps, self._outcome(spec, env, instruction, ep)
+
+    def _infer(
+        self, policy: Any, env: Any, spec: EpisodeSpec, ep: _Rollout, gripper_index: int | None
+    ) -> np.ndarray:
+        """One inference on the current observation: its step row appended to ``ep``; the
+        refined chunk (T, D)."""
+        from workers.observation import to_policy_observation
+
+        k = len(ep.steps)  # one row per inference
+        out = policy.infer(
+            to_policy_observation(ep.obs, env.instruction, self.cameras),
+            step_seed(spec.seed, spec.task_id, spec.episode_index, k),
+        )
+        ep.crn = out.crn
+        chunk = _to_numpy(out.action)[0]
+        base = _to_numpy(out.a_base)[0]
+        d = out.diag.to_numpy() if out.diag is not None else {}
+        ep.steps.append(
+            StepRow(
+                run_id=spec.run_id,
+                cell_id=spec.cell_id,
+                task_id=spec.task_id,
+                episode_index=spec.episode_index,
+                inference_index=k,
+                step=env.steps,
+                **{name: float(d[name][0]) for name in DIAGNOSTICS if name in d},
+                action_base=base[0].tolist(),
+                action_final=chunk[0].tolist(),
+                gripper=None if gripper_index is None else float(chunk[0][gripper_index]),
+                inference_ms=out.inference_ms,
             )
-            crn = out.crn
-            chunk = _to_numpy(out.action)[0]
-            base = _to_numpy(out.a_base)[0]
-            d = out.diag.to_numpy() if out.diag is not None else {}
-            steps.append(
-                StepRow(
-                    run_id=spec.run_id,
-                    cell_id=spec.cell_id,
-                    task_id=spec.task_id,
-                    episode_index=spec.episode_index,
-                    inference_index=k,
-                    step=env.steps,
-                    **{name: float(d[name][0]) for name in DIAGNOSTICS if name in d},
-                    action_base=base[0].tolist(),
-                    action_final=chunk[0].tolist(),
-                    gripper=None if gripper_index is None else float(chunk[0][gripper_index]),
-                    inference_ms=out.inference_ms,
+        )
+        return chunk
+
+    def _execute(
+        self, policy: Any, env: Any, chunk: np.ndarray, ep: _Rollout, per_subtask: bool
+    ) -> None:
+        """The first ``replan_steps`` actions of ``chunk``, open loop, until the env is done or
+        (``per_subtask``) a subtask is: then the policy is reset and the rest dropped."""
+        subtasks_before = env.subtasks_done
+        for action in chunk[: self.spec.replan_steps]:
+            if not np.isfinite(action).all():
+                raise NonFiniteActionError(
+                    f"non-finite action at step {env.steps}: {action.tolist()}; not sent to the env"
                 )
-            )
-            k += 1
-            subtasks_before = env.subtasks_done
-            for action in chunk[: self.spec.replan_steps]:
-                if not np.isfinite(action).all():
-                    raise NonFiniteActionError(
-                        f"non-finite action at step {env.steps}: {action.tolist()}; not sent to the env"
-                    )
-                obs = env.step(action)
-                if not np.isfinite(obs.state).all():
-                    raise NonFiniteStateError(
-                        f"non-finite state after step {env.steps}: {np.asarray(obs.state).tolist()}; "
-                        "the simulation diverged"
-                    )
-                if success_step is None and env.success:
-                    success_step = env.steps
-                if env.done:
-                    break
-                if per_subtask and env.subtasks_done != subtasks_before:
-                    policy.reset()  # the next subtask is a rollout of its own (CALVIN)
-                    break
+            ep.obs = env.step(action)
+            if not np.isfinite(ep.obs.state).all():
+                raise NonFiniteStateError(
+                    f"non-finite state after step {env.steps}: {np.asarray(ep.obs.state).tolist()}; "
+                    "the simulation diverged"
+                )
+            if ep.success_step is None and env.success:
+                ep.success_step = env.steps
+            if env.done:
+                break
+            if per_subtask and env.subtasks_done != subtasks_before:
+                policy.reset()  # the next subtask is a rollout of its own (CALVIN)
+                break
+
+    def _outcome(
+        self, spec: EpisodeSpec, env: Any, instruction: str, ep: _Rollout
+    ) -> dict[str, Any]:
+        """The episode's outcome columns, once the env is done."""
 
         def mean(name: str) -> float | None:
-            vals = [v for s in steps if (v := getattr(s, name)) is not None]
+            vals = [v for s in ep.steps if (v := getattr(s, name)) is not None]
             return float(np.mean(vals)) if vals else None
 
-        init_state_id = env_member(env, "init_state_id") or f"{spec.seed}/{spec.episode_index}"
-        outcome = {
+        init_state_id = episode_info(env).init_state_id or f"{spec.seed}/{spec.episode_index}"
+        return {
             "instruction": instruction,
             "init_state_id": str(init_state_id),
             "success": bool(env.success),
             "steps": env.steps,
-            "success_step": success_step,
+            "success_step": ep.success_step,
             "subtasks_done": env.subtasks_done,
             **episode_failure(env, self.tasks[spec.task_id].max_steps),
             "sim_seconds": env.steps / env.control_hz,
@@ -235,9 +261,8 @@ class EpisodeWorker:
             "e_img_mean": mean("e_img"),
             "e_prop_mean": mean("e_prop"),
             "r_img_mean": mean("r_img"),
-            "crn": crn,
+            "crn": ep.crn,
         }
-        return steps, outcome
 
     def close(self) -> None:
         """Idempotent."""
@@ -253,9 +278,9 @@ def episode_failure(env: Any, max_steps: int) -> dict[str, str | None]:
     ``timeout`` (the step budget ran out). Both None for a success."""
     if env.success:
         return {"failure": None, "failure_detail": None}
-    cause = env_member(env, "failure_cause")
-    if cause:
-        return {"failure": str(cause), "failure_detail": env_member(env, "failure_reason")}
+    episode = episode_info(env)
+    if episode.failure_cause:
+        return {"failure": str(episode.failure_cause), "failure_detail": episode.failure_reason}
     if env.steps >= max_steps:
         return {"failure": "timeout", "failure_detail": f"no success within {max_steps} steps"}
     return {"failure": "ended", "failure_detail": f"the env ended the episode at step {env.steps}"}

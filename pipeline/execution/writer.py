@@ -22,14 +22,16 @@ class BatchWriter:
         flush_every: int,
         on_flush: Callable[[list[EpisodeResult]], None] | None = None,
         check_dir: Callable[[], None] | None = None,
+        stored_keys: set[tuple[str, str, int]] | None = None,
     ) -> None:
         """``check_dir``: raises when the run directory is no longer the one this run writes
-        (checked before each batch, so a deleted directory is never silently recreated)."""
+        (checked before each batch, so a deleted directory is never silently recreated).
+        ``stored_keys``: the store's keys where the caller read them already."""
         self.store = store
         self.check_dir = check_dir
         self.flush_every = flush_every
         self.on_flush = on_flush
-        self.stored_keys = store.stored_keys()
+        self.stored_keys = stored_keys if stored_keys is not None else store.stored_keys()
         self.stored = 0  # written by this writer
         self._buffer: list[EpisodeResult] = []
         self._buffered: set[tuple[str, str, int]] = set()

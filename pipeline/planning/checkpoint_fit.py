@@ -156,7 +156,7 @@ def fit_backbone_to_env(
         raise ConfigError(
             f"state: the env gives a {env.state_dim}-d state, but {policy.source} declares "
             f"observation.state ({policy.state_dim},); use a checkpoint trained on this env's "
-            "state layout (README: what each suite gives a policy)"
+            "state layout (docs/suites/index.md: what each suite gives a policy)"
         )
     if policy.action_dim != env.action_dim:
         raise ConfigError(
@@ -175,10 +175,10 @@ def fit_backbone_to_env(
 
 
 def describe_env(suite: str, params: dict[str, Any]) -> EnvIO | None:
-    from workers.envs.base import env_member
+    from workers.envs.base import suite_hooks
     from workers.envs.factory import env_class
 
-    describe = env_member(env_class(suite), "describe")
+    describe = suite_hooks(env_class(suite)).describe
     return None if describe is None else describe(**params)
 
 
@@ -219,9 +219,10 @@ def fit_config(cfg: RunConfig) -> tuple[RunConfig, Fit]:
         )
     _check_intervention_spaces(cfg)
     if env is None and policy is not None:  # an env without describe: its class's action dim
+        from workers.envs.base import suite_info
         from workers.envs.factory import env_class
 
-        dim = getattr(env_class(cfg.env.suite), "action_dim", None)
+        dim = suite_info(env_class(cfg.env.suite)).action_dim
         if isinstance(dim, int) and dim != policy.action_dim:
             raise ConfigError(
                 f"action: the env takes {dim}-d actions, but {policy.source} declares action "

@@ -14,7 +14,7 @@ import os
 from pathlib import Path
 
 from pipeline.planning.config import ConfigError, RunConfig
-from workers.envs.base import env_member
+from workers.envs.base import suite_hooks, suite_info
 from workers.envs.factory import env_class, env_entry
 from workers.envs.server.client import EnvServerError, ServerSpec, probe_server
 
@@ -24,7 +24,7 @@ def server_spec(cfg: RunConfig) -> ServerSpec | None:
     if cfg.env.python is None:
         return None
     path = Path(cfg.env.python).expanduser()
-    hint = getattr(env_class(cfg.env.suite), "server_setup_hint", None)
+    hint = suite_info(env_class(cfg.env.suite)).server_setup_hint
     fix = f" ({hint})" if hint else ""
     if not path.exists():
         raise ConfigError(f"env.python={cfg.env.python}: no such interpreter{fix}")
@@ -39,7 +39,7 @@ def check_env_runtime(cfg: RunConfig) -> tuple[ServerSpec | None, dict[str, obje
     (its Python version, for the run's record), or (None, None) in-process."""
     spec = server_spec(cfg)
     if spec is None:
-        check = env_member(env_class(cfg.env.suite), "check_runtime")
+        check = suite_hooks(env_class(cfg.env.suite)).check_runtime
         if check is not None:
             try:
                 check(**cfg.env.params)

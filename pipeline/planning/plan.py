@@ -11,12 +11,17 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import overload
+from pathlib import Path
+from typing import TYPE_CHECKING, overload
 
 from workers.envs.base import TaskSpec
-from workers.episode import EpisodeSpec
+from workers.episode import EpisodeSpec, WorkerSpec
 from workers.idr import IDRConfig
 from workers.interventions import InterventionConfig
+
+if TYPE_CHECKING:
+    from pipeline.planning.checkpoint_fit import Fit
+    from pipeline.planning.config import RunConfig
 
 
 @dataclass(frozen=True)
@@ -107,3 +112,21 @@ class Chain(Sequence[EpisodeSpec]):
     def __iter__(self) -> Iterator[EpisodeSpec]:
         for p in self.parts:
             yield from p
+
+
+@dataclass
+class RunPlan:
+    cfg: RunConfig
+    run_dir: Path
+    run_id: str
+    tasks: list[TaskSpec]
+    specs: SpecGrid  # the first stage (lazy: made when the scheduler reaches them)
+    worker_spec: WorkerSpec
+    calibrated: SpecGrid  # scheduled after tau calibration, with tau filled in then
+    code_version: str = ""
+    checkpoint: dict[str, object] | None = None  # pipeline.planning.provenance.checkpoint_record
+    fit: Fit | None = None  # what the pre-flight settled (pipeline.planning.checkpoint_fit)
+    env_server: dict[str, object] | None = None  # the env server's hello (python, version)
+
+    def all_specs(self) -> Chain:
+        return Chain((self.specs, self.calibrated))

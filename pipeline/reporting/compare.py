@@ -280,12 +280,8 @@ def compare(
     parts += perturbation_lines(runs)
     parts += ["", *ui_lines]
     if out is not None:
-        from pipeline.reporting.figures import (
-            rimg_heatmap,
-            rimg_matrix,
-            runs_effects,
-            save,
-        )
+        from pipeline.reporting.figures import rimg_heatmap, save
+        from pipeline.reporting.run_data import rimg_matrix, runs_effects
 
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)

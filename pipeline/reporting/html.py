@@ -16,8 +16,9 @@ import html
 import re
 from pathlib import Path
 
-from pipeline.reporting.figures import RunData, cell_figures, save
+from pipeline.reporting.figures import cell_figures, save
 from pipeline.reporting.markdown import build_report
+from pipeline.reporting.run_data import RunData
 from pipeline.results import aggregate as agg
 from pipeline.rundir import FIGURES_DIR, REPORT_MD
 

@@ -47,6 +47,46 @@ def effects_by_suite(store: RunStore, cell_id: str) -> pd.DataFrame:
     return df[["backbone", "suite", "e_img", "e_prop"]]
 
 
+def _groups(source: str, df: pd.DataFrame) -> list[dict[str, Any]]:
+    """Mean effects of one diagnose cell per backbone x suite (the record of what tau saw)."""
+    df = df.dropna(subset=["e_img"])
+    if df.empty:
+        raise RuntimeError(
+            f"tau calibration: the diagnose cell {source!r} stored no E_img (all its episodes "
+            "errored?); see the errors in the report"
+        )
+    return [
+        {
+            "source_cell": source,
+            "backbone": backbone,
+            "suite": suite,
+            "inferences": len(g),
+            "e_img_mean": float(g["e_img"].astype(float).mean()),
+            "e_prop_mean": float(g["e_prop"].astype(float).mean()),
+        }
+        for (backbone, suite), g in df.groupby(["backbone", "suite"], sort=True)
+    ]
+
+
+def _cell_tau(c: Cell, src: Cell | None, effects: dict[str, pd.DataFrame]) -> dict[str, Any]:
+    """One calibrated cell's tau per suite: its statistic of the guided effect of ``src``."""
+    spec = c.calibrated_tau
+    assert spec is not None and src is not None
+    effect = "e_img" if c.idr.guidance == "visual" else "e_prop"
+    df = effects[src.cell_id].dropna(subset=[effect])
+    taus = {
+        str(suite): spec.resolve(g[effect].to_numpy(dtype=float))
+        for suite, g in df.groupby("suite", sort=True)
+    }
+    bad = {k: v for k, v in taus.items() if not math.isfinite(v)}
+    if not taus or bad:
+        raise RuntimeError(
+            f"tau calibration of {c.cell_id!r}: no finite {effect} from {src.cell_id!r} "
+            f"for suites {sorted(bad) or 'any'}"
+        )
+    return {"spec": spec.text, "effect": effect, "source_cell": src.cell_id, "tau": taus}
+
+
 def calibrate(store: RunStore, cells: list[Cell]) -> dict[str, Any]:
     """tau of every calibrated cell, per suite, from its diagnose cell's stored inferences.
 
@@ -67,47 +107,8 @@ def calibrate(store: RunStore, cells: list[Cell]) -> dict[str, Any]:
         if src is not None
     }
     diagnose = [c.cell_id for c in cells if c.idr.mode == "diagnose"]
-    groups: list[dict[str, Any]] = []
-    for source, df in effects.items():
-        df = df.dropna(subset=["e_img"])
-        if df.empty:
-            raise RuntimeError(
-                f"tau calibration: the diagnose cell {source!r} stored no E_img (all its episodes "
-                "errored?); see the errors in the report"
-            )
-        for (backbone, suite), g in df.groupby(["backbone", "suite"], sort=True):
-            groups.append(
-                {
-                    "source_cell": source,
-                    "backbone": backbone,
-                    "suite": suite,
-                    "inferences": len(g),
-                    "e_img_mean": float(g["e_img"].astype(float).mean()),
-                    "e_prop_mean": float(g["e_prop"].astype(float).mean()),
-                }
-            )
-    per_cell: dict[str, Any] = {}
-    for c in calibrated:
-        spec, src = c.calibrated_tau, sources[c.cell_id]
-        assert spec is not None and src is not None
-        effect = "e_img" if c.idr.guidance == "visual" else "e_prop"
-        df = effects[src.cell_id].dropna(subset=[effect])
-        taus = {
-            str(suite): spec.resolve(g[effect].to_numpy(dtype=float))
-            for suite, g in df.groupby("suite", sort=True)
-        }
-        bad = {k: v for k, v in taus.items() if not math.isfinite(v)}
-        if not taus or bad:
-            raise RuntimeError(
-                f"tau calibration of {c.cell_id!r}: no finite {effect} from {src.cell_id!r} "
-                f"for suites {sorted(bad) or 'any'}"
-            )
-        per_cell[c.cell_id] = {
-            "spec": spec.text,
-            "effect": effect,
-            "source_cell": src.cell_id,
-            "tau": taus,
-        }
+    groups = [g for source, df in effects.items() for g in _groups(source, df)]
+    per_cell = {c.cell_id: _cell_tau(c, sources[c.cell_id], effects) for c in calibrated}
     first = diagnose[0] if diagnose else next(iter(effects), "")
     tau, n = mean_e_img(store, first) if first else (math.nan, 0)
     result = {

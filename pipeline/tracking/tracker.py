@@ -369,8 +369,9 @@ class Tracker:
         """Each child's slice of the report (and its figures, its per-task table) as artifacts,
         and its progress curves as step-indexed metrics. A failure here (a figure) is logged
         and never costs the run its metrics or its status."""
-        from pipeline.reporting.figures import load_run, progress_curves
+        from pipeline.reporting.figures import progress_curves
         from pipeline.reporting.html import write_cell_slice
+        from pipeline.reporting.run_data import load_run
 
         try:
             data = load_run(self.run_dir)

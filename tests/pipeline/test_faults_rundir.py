@@ -13,7 +13,7 @@ import pytest
 from fault_audit import assert_clean, audit
 
 from pipeline.errors import RunDirLostError
-from pipeline.execution import runner
+from pipeline.execution import claim
 from pipeline.execution.runner import execute, plan_run, run_episodes
 from pipeline.planning.config import ConfigError, load_config
 from pipeline.results.store import RunStore
@@ -89,7 +89,7 @@ def test_a_plan_too_large_is_refused_before_it_is_built(tmp_path, fault_log) -> 
 
 def test_a_run_dir_deleted_mid_run_stops_the_run(tmp_path, fault_log) -> None:
     plan = plan_run(load_config(SMOKE, [*BASE, "executor.flush_every=1"]), tmp_path / "run")
-    runner._write_meta(plan)
+    claim.write_meta(plan)
     flushed: list[int] = []
 
     def delete_after_two(batch) -> None:

@@ -12,6 +12,7 @@ from matplotlib.image import imread
 from pipeline.execution.runner import execute, plan_run
 from pipeline.planning.config import load_config
 from pipeline.reporting import figures as F
+from pipeline.reporting import run_data as D
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 # baseline, diagnose, and E / F at (alpha, tau) = (0.08, cal), (0.5, cal), (0.08, 999): an alpha
@@ -34,8 +35,8 @@ def run_dir(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def built(run_dir) -> tuple[F.RunData, F.Figures]:
-    data = F.load_run(run_dir)
+def built(run_dir) -> tuple[D.RunData, F.Figures]:
+    data = D.load_run(run_dir)
     return data, F.build_figures(data)
 
 
@@ -86,7 +87,7 @@ def test_rimg_over_progress_has_baseline_e_f_and_gripper_events(tmp_path, built)
     fig = figs.built["rimg_progress"]
     ax = fig.axes[0]
     assert ax.get_xlabel().startswith("normalized task progress") and ax.get_ylabel() == "R_img"
-    events = F.gripper_events(data.steps[data.steps.cell_id == "diagnose"])
+    events = D.gripper_events(data.steps[data.steps.cell_id == "diagnose"])
     assert events["close"] and events["open"]  # the fake's last action dim changes sign
     labels = _legend(ax)
     assert labels[:3] == [
@@ -150,7 +151,7 @@ def test_gripper_events_and_rimg_matrix_by_hand() -> None:
             )
     steps = pd.DataFrame(rows)
     steps["progress"] = steps["step"] / 10
-    assert F.gripper_events(steps) == {"close": [pytest.approx(0.5)], "open": [0.8]}
+    assert D.gripper_events(steps) == {"close": [pytest.approx(0.5)], "open": [0.8]}
     effects = pd.DataFrame(
         {
             "backbone": ["a", "a", "b"],
@@ -159,7 +160,7 @@ def test_gripper_events_and_rimg_matrix_by_hand() -> None:
             "e_prop": [3.0, 1.0, 0.0],
         }
     )
-    m = F.rimg_matrix(effects)
+    m = D.rimg_matrix(effects)
     # ratio of means (2 / (2 + 2)), not mean of ratios ((0.25 + 0.75) / 2 happens to match:
     # check b too)
     assert m.loc["a", "s"] == pytest.approx(0.5, rel=1e-5)
@@ -199,7 +200,7 @@ def test_a_grid_without_diagnose_or_sweeps_says_what_is_not_drawn(tmp_path) -> N
             "grip": [np.nan, np.nan],
         }
     )
-    figs = F.build_figures(F.RunData(eps, F.progress_frame(steps, eps), {}))
+    figs = F.build_figures(D.RunData(eps, D.progress_frame(steps, eps), {}))
     assert set(figs.built) == {"gate_progress"}
     assert "needs a diagnose cell" in figs.skipped["rimg_heatmap"]
     assert "differ only in alpha" in figs.skipped["success_alpha"]
@@ -208,15 +209,15 @@ def test_a_grid_without_diagnose_or_sweeps_says_what_is_not_drawn(tmp_path) -> N
 def _gripper_events_by_loop(steps: pd.DataFrame) -> dict[str, list[float]]:
     """The definition, one episode at a time."""
     found: dict[str, dict[int, list[float]]] = {"close": {}, "open": {}}
-    df = steps.dropna(subset=["grip"]).sort_values([*F.KEY, "step"])
-    for _, g in df.groupby(F.KEY, sort=False):
+    df = steps.dropna(subset=["grip"]).sort_values([*D.KEY, "step"])
+    for _, g in df.groupby(D.KEY, sort=False):
         closed = g["grip"].to_numpy() > 0
         prog = g["progress"].to_numpy()
         counts = {"close": 0, "open": 0}
         for i in np.flatnonzero(closed[1:] != closed[:-1]) + 1:
             kind = "close" if closed[i] else "open"
             counts[kind] += 1
-            if counts[kind] <= F.MAX_EVENTS:
+            if counts[kind] <= D.MAX_EVENTS:
                 found[kind].setdefault(counts[kind], []).append(float(prog[i]))
     return {k: [float(np.median(v)) for _, v in sorted(ks.items())] for k, ks in found.items()}
 
@@ -239,8 +240,8 @@ def test_gripper_events_equal_the_per_episode_definition() -> None:
                 }
             )
     steps = pd.DataFrame(rows).sample(frac=1.0, random_state=1)  # any order
-    got, want = F.gripper_events(steps), _gripper_events_by_loop(steps)
+    got, want = D.gripper_events(steps), _gripper_events_by_loop(steps)
     assert got.keys() == want.keys() and all(len(got[k]) > 1 for k in got)
     for kind in want:
         assert got[kind] == pytest.approx(want[kind])
-    assert F.gripper_events(steps.iloc[:0]) == {"close": [], "open": []}
+    assert D.gripper_events(steps.iloc[:0]) == {"close": [], "open": []}

@@ -1,4 +1,5 @@
-"""What an environment is to the pipeline, and the contract checker every adapter must pass.
+"""What an environment is to the pipeline (the contract checker every adapter must pass is
+``workers.envs.checks.check_env``).
 
 An env holds one simulated scene at a time. ``reset(task_id, episode_index, seed)`` puts it in
 the task's deterministic initial state for that episode (so every IDR cell of a grid sees the
@@ -7,12 +8,31 @@ same scenes), ``step(action)`` advances one control step. Status is read from pr
 
 Observations are what the env renders, before any policy convention: camera images as uint8
 (H, W, 3) arrays and the proprioceptive state as a float32 vector.
+
+Beyond the ``Env`` protocol an env may have optional members, in three groups (as Gymnasium
+keeps an env's ``metadata`` apart from the ``info`` its reset and step return). Each group is a
+frozen dataclass read through one accessor, which fills in the documented default of a member
+the env lacks (never read them with a getattr of one's own: every reader agrees, and
+``check_env`` checks what the accessors return):
+
+- ``suite_info(env_or_cls) -> SuiteInfo``: static metadata of the suite (``gripper_index``,
+  ``render_backend``, ``policy_reset_per_subtask``, ``perturbation_kinds``,
+  ``server_setup_hint``, the class's ``action_dim``); off a class, a member only a built env
+  knows (a property) reads as its default;
+- ``suite_hooks(env_or_cls) -> SuiteHooks``: what the suite can do without an episode,
+  callables or None (``suite_tasks``, ``check_runtime``, ``describe``, ``check_tasks``: class
+  methods the driver's pre-flight calls; ``set_perturbation``: the env's, before a reset);
+- ``episode_info(env) -> EpisodeInfo``: what the current episode started from and, once done,
+  ended with (``init_state_id``, ``failure_cause``, ``failure_reason``).
+
+Each field's default and documentation: ``dataclasses.fields(SuiteInfo)`` (``metadata["doc"]``).
 """
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -116,71 +136,157 @@ class EnvObservation:
     privileged: Mapping[str, Any] | None = None  # simulator state for scripted experts only
 
 
-# Members an env may have beyond the Env protocol, with the default the pipeline assumes when
-# it has not: read them with env_member(), never with a getattr of one's own, so that every
-# reader agrees and check_env() checks them.
-OPTIONAL_ENV_MEMBERS: dict[str, tuple[Any, str]] = {
-    "gripper_index": (
-        None,
-        "int: the action dim that commands the gripper (gripper events in the report); "
-        "None: the env has no gripper",
-    ),
-    "init_state_id": (
-        None,
-        "str, after reset: which initial state the episode started from (LIBERO's fixed "
-        "init states, the tabletop's seeded layout); None: '<seed>/<episode_index>'",
-    ),
-    "failure_cause": (
-        None,
-        "str | None, once done: a code for why the env ended a failed episode early "
-        "(e.g. 'wrong_order'); None: it did not (the step budget ran out: 'timeout')",
-    ),
-    "failure_reason": (None, "str | None: the env's words for failure_cause"),
-    "suite_tasks": (
-        None,
-        "classmethod(**params) -> list[TaskSpec]: the tasks without starting a simulator "
-        "(pre-flight before any actor); None: the env is built once to call tasks()",
-    ),
-    "render_backend": (
-        None,
-        "str: the renderer of an env that does not render with MuJoCo's headless GL (e.g. "
-        "PyBullet's CPU renderer 'pybullet-tiny'), recorded with every episode; None: the "
-        "worker's MuJoCo backend (egl / osmesa)",
-    ),
-    "policy_reset_per_subtask": (
-        False,
-        "bool: each subtask of a chain is a rollout of its own (CALVIN): when one is done the "
-        "policy is reset, the rest of its chunk dropped and the instruction read anew",
-    ),
-    "check_runtime": (
-        None,
-        "classmethod(**params) -> None: check what the env needs in the interpreter it runs in "
-        "(simulator packages, a checkout), raising ValueError naming the field and the fix; "
-        "the pre-flight calls it there (in an env server for env.python) before any episode",
-    ),
-    "describe": (
-        None,
-        "classmethod(**params) -> workers.io_spec.EnvIO: cameras, image size, state and "
-        "action dims and protocol, without a simulator (the pre-flight matches a checkpoint "
-        "against them); None: no check",
-    ),
-    "check_tasks": (
-        None,
-        "classmethod(task_ids, episodes, **params) -> None: check, on the driver before any "
-        "episode, what the selected tasks' first ``episodes`` episodes need (SIMPLER: their "
-        "assets), raising ValueError naming the fix",
-    ),
-    "perturbation_kinds": (
-        (),
-        "tuple[str, ...]: the scene perturbations the env applies (workers/envs/wrappers/perturbations.py; "
-        "image kinds need nothing of the env)",
-    ),
-    "set_perturbation": (
-        None,
-        "method(Perturbation | None): the scene perturbation of the next reset (None: the "
-        "unperturbed scene, to the bit); with perturbation_kinds",
-    ),
-}
+# -- what an env may have beyond the Env protocol (see the module docstring) ----------------------
+# Each field's default is what the pipeline assumes of an env without the member; its doc is
+# kept with it (``dataclasses.fields(SuiteInfo)[i].metadata["doc"]``).
+
+
+@dataclass(frozen=True)
+class SuiteInfo:
+    """What a suite is, beyond the Env protocol: constants of the env class, or of the built env
+    (``render_backend`` may depend on its params). Read with :func:`suite_info`."""
+
+    gripper_index: int | None = field(
+        default=None,
+        metadata={
+            "doc": "int: the action dim that commands the gripper (gripper events in the "
+            "report); None: the env has no gripper"
+        },
+    )
+    render_backend: str | None = field(
+        default=None,
+        metadata={
+            "doc": "str: the renderer of an env that does not render with MuJoCo's headless GL "
+            "(e.g. PyBullet's CPU renderer 'pybullet-tiny'), recorded with every episode; "
+            "None: the worker's MuJoCo backend (egl / osmesa)"
+        },
+    )
+    policy_reset_per_subtask: bool = field(
+        default=False,
+        metadata={
+            "doc": "bool: each subtask of a chain is a rollout of its own (CALVIN): when one is "
+            "done the policy is reset, the rest of its chunk dropped and the instruction read anew"
+        },
+    )
+    perturbation_kinds: tuple[str, ...] = field(
+        default=(),
+        metadata={
+            "doc": "tuple[str, ...]: the scene perturbations the env applies (with "
+            "SuiteHooks.set_perturbation; workers/envs/wrappers/perturbations.py; image kinds "
+            "need nothing of the env)"
+        },
+    )
+    server_setup_hint: str | None = field(
+        default=None,
+        metadata={
+            "doc": "str: how to make the interpreter an env server of this suite runs in "
+            "(env.python), said when the pre-flight refuses a missing one; None: nothing to say"
+        },
+    )
+    action_dim: int | None = field(
+        default=None,
+        metadata={
+            "doc": "int: the Env protocol's action dim, where the class declares it (the "
+            "pre-flight checks a checkpoint against it before any env is built); None: known "
+            "only once built"
+        },
+    )
+
+
+@dataclass(frozen=True)
+class SuiteHooks:
+    """What a suite can do without an episode: class-level callables (``None``: the suite
+    cannot, and the pipeline does without). Read with :func:`suite_hooks`."""
+
+    suite_tasks: Callable[..., list[TaskSpec]] | None = field(
+        default=None,
+        metadata={
+            "doc": "classmethod(**params) -> list[TaskSpec]: the tasks without starting a "
+            "simulator (pre-flight before any actor); None: the env is built once to call tasks()"
+        },
+    )
+    check_runtime: Callable[..., None] | None = field(
+        default=None,
+        metadata={
+            "doc": "classmethod(**params) -> None: check what the env needs in the interpreter "
+            "it runs in (simulator packages, a checkout), raising ValueError naming the field "
+            "and the fix; the pre-flight calls it there (in an env server for env.python) "
+            "before any episode"
+        },
+    )
+    describe: Callable[..., Any] | None = field(
+        default=None,
+        metadata={
+            "doc": "classmethod(**params) -> workers.io_spec.EnvIO: cameras, image size, state "
+            "and action dims and protocol, without a simulator (the pre-flight matches a "
+            "checkpoint against them); None: no check"
+        },
+    )
+    check_tasks: Callable[..., None] | None = field(
+        default=None,
+        metadata={
+            "doc": "classmethod(task_ids, episodes, **params) -> None: check, on the driver "
+            "before any episode, what the selected tasks' first ``episodes`` episodes need "
+            "(SIMPLER: their assets), raising ValueError naming the fix"
+        },
+    )
+    set_perturbation: Callable[[Any], None] | None = field(
+        default=None,
+        metadata={
+            "doc": "method(Perturbation | None): the scene perturbation of the next reset "
+            "(None: the unperturbed scene, to the bit); with SuiteInfo.perturbation_kinds"
+        },
+    )
+
+
+@dataclass(frozen=True)
+class EpisodeInfo:
+    """What the env's current episode started from and, once done, ended with. Read with
+    :func:`episode_info` after a reset."""
+
+    init_state_id: str | None = field(
+        default=None,
+        metadata={
+            "doc": "str, after reset: which initial state the episode started from (LIBERO's "
+            "fixed init states, the tabletop's seeded layout); None: '<seed>/<episode_index>'"
+        },
+    )
+    failure_cause: str | None = field(
+        default=None,
+        metadata={
+            "doc": "str | None, once done: a code for why the env ended a failed episode early "
+            "(e.g. 'wrong_order'); None: it did not (the step budget ran out: 'timeout')"
+        },
+    )
+    failure_reason: str | None = field(
+        default=None, metadata={"doc": "str | None: the env's words for failure_cause"}
+    )
+
+
+def _read(obj: Any, group: type) -> Any:
+    """``group`` with the members ``obj`` has, the defaults for the others. Read off a class, a
+    member that only an instance knows (a property) reads as its default."""
+    on_class = isinstance(obj, type)
+    values = {}
+    for f in fields(group):
+        value = getattr(obj, f.name, f.default)
+        values[f.name] = f.default if on_class and inspect.isdatadescriptor(value) else value
+    return group(**values)
+
+
+def suite_info(env_or_cls: Any) -> SuiteInfo:
+    """The suite's metadata, of an env or of its class (see SuiteInfo)."""
+    return _read(env_or_cls, SuiteInfo)
+
+
+def suite_hooks(env_or_cls: Any) -> SuiteHooks:
+    """The suite's hooks, of its class (classmethods) or of an env (see SuiteHooks)."""
+    return _read(env_or_cls, SuiteHooks)
+
+
+def episode_info(env: Any) -> EpisodeInfo:
+    """What ``env``'s current episode started from and ended with (see EpisodeInfo)."""
+    return _read(env, EpisodeInfo)
 
 
 def checked_action(action: Any, action_dim: int, started: bool, done: bool) -> np.ndarray:
@@ -198,15 +304,10 @@ def checked_action(action: Any, action_dim: int, started: bool, done: bool) -> n
     return a
 
 
-def env_member(env: Any, name: str) -> Any:
-    """An optional member of ``env`` (see OPTIONAL_ENV_MEMBERS), or its documented default."""
-    default, _ = OPTIONAL_ENV_MEMBERS[name]
-    return getattr(env, name, default)
-
-
 @runtime_checkable
 class Env(Protocol):
-    """The members every env has. It may also have those of OPTIONAL_ENV_MEMBERS."""
+    """The members every env has. It may also have those of SuiteInfo, SuiteHooks and
+    EpisodeInfo (read them with suite_info, suite_hooks and episode_info)."""
 
     suite: str
     control_hz: float  # control steps per simulated second
@@ -241,176 +342,3 @@ class Env(Protocol):
     def steps(self) -> int: ...
 
     def close(self) -> None: ...
-
-
-class EnvContractError(AssertionError):
-    """An env adapter breaks the contract; the message says which rule."""
-
-
-def _require(cond: bool, msg: str) -> None:
-    if not cond:
-        raise EnvContractError(msg)
-
-
-def _check_obs(env: Env, obs: EnvObservation, where: str) -> None:
-    _require(isinstance(obs, EnvObservation), f"{where}: must return an EnvObservation")
-    _require(bool(obs.images), f"{where}: observation has no camera images")
-    _require(
-        set(obs.images) == set(env.cameras),
-        f"{where}: cameras {sorted(obs.images)} differ from env.cameras {sorted(env.cameras)}",
-    )
-    for cam, img in obs.images.items():
-        _require(
-            isinstance(img, np.ndarray)
-            and img.dtype == np.uint8
-            and img.ndim == 3
-            and img.shape[2] == 3,
-            f"{where}: image {cam!r} must be uint8 (H, W, 3), got "
-            f"{getattr(img, 'dtype', type(img))} {getattr(img, 'shape', '')}",
-        )
-    s = obs.state
-    _require(
-        isinstance(s, np.ndarray) and s.ndim == 1 and s.shape[0] == env.state_dim,
-        f"{where}: state must be a ({env.state_dim},) array, got {getattr(s, 'shape', type(s))}",
-    )
-    _require(np.issubdtype(s.dtype, np.floating), f"{where}: state must be float, got {s.dtype}")
-    _require(bool(np.isfinite(s).all()), f"{where}: state has NaN or inf")
-
-
-def _same(a: EnvObservation, b: EnvObservation) -> bool:
-    return np.array_equal(a.state, b.state) and all(
-        np.array_equal(a.images[c], b.images[c]) for c in a.images
-    )
-
-
-def _check_optional_members(env: Env) -> None:
-    """The members of OPTIONAL_ENV_MEMBERS an env has, just after a reset."""
-    g = env_member(env, "gripper_index")
-    _require(
-        g is None or (isinstance(g, int) and 0 <= g < env.action_dim),
-        f"gripper_index must be None or an int in [0, action_dim={env.action_dim}), got {g!r}",
-    )
-    init = env_member(env, "init_state_id")
-    _require(
-        init is None or (isinstance(init, str) and init != ""),
-        f"init_state_id must be None or a non-empty str after reset, got {init!r}",
-    )
-    _require(
-        env_member(env, "failure_cause") is None,
-        "after reset: failure_cause must be None (no episode has failed yet)",
-    )
-    listing = env_member(type(env), "suite_tasks")
-    _require(listing is None or callable(listing), "suite_tasks must be a classmethod")
-    for name in ("describe", "check_runtime"):
-        member = env_member(type(env), name)
-        _require(member is None or callable(member), f"{name} must be a classmethod")
-    backend = env_member(env, "render_backend")
-    _require(
-        backend is None or (isinstance(backend, str) and backend != ""),
-        f"render_backend must be None or a non-empty str, got {backend!r}",
-    )
-    _require(
-        isinstance(env_member(env, "policy_reset_per_subtask"), bool),
-        "policy_reset_per_subtask must be a bool",
-    )
-
-
-def check_env(
-    env: Env,
-    *,
-    task_id: str | None = None,
-    seed: int = 0,
-    n_steps: int = 5,
-    run_to_horizon: bool = False,
-) -> None:
-    """Check that ``env`` honours the contract; raise EnvContractError naming the broken rule.
-
-    In the spirit of gymnasium's ``check_env``. ``run_to_horizon`` also steps until ``done`` to
-    check the max-steps rule (cheap for fakes, minutes for LIBERO).
-    """
-    _require(isinstance(env, Env), f"{type(env).__name__} does not implement the Env protocol")
-    _require(env.control_hz > 0, f"control_hz must be > 0, got {env.control_hz}")
-    _require(env.action_dim > 0 and env.state_dim > 0, "action_dim and state_dim must be > 0")
-    tasks = env.tasks()
-    _require(len(tasks) > 0, "tasks() is empty")
-    ids = [t.task_id for t in tasks]
-    _require(len(set(ids)) == len(ids), f"task ids are not unique: {ids}")
-    for t in tasks:
-        _require(t.max_steps > 0, f"task {t.task_id}: max_steps must be > 0")
-        _require(t.subtasks_total >= 1, f"task {t.task_id}: subtasks_total must be >= 1")
-    task_id = task_id or ids[0]
-
-    obs0 = env.reset(task_id, 0, seed)
-    _check_obs(env, obs0, "reset")
-    _require(env.task.task_id == task_id, "env.task does not match the task reset to")
-    _require(
-        isinstance(env.instruction, str) and env.instruction.strip() != "", "instruction is empty"
-    )
-    _require(env.steps == 0 and not env.done, "after reset: steps must be 0 and done False")
-    _require(not env.success and env.subtasks_done == 0, "after reset: no success, no subtask done")
-
-    _check_optional_members(env)
-
-    again = env.reset(task_id, 0, seed)
-    _require(_same(obs0, again), "reset(task, episode 0, seed) twice gave different observations")
-    other = env.reset(task_id, 1, seed)
-    _require(
-        not _same(obs0, other), "episodes 0 and 1 start from the same state: init states must vary"
-    )
-
-    env.reset(task_id, 0, seed)
-    try:
-        env.step(np.zeros(env.action_dim + 1, dtype=np.float32))
-    except ValueError:
-        pass
-    else:
-        raise EnvContractError("step() with a wrong action shape must raise ValueError")
-
-    rng = np.random.default_rng(seed)
-    actions = rng.uniform(-1, 1, size=(n_steps, env.action_dim)).astype(np.float32)
-    trajectories = []
-    for _ in range(2):
-        env.reset(task_id, 0, seed)
-        traj = []
-        for i, a in enumerate(actions):
-            if env.done:
-                break
-            obs = env.step(a)
-            _check_obs(env, obs, f"step {i}")
-            _require(env.steps == i + 1, f"steps must count control steps: {env.steps} != {i + 1}")
-            total = env.task.subtasks_total
-            _require(0 <= env.subtasks_done <= total, f"subtasks_done out of [0, {total}]")
-            _require(isinstance(env.success, bool | np.bool_), "success must be a bool")
-            _require(
-                not (env.success and env_member(env, "failure_cause")),
-                "failure_cause is set on a successful episode",
-            )
-            traj.append(obs.state.copy())
-        trajectories.append(traj)
-    _require(
-        all(np.array_equal(a, b) for a, b in zip(*trajectories, strict=True)),
-        "same init state and actions gave different trajectories: stepping must be deterministic",
-    )
-
-    if run_to_horizon:
-        env.reset(task_id, 0, seed)
-        limit = env.task.max_steps
-        while not env.done:
-            env.step(np.zeros(env.action_dim, dtype=np.float32))
-            _require(env.steps <= limit, f"done not set after max_steps={limit}")
-        try:
-            env.step(np.zeros(env.action_dim, dtype=np.float32))
-        except RuntimeError:
-            pass
-        else:
-            raise EnvContractError("step() after done must raise RuntimeError")
-        cause, reason = env_member(env, "failure_cause"), env_member(env, "failure_reason")
-        _require(
-            cause is None or isinstance(cause, str),
-            f"failure_cause must be a str or None: {cause!r}",
-        )
-        _require(
-            reason is None or isinstance(reason, str),
-            f"failure_reason must be a str or None: {reason!r}",
-        )
-        _require(not (env.success and cause), "failure_cause is set on a successful episode")

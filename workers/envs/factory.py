@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
-from workers.envs.base import Env, TaskSpec, env_member
+from workers.envs.base import Env, TaskSpec, suite_hooks
 from workers.registry import check_params_bind, load_class
 
 if TYPE_CHECKING:
@@ -46,7 +46,7 @@ def suite_tasks(
     the env is built once, where it will run); each with its ``suite`` set (the env's own
     suite name where the task names none)."""
     cls = env_class(suite)
-    listing = env_member(cls, "suite_tasks")
+    listing = suite_hooks(cls).suite_tasks
     if listing is not None:
         tasks = list(listing(**params))
     else:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from workers.envs.base import EnvContractError, check_env
+from workers.envs.checks import EnvContractError, check_env
 from workers.envs.fakes import FakeMarkerEnv
 
 
@@ -110,14 +110,45 @@ def test_success_requires_reaching_the_marker() -> None:
 
 def test_optional_members_have_one_documented_default() -> None:
     """What the pipeline assumes for an env or backbone that lacks an optional member."""
+    from dataclasses import fields
+
     from workers.backbones.base import OPTIONAL_BACKBONE_MEMBERS, backbone_member
-    from workers.envs.base import OPTIONAL_ENV_MEMBERS, env_member
+    from workers.envs.base import (
+        EpisodeInfo,
+        SuiteHooks,
+        SuiteInfo,
+        episode_info,
+        suite_hooks,
+        suite_info,
+    )
 
     bare = object()
-    for name, (default, doc) in OPTIONAL_ENV_MEMBERS.items():
-        assert env_member(bare, name) is default and doc
+    for group, read in (
+        (SuiteInfo, suite_info),
+        (SuiteHooks, suite_hooks),
+        (EpisodeInfo, episode_info),
+    ):
+        got = read(bare)
+        for f in fields(group):
+            assert getattr(got, f.name) is f.default and f.metadata["doc"]
     for name, (default, doc) in OPTIONAL_BACKBONE_MEMBERS.items():
         assert backbone_member(bare, name) is default and doc
-    assert env_member(_GripperOutOfRangeEnv(), "gripper_index") == 2
-    with pytest.raises(KeyError):
-        env_member(bare, "gripper")  # not a declared member: a typo, not a silent default
+    assert suite_info(_GripperOutOfRangeEnv()).gripper_index == 2
+    with pytest.raises(AttributeError):
+        _ = suite_info(bare).gripper  # type: ignore[attr-defined]  # a typo, not a silent default
+
+
+def test_a_member_only_a_built_env_knows_reads_as_its_default_off_the_class() -> None:
+    """A property (SIMPLER's render_backend) is a value of an env, not of its class."""
+    from workers.envs.base import suite_hooks, suite_info
+
+    class _PropertyEnv(FakeMarkerEnv):
+        @property
+        def render_backend(self) -> str:
+            return "sapien-vulkan-gpu/ibl"
+
+    assert suite_info(_PropertyEnv).render_backend is None
+    assert suite_info(_PropertyEnv()).render_backend == "sapien-vulkan-gpu/ibl"
+    assert suite_info(FakeMarkerEnv).action_dim == 2
+    assert suite_hooks(FakeMarkerEnv).suite_tasks is not None
+    assert suite_hooks(FakeMarkerEnv).check_runtime is None

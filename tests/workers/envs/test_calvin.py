@@ -16,10 +16,10 @@ import pytest
 
 from pipeline.execution.runner import plan_run
 from pipeline.planning.config import ConfigError, load_config
-from workers.envs.suites.calvin import env as calvin
-from workers.envs.suites.calvin.env import (
-    CalvinEnv,
-    binarize_gripper,
+from workers.envs.suites.calvin import checkout as calvin_checkout
+from workers.envs.suites.calvin import sequences as calvin_sequences
+from workers.envs.suites.calvin.env import CalvinEnv, binarize_gripper
+from workers.envs.suites.calvin.sequences import (
     condition_seed,
     fnv1_32,
     initial_state,
@@ -32,7 +32,7 @@ KEY_ORDER = ["led", "lightbulb", "slider", "drawer", "red_block", "blue_block", 
 
 
 def test_the_shipped_sequences_are_the_official_1000():
-    raw = json.loads(calvin.SEQUENCES_FILE.read_text())
+    raw = json.loads(calvin_sequences.SEQUENCES_FILE.read_text())
     # the md5 of get_sequences(1000) as the official generator wrote it (json.dumps of the list)
     assert hashlib.md5(json.dumps(raw).encode()).hexdigest() == "ecdfad2eace34cae15d88471f260a2bf"
     seqs = load_sequences()
@@ -101,7 +101,7 @@ def _fake_checkout(tmp_path: Path) -> Path:
     ):
         (root / "conf" / folder).mkdir(parents=True, exist_ok=True)
         (root / "conf" / folder / f"{name}.yaml").write_text("")
-    ann = tmp_path / "calvin" / calvin.ANNOTATIONS_IN_CALVIN
+    ann = tmp_path / "calvin" / calvin_checkout.ANNOTATIONS_IN_CALVIN
     ann.parent.mkdir(parents=True)
     ann.write_text("open_drawer: [pull the handle to open the drawer]\n")
     return root
@@ -157,6 +157,8 @@ SERVER_SIDE = [
     "workers/envs/server/serve.py",
     "workers/envs/base.py",
     "workers/envs/suites/calvin/env.py",
+    "workers/envs/suites/calvin/checkout.py",
+    "workers/envs/suites/calvin/sequences.py",
     "workers/io_spec.py",
     "workers/registry.py",
 ]

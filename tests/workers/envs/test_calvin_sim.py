@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from workers.envs.base import check_env
+from workers.envs.checks import check_env
 from workers.envs.server.client import EnvServerClient, ServerSpec
-from workers.envs.suites.calvin.env import load_sequences
+from workers.envs.suites.calvin.sequences import load_sequences
 
 ROOT = Path(__file__).resolve().parents[3]
 PYTHON = Path(os.environ.get("IDR_CALVIN_PYTHON", ROOT / ".venv-calvin" / "bin" / "python"))

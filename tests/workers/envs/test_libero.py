@@ -18,7 +18,7 @@ import sys
 import numpy as np
 import pytest
 
-from workers.envs.base import check_env
+from workers.envs.checks import check_env
 from workers.envs.suites.libero.assets import LiberoSetupError, ensure_config_env
 from workers.envs.suites.libero.env import LiberoEnv, quat_to_axis_angle, state_vector
 

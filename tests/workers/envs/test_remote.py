@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from workers.envs.base import check_env
+from workers.envs.checks import check_env
 from workers.envs.fakes import FakeMarkerEnv
 from workers.envs.server.client import (
     EnvServerClient,

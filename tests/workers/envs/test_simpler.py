@@ -15,9 +15,11 @@ import pytest
 
 from pipeline.execution.runner import plan_run
 from pipeline.planning.config import ConfigError, load_config
+from workers.envs.suites.simpler import assets as sa
+from workers.envs.suites.simpler import grids, vulkan_cpu
 from workers.envs.suites.simpler import protocol as sp
-from workers.envs.suites.simpler import vulkan_cpu
-from workers.envs.suites.simpler.env import SimplerEnv, missing_assets
+from workers.envs.suites.simpler.assets import missing_assets
+from workers.envs.suites.simpler.env import SimplerEnv
 
 ROOT = Path(__file__).resolve().parents[3]
 FAKE = ROOT / "tests" / "doubles" / "fake_simpler_sim.py"
@@ -25,7 +27,7 @@ DRAWER = "google_robot_open_top_drawer/visual_matching"
 
 
 def test_episode_lists_have_the_official_counts() -> None:
-    n = {name: {s: len(e) for s, e in t.setups.items()} for name, t in sp.TASKS.items()}
+    n = {name: {s: len(e) for s, e in t.setups.items()} for name, t in grids.TASKS.items()}
     coke = [k for k in n if "coke_can" in k]
     assert sum(n[k]["visual_matching"] for k in coke) == 300  # 3 orientations x 4 URDF x 25
     assert sum(n[k]["variant_agg"] for k in coke) == 675  # 3 x 9 variants x 25
@@ -39,11 +41,11 @@ def test_episode_lists_have_the_official_counts() -> None:
         "variant_agg": 189,
     }
     assert all(n[k] == {"visual_matching": 24} for k in n if k.startswith("widowx"))
-    steps = {name: t.max_steps for name, t in sp.TASKS.items()}
+    steps = {name: t.max_steps for name, t in grids.TASKS.items()}
     assert steps["google_robot_move_near"] == 80 and steps["google_robot_close_top_drawer"] == 113
     assert steps["google_robot_place_apple_in_closed_top_drawer"] == 200
     assert steps["widowx_carrot_on_plate"] == 60 and steps["widowx_put_eggplant_in_basket"] == 120
-    for task in sp.TASKS.values():  # every episode distinct within its list
+    for task in grids.TASKS.values():  # every episode distinct within its list
         for eps in task.setups.values():
             assert len(
                 {(e.env_id, e.scene, e.overlay, e.build, e.robot_xy, e.obj) for e in eps}
@@ -51,7 +53,7 @@ def test_episode_lists_have_the_official_counts() -> None:
 
 
 def test_drawer_visual_matching_follows_the_script_order() -> None:
-    eps = sp.TASKS["google_robot_open_top_drawer"].setups["visual_matching"]
+    eps = grids.TASKS["google_robot_open_top_drawer"].setups["visual_matching"]
     first, last = eps[0], eps[-1]
     assert (first.overlay, first.robot_xy, first.robot_yaw) == (
         "open_drawer_a0.png",
@@ -66,7 +68,7 @@ def test_drawer_visual_matching_follows_the_script_order() -> None:
     opts = first.reset_options()
     assert opts["obj_init_options"] == {"init_xy": [0.0, 0.0]}
     assert opts["robot_init_options"]["init_xy"] == [0.644, -0.179]
-    carrot = sp.TASKS["widowx_carrot_on_plate"].setups["visual_matching"]
+    carrot = grids.TASKS["widowx_carrot_on_plate"].setups["visual_matching"]
     assert [e.obj for e in carrot[:2]] == [("episode_id", 0), ("episode_id", 1)]
 
 
@@ -116,13 +118,13 @@ def _checkout(tmp_path: Path, tasks: list[str]) -> Path:
     shutil.copyfile(FAKE, package / "envs" / "__init__.py")
     data = root / "data"
     keys = {"custom/info_pick_custom_v0.json": ["apple", "blue_plastic_bottle"]}
-    for name in set(sp.MODEL_JSONS.values()) | set(keys):
+    for name in set(sa.MODEL_JSONS.values()) | set(keys):
         (data / name).parent.mkdir(parents=True, exist_ok=True)
         (data / name).write_text(json.dumps({k: {} for k in keys.get(name, [])}))
     for task_id in tasks:
-        task, setup = sp.split_task_id(task_id)
+        task, setup = grids.split_task_id(task_id)
         for ep in task.setups[setup]:
-            for path in sp.episode_assets(ep, keys):
+            for path in sa.episode_assets(ep, keys):
                 f = data / path.replace("textured.*", "textured.glb")
                 f.parent.mkdir(parents=True, exist_ok=True)
                 f.touch()
@@ -133,7 +135,7 @@ def test_asset_preflight_names_the_missing_files(tmp_path) -> None:
     carrot = "widowx_carrot_on_plate/visual_matching"
     root = _checkout(tmp_path, [DRAWER, carrot])
     data = root / "data"
-    eps = sp.TASKS["widowx_carrot_on_plate"].setups["visual_matching"]
+    eps = grids.TASKS["widowx_carrot_on_plate"].setups["visual_matching"]
     assert missing_assets(data, eps) == []
     (data / "hab2_bench_assets/stages/bridge_table_1_v1.glb").unlink()  # >= 4 MiB upstream
     (data / "custom/models/bridge_plate_objaverse_larger/textured.glb").unlink()
@@ -143,7 +145,7 @@ def test_asset_preflight_names_the_missing_files(tmp_path) -> None:
     ]
     # drawers load no object: a model folder's visual may be absent, its collision.obj not
     (data / "custom/models/apple/textured.glb").unlink(missing_ok=True)
-    drawer_eps = sp.TASKS["google_robot_open_top_drawer"].setups["visual_matching"]
+    drawer_eps = grids.TASKS["google_robot_open_top_drawer"].setups["visual_matching"]
     assert missing_assets(data, drawer_eps) == []
     (data / "custom/models/apple/collision.obj").unlink()
     assert missing_assets(data, drawer_eps) == ["custom/models/apple/collision.obj"]

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from workers.envs.base import check_env
+from workers.envs.checks import check_env
 from workers.envs.server.client import EnvServerClient, ServerSpec, probe_server
 from workers.envs.suites.simpler import vulkan_cpu
 

@@ -31,7 +31,7 @@ def _run(env, task, episode, policy, seed=0):
 
 @pytest.mark.parametrize("task", ["pick_color", "stack_color", "organize"])
 def test_contract(env, task) -> None:
-    from workers.envs.base import check_env
+    from workers.envs.checks import check_env
 
     check_env(env, task_id=task, n_steps=4)
 

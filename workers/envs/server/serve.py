@@ -33,26 +33,28 @@ def env_info(env: Any) -> dict[str, Any]:
     """What the actor's EnvServerClient mirrors: the Env protocol's constants and the tasks."""
     from dataclasses import asdict
 
-    from workers.envs.base import env_member
+    from workers.envs.base import suite_info
 
+    info = suite_info(env)
     return {
         "suite": env.suite,
         "control_hz": float(env.control_hz),
         "action_dim": int(env.action_dim),
         "state_dim": int(env.state_dim),
         "cameras": list(env.cameras),
-        "gripper_index": env_member(env, "gripper_index"),
-        "render_backend": env_member(env, "render_backend"),
-        "policy_reset_per_subtask": bool(env_member(env, "policy_reset_per_subtask")),
-        "perturbation_kinds": list(env_member(env, "perturbation_kinds")),
+        "gripper_index": info.gripper_index,
+        "render_backend": info.render_backend,
+        "policy_reset_per_subtask": bool(info.policy_reset_per_subtask),
+        "perturbation_kinds": list(info.perturbation_kinds),
         "tasks": [asdict(t) for t in env.tasks()],
     }
 
 
 def env_status(env: Any) -> dict[str, Any]:
     """The env's status after a reset or a step (the actor reads it from a cache)."""
-    from workers.envs.base import env_member
+    from workers.envs.base import episode_info
 
+    episode = episode_info(env)
     return {
         "task_id": env.task.task_id,
         "instruction": env.instruction,
@@ -60,9 +62,9 @@ def env_status(env: Any) -> dict[str, Any]:
         "done": bool(env.done),
         "success": bool(env.success),
         "subtasks_done": int(env.subtasks_done),
-        "init_state_id": env_member(env, "init_state_id"),
-        "failure_cause": env_member(env, "failure_cause"),
-        "failure_reason": env_member(env, "failure_reason"),
+        "init_state_id": episode.init_state_id,
+        "failure_cause": episode.failure_cause,
+        "failure_reason": episode.failure_reason,
     }
 
 
@@ -84,10 +86,10 @@ class EnvServer:
 
     def op_probe(self, req: dict[str, Any]) -> dict[str, Any]:
         """Import the env class and run its runtime check (the pre-flight), build nothing."""
-        from workers.envs.base import env_member
+        from workers.envs.base import suite_hooks
 
         cls = self._load(req["entry"])
-        check = env_member(cls, "check_runtime")
+        check = suite_hooks(cls).check_runtime
         if check is not None:
             check(**req["params"])
         return self.op_hello(req)

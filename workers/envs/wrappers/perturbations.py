@@ -295,12 +295,12 @@ class PerturbedEnv:
         return [perturbed_task(t, p) for t in self._env.tasks() for p in self._perturbations]
 
     def reset(self, task_id: str, episode_index: int, seed: int) -> Any:
-        from workers.envs.base import env_member
+        from workers.envs.base import suite_hooks, suite_info
 
         base, p = split_task(task_id)
-        setter = env_member(self._env, "set_perturbation")
+        setter = suite_hooks(self._env).set_perturbation
         if p is not None and p.scene:
-            if setter is None or p.kind not in env_member(self._env, "perturbation_kinds"):
+            if setter is None or p.kind not in suite_info(self._env).perturbation_kinds:
                 raise ValueError(
                     f"{task_id}: suite {getattr(self._env, 'suite', '?')!r} cannot apply "
                     f"{p.kind}; image kinds ({', '.join(IMAGE_KINDS)}) work with any suite"

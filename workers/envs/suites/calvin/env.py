@@ -33,15 +33,16 @@ calvin_env (MIT, GitHub only) and PyBullet (wheels up to Python 3.11) run in an 
 numpy at load, so the driver lists tasks and checks params without them. The checkout comes
 from ``env.params.calvin_env`` or ``$CALVIN_ENV``; the annotations from the mees/calvin
 checkout it is a submodule of (or ``env.params.annotations``). Nothing of theirs is copied.
+
+Beside this module: ``sequences`` (the 1000 sequences and the initial scene of each, numpy
+only) and ``checkout`` (where calvin_env and the annotations are, and the simulator and task
+oracle built from them).
 """
 
 from __future__ import annotations
 
-import functools
 import inspect
-import json
 import os
-import subprocess
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -50,94 +51,35 @@ from typing import Any
 import numpy as np
 
 from workers.envs.base import EnvObservation, LazyImages, LazyState, TaskSpec
+from workers.envs.suites.calvin.checkout import (
+    BUTTON_BUG_COMMIT,
+    annotations_file,
+    build_oracle,
+    build_play_table,
+    checkout_commit,
+    find_checkout,
+    load_annotations,
+)
+from workers.envs.suites.calvin.sequences import (
+    EP_LEN,
+    NUM_SUBTASKS,
+    condition_seed,
+    initial_state,
+    load_sequences,
+)
 from workers.io_spec import EnvIO
 
 SUITE = "calvin"
-SEQUENCES_FILE = Path(__file__).parent / "data" / "calvin_eval_sequences.json"
-EP_LEN = 360  # steps per subtask (evaluate_policy.py)
-NUM_SUBTASKS = 5
 CAMERAS = {"rgb_static": ("static", 200), "rgb_gripper": ("gripper", 84)}  # key: (calvin, px)
 CAMERA_ALIASES = {
     "rgb_static": ("static", "image", "front", "agentview"),
     "rgb_gripper": ("gripper", "wrist", "image2", "wrist_image"),
 }
 RENDERERS = {"egl": "pybullet-egl", "tiny": "pybullet-tiny"}
-# calvin_env commit that mees/calvin's submodule pins (since 2023-05) and that leaves the LED on
-# when its button is pressed once at the start of a sequence (fixed in 797142c)
-BUTTON_BUG_COMMIT = "1431a46"
 SETUP_HINT = (
     "make setup-calvin creates .venv-calvin (Python 3.11 + PyBullet); then set "
     "env.python=.venv-calvin/bin/python"
 )
-ANNOTATIONS_IN_CALVIN = "calvin_models/conf/annotations/new_playtable_validation.yaml"
-TASKS_IN_CALVIN_ENV = "conf/tasks/new_playtable_tasks.yaml"
-
-# the official neutral robot pose (tcp pos, euler, gripper width, 7 joints, gripper action)
-NEUTRAL_ROBOT_OBS = np.array(
-    [
-        *(0.02586889, -0.2313129, 0.5712808, 3.09045411, -0.02908596, 1.50013585, 0.07999963),
-        *(-1.21779124, 1.03987629, 2.11978254, -2.34205014, -0.87015899, 1.64119093, 0.55344928),
-        1.0,
-    ]
-)
-BLOCK_SLIDER_LEFT = np.array([-2.40851662e-01, 9.24044687e-02, 4.60990009e-01])
-BLOCK_SLIDER_RIGHT = np.array([7.03416330e-02, 9.24044687e-02, 4.60990009e-01])
-BLOCK_TABLE = (
-    np.array([5.00000896e-02, -1.20000177e-01, 4.59990009e-01]),
-    np.array([2.29995412e-01, -1.19995140e-01, 4.59990010e-01]),
-)
-BLOCK_ROT_Z = (np.pi / 2 - np.pi / 8, np.pi / 2 + np.pi / 8)
-
-
-def fnv1_32(text: str) -> int:
-    """The hash the official code seeds scenes with: pyhash's ``fnv1_32()``, which is FNV-1
-    (multiply by the FNV prime, then xor) from 0, not from the FNV offset basis, over the
-    string's UTF-16-LE bytes. Written here because pyhash does not build on Python >= 3.11."""
-    h = 0
-    for byte in text.encode("utf-16-le"):
-        h = ((h * 0x01000193) & 0xFFFFFFFF) ^ byte
-    return h
-
-
-def condition_seed(condition: dict[str, Any]) -> int:
-    """The scene seed of an initial condition: the hash of ``str(dict.values())`` (so the key
-    order matters: led, lightbulb, slider, drawer, red_block, blue_block, pink_block, grasped)."""
-    return fnv1_32(str(condition.values()))
-
-
-def initial_state(condition: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
-    """(robot_obs 15-d, scene_obs 24-d) of an initial condition, as the official
-    ``get_env_state_for_initial_condition`` (numpy's legacy MT19937 stream, same draws)."""
-    rng = np.random.RandomState(condition_seed(condition))
-    table = list(BLOCK_TABLE)
-    rng.shuffle(table)
-    on_slider = {"slider_left": BLOCK_SLIDER_LEFT, "slider_right": BLOCK_SLIDER_RIGHT}
-    scene = np.zeros(24)
-    if condition["slider"] == "left":
-        scene[0] = 0.28
-    if condition["drawer"] == "open":
-        scene[1] = 0.22
-    if condition["lightbulb"] == 1:
-        scene[3] = 0.088
-    scene[4] = condition["lightbulb"]
-    scene[5] = condition["led"]
-    scene[6:9] = on_slider.get(condition["red_block"], table[0])
-    scene[11] = rng.uniform(*BLOCK_ROT_Z)
-    if condition["blue_block"] in on_slider:
-        scene[12:15] = on_slider[condition["blue_block"]]
-    else:
-        scene[12:15] = table[1] if condition["red_block"] == "table" else table[0]
-    scene[17] = rng.uniform(*BLOCK_ROT_Z)
-    scene[18:21] = on_slider.get(condition["pink_block"], table[1])
-    scene[23] = rng.uniform(*BLOCK_ROT_Z)
-    return NEUTRAL_ROBOT_OBS.copy(), scene
-
-
-@functools.lru_cache(maxsize=4)
-def load_sequences(path: str | None = None) -> tuple[tuple[dict[str, Any], tuple[str, ...]], ...]:
-    """The evaluation sequences: (initial condition, five subtask names), in the official order."""
-    data = json.loads(Path(path or SEQUENCES_FILE).read_text())
-    return tuple((dict(cond), tuple(tasks)) for cond, tasks in data)
 
 
 def binarize_gripper(action: np.ndarray) -> np.ndarray:
@@ -146,56 +88,6 @@ def binarize_gripper(action: np.ndarray) -> np.ndarray:
     out = np.array(action, dtype=np.float64, copy=True)
     out[6] = 1.0 if out[6] > 0 else -1.0
     return out
-
-
-def _checkout(calvin_env: str | None) -> Path:
-    root = calvin_env or os.environ.get("CALVIN_ENV")
-    if not root:
-        raise ValueError(
-            "env.params.calvin_env is not set and neither is $CALVIN_ENV: point either at a "
-            "checkout of calvin_env (MIT, github.com/mees/calvin_env; as a submodule of "
-            "`git clone --recurse-submodules https://github.com/mees/calvin`)"
-        )
-    path = Path(root).expanduser().resolve()
-    if not (path / "calvin_env" / "envs" / "play_table_env.py").is_file():
-        raise ValueError(
-            f"env.params.calvin_env={root}: not a calvin_env checkout (no calvin_env/envs/"
-            "play_table_env.py); point it at the calvin_env folder of a mees/calvin clone"
-        )
-    return path
-
-
-def _annotations_file(checkout: Path, annotations: str | None) -> Path:
-    if annotations is not None:
-        path = Path(annotations).expanduser()
-        if not path.is_file():
-            raise ValueError(f"env.params.annotations={annotations}: no such file")
-        return path
-    candidates = [checkout.parent / ANNOTATIONS_IN_CALVIN]
-    if os.environ.get("CALVIN_ROOT"):
-        candidates.insert(0, Path(os.environ["CALVIN_ROOT"]) / ANNOTATIONS_IN_CALVIN)
-    for path in candidates:
-        if path.is_file():
-            return path
-    raise ValueError(
-        f"the language annotations of the evaluation ({ANNOTATIONS_IN_CALVIN}) are not in the "
-        f"mees/calvin checkout around {checkout}: set env.params.annotations to that file, or "
-        "$CALVIN_ROOT to the mees/calvin clone"
-    )
-
-
-def checkout_commit(checkout: Path) -> str | None:
-    """The checkout's git commit, or None (not a git clone, or no git)."""
-    try:
-        out = subprocess.run(
-            ["git", "-C", str(checkout), "rev-parse", "HEAD"],
-            capture_output=True,
-            text=True,
-            timeout=10,
-        )
-    except (OSError, subprocess.TimeoutExpired):
-        return None
-    return out.stdout.strip() or None if out.returncode == 0 else None
 
 
 class CalvinEnv:
@@ -228,11 +120,11 @@ class CalvinEnv:
         self.subtask_steps = subtask_steps
         self.scene = scene
         self._sequences = load_sequences(sequences)
-        self._annotations = self._load_annotations(_annotations_file(self.checkout, annotations))
+        self._annotations = load_annotations(annotations_file(self.checkout, annotations))
         self._task = self._task_spec(scene, subtask_steps, len(self._sequences))
         self.robot = robot
         self._env = self._build()
-        self._oracle = self._build_oracle()
+        self._oracle = build_oracle(self.checkout)
         self._used = False  # the simulator has run a sequence: the next one gets a new one
         self._subtasks: tuple[str, ...] = ()
         self._done_count = 0
@@ -253,7 +145,7 @@ class CalvinEnv:
         robot: str,
         subtask_steps: int,
     ) -> dict[str, Any]:
-        checkout = _checkout(calvin_env)
+        checkout = find_checkout(calvin_env)
         conf = checkout / "conf"
         for field, value, folder in (("scene", scene, "scene"), ("robot", robot, "robot")):
             if not (conf / folder / f"{value}.yaml").is_file():
@@ -342,7 +234,7 @@ class CalvinEnv:
         checked = cls._check_params(
             p["calvin_env"], p["scene"], p["cameras"], p["renderer"], p["robot"], p["subtask_steps"]
         )
-        _annotations_file(checked["checkout"], p["annotations"])
+        annotations_file(checked["checkout"], p["annotations"])
         missing = []
         for module in ("pybullet", "hydra", "omegaconf", "gym", "cv2", "quaternion", "scipy"):
             try:
@@ -357,56 +249,10 @@ class CalvinEnv:
 
     # -- the simulator -----------------------------------------------------------------------
     def _build(self) -> Any:
-        """calvin_env's PlayTableSimEnv, composed from its own conf/ as the dataset's
-        merged_config.yaml was, and instantiated as the official ``get_env`` does."""
-        if str(self.checkout) not in sys.path:
-            sys.path.insert(0, str(self.checkout))
-        import calvin_env.envs.play_table_env as play_table_env
-        import hydra
-        from hydra.core.global_hydra import GlobalHydra
-
-        original = play_table_env.get_git_commit_hash
-        if not getattr(original, "idr_wrapped", False):
-
-            def commit_or_unknown(path: Any) -> str:  # it raises outside a git clone
-                try:
-                    return original(path)
-                except Exception:
-                    return "unknown"
-
-            commit_or_unknown.idr_wrapped = True  # type: ignore[attr-defined]
-            play_table_env.get_git_commit_hash = commit_or_unknown
-        overrides = [
-            "hydra/job_logging=default",  # its colorlog needs a plugin the eval does not
-            "hydra/hydra_logging=default",
-            "cameras=static_and_gripper",
-            f"scene={self.scene}",
-            f"robot={self.robot}",
-            "use_vr=false",
-            f"env.use_egl={str(self.renderer == 'egl').lower()}",
-            "env.show_gui=false",
-            "env.use_scene_info=true",
-        ]
-        GlobalHydra.instance().clear()
-        with hydra.initialize_config_dir(config_dir=str(self.checkout / "conf"), version_base=None):
-            cfg = hydra.compose(config_name="config_data_collection", overrides=overrides)
-        try:  # as the official get_env instantiates the dataset's merged config
-            env = hydra.utils.instantiate(
-                cfg.env, show_gui=False, use_vr=False, use_scene_info=True
-            )
-        except SystemExit:  # calvin_env exits when the EGL plugin does not load
-            raise RuntimeError(
-                "PyBullet's EGL renderer plugin did not load here: install an EGL driver (a GPU's, "
-                "or Mesa's libegl1), or set env.params.renderer=tiny (CPU renderer, other pixels)"
-            ) from None
+        """A new simulator (see ``checkout.build_play_table``), its cameras by our names."""
+        env = build_play_table(self.checkout, self.scene, self.robot, self.renderer)
         self._calvin_cameras = {f"rgb_{cam.name}": cam for cam in env.cameras}
         return env
-
-    def _build_oracle(self) -> Any:
-        import hydra
-        from omegaconf import OmegaConf
-
-        return hydra.utils.instantiate(OmegaConf.load(self.checkout / TASKS_IN_CALVIN_ENV))
 
     def _rebuild(self) -> None:
         """A new simulator in this process: the old one disconnected here, once (calvin_env's
@@ -415,12 +261,6 @@ class CalvinEnv:
         old.close()
         old.ownsPhysicsClient = False
         self._env = self._build()  # client 0 again, as its robot base needs
-
-    @staticmethod
-    def _load_annotations(path: Path) -> dict[str, str]:
-        from omegaconf import OmegaConf
-
-        return {task: str(texts[0]) for task, texts in OmegaConf.load(path).items()}
 
     # -- Env protocol ------------------------------------------------------------------------
     def tasks(self) -> list[TaskSpec]:

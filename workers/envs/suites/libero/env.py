@@ -22,25 +22,23 @@ size, replan rule and state arithmetic; the params below override single figures
 One simulator (``OffScreenRenderEnv``, 5-20 s to build) is kept for the current task and reused
 across its episodes; switching task closes it and builds the next. ``suite_tasks`` lists tasks
 from LIBERO's benchmark tables without importing MuJoCo; ``describe`` says what the env gives a
-policy (for the pre-flight check against a checkpoint).
+policy (for the pre-flight check against a checkpoint). Beside this module: ``protocol`` (the
+named conventions), ``tables`` (LIBERO's task tables and init states), ``snapshots`` (lazy
+rendering), ``assets`` (LIBERO's config and assets, prepared once).
 """
 
 from __future__ import annotations
 
-import contextlib
 import functools
-import io
 import os
-import types
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from workers.envs.base import EnvObservation, LazyImages, TaskSpec, checked_action
 from workers.envs.mujoco.stability import mujoco_instability, raise_if_unstable
-from workers.envs.suites.libero.assets import LiberoSetupError, ensure_config_env
+from workers.envs.suites.libero.assets import LiberoSetupError
 from workers.envs.suites.libero.protocol import (
     CAMERAS,
     PROTOCOLS,
@@ -49,6 +47,13 @@ from workers.envs.suites.libero.protocol import (
     LiberoProtocol,
     quat_to_axis_angle,
     state_vector,
+)
+from workers.envs.suites.libero.snapshots import Frame, Snapshots, install_snapshot, render_frame
+from workers.envs.suites.libero.tables import (
+    benchmark_suite,
+    check_assets,
+    fixed_init_states,
+    list_tasks,
 )
 from workers.io_spec import ROBOSUITE_CAMERA_ALIASES, EnvIO
 
@@ -64,79 +69,6 @@ __all__ = [
 ]
 
 NOOP_ACTION: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0)
-SETUP_COMMAND = "python -m workers.envs.suites.libero.assets"
-# Lazy rendering snapshots the simulator when robosuite samples this observable. All observables
-# sample at control_hz in lockstep, once per control step, at a substep that is not always the
-# last (the 24th of 25 here, by the phase of their timers); the camera observables did the same.
-SNAPSHOT_OBSERVABLE = "robot0_eef_pos"
-
-
-class _Frame:
-    """The simulator as robosuite's observables sampled it: what a camera observable rendered.
-    Its ``MjData`` goes back to the pool when the last observation holding it is dropped."""
-
-    def __init__(self, pool: _Snapshots, sim: Any, data: Any) -> None:
-        self.pool, self.sim, self.data = pool, sim, data
-
-    def __del__(self) -> None:
-        self.pool.recycle(self.sim, self.data)
-
-
-class _Snapshots:
-    """``MjData`` copies of one simulator taken at robosuite's sampling moments; ``latest`` is
-    the last one. Copies go into recycled ``MjData``: each holds LIBERO's 1.3 GB (virtual)
-    arena, too much to allocate per step; the pool stays at 2-3 while observations are dropped
-    a step or two after they are made. No reference back to the env."""
-
-    def __init__(self) -> None:
-        self.latest: _Frame | None = None
-        self._sim: Any = None
-        self._free: list[Any] = []
-
-    def take(self, sim: Any) -> None:
-        import mujoco
-
-        if sim is not self._sim:  # a hard reset built a new simulator: start a new pool
-            self._sim, self._free = sim, []
-        model = sim.model._model
-        data = self._free.pop() if self._free else mujoco.MjData(model)
-        mujoco.mj_copyData(data, model, sim.data._data)
-        self.latest = _Frame(self, sim, data)
-
-    def recycle(self, sim: Any, data: Any) -> None:
-        if sim is self._sim and len(self._free) < 4:
-            self._free.append(data)
-
-    def clear(self) -> None:
-        self.latest, self._sim, self._free = None, None, []
-
-
-def _libero_benchmark_module() -> Any:
-    """``libero.libero.benchmark``, imported only after its config is in place (never prompts)."""
-    ensure_config_env()
-    from libero.libero import benchmark
-
-    return benchmark
-
-
-@functools.cache
-def _suite(name: str) -> Any:
-    """The suite's Benchmark object (task table; no simulator). Its constructor prints the task
-    order on every call: built once per process, quietly."""
-    with contextlib.redirect_stdout(io.StringIO()):
-        return _libero_benchmark_module().get_benchmark(name)()
-
-
-def _init_states(bench: Any, index: int) -> np.ndarray:
-    """The task's fixed init states, as hf-libero's ``get_task_init_states`` finds them but
-    loaded without running pickled code (hf-libero unpickles them with weights_only=False)."""
-    from libero.libero import get_libero_path
-
-    from workers.safe_load import load_numpy_array
-
-    task = bench.get_task(index)
-    path = os.path.join(get_libero_path("init_states"), task.problem_folder, task.init_states_file)
-    return load_numpy_array(path)
 
 
 def _table_geoms(model: Any) -> list[str | int]:
@@ -157,34 +89,6 @@ def _table_geoms(model: Any) -> list[str | int]:
         + name(mujoco.mjtObj.mjOBJ_BODY, int(model.geom_bodyid[g]))
     ]
     return table or ["floor"]
-
-
-def _list_tasks(protocol: LiberoProtocol) -> list[TaskSpec]:
-    ensure_config_env()  # every time: the suite tables below are cached per process
-    return [
-        TaskSpec(
-            task_id=f"{suite}/{i}",
-            name=task.name,
-            max_steps=protocol.max_steps[suite],
-            suite=suite,
-            instruction=task.language,
-        )
-        for suite in protocol.suites
-        for i, task in enumerate(_suite(suite).tasks)
-    ]
-
-
-def _check_assets() -> None:
-    """hf-libero downloads its assets when ``libero/libero/assets`` is absent: refuse instead."""
-    ensure_config_env()
-    import libero.libero
-
-    scenes = Path(libero.libero.__file__).parent / "assets" / "scenes"
-    if not scenes.is_dir():
-        raise LiberoSetupError(
-            f"LIBERO assets are missing ({scenes} not found) and nothing may download: "
-            f"run `{SETUP_COMMAND}` (part of `make setup`)"
-        )
 
 
 class LiberoEnv:
@@ -225,8 +129,8 @@ class LiberoEnv:
         robosuite samples its observables at a substep inside the control step, not after the
         last one, so rendering the final state would show a different arm pose. Instead the
         simulator is built without camera observables, ``MjData`` is copied (<1 ms) each time
-        robosuite samples ``SNAPSHOT_OBSERVABLE``, and a read renders that copy with the call
-        the camera sensor makes (``sim.render``, same context, MSAA, lights, size and
+        robosuite samples ``snapshots.SNAPSHOT_OBSERVABLE``, and a read renders that copy with
+        the call the camera sensor makes (``sim.render``, same context, MSAA, lights, size and
         ``macros.IMAGE_CONVENTION``). Images must be read before the next ``reset`` or
         ``close`` (RuntimeError after). ``lazy_render=False``: robosuite renders every camera
         on every step and on reset (its camera observables), as before."""
@@ -234,10 +138,10 @@ class LiberoEnv:
             protocol, suites, image_size, cameras, num_noops, max_steps, flip_images, control_hz
         )
         self.lazy_render = bool(lazy_render)
-        self._snapshots = _Snapshots()
+        self._snapshots = Snapshots()
         self.cameras = self.protocol.cameras
         self.control_hz = self.protocol.control_hz
-        self._specs = {t.task_id: t for t in _list_tasks(self.protocol)}
+        self._specs = {t.task_id: t for t in list_tasks(self.protocol)}
         self._sim: Any = None  # OffScreenRenderEnv of self._sim_task
         self._sim_task: str | None = None
         self._init_states: np.ndarray | None = None
@@ -272,7 +176,7 @@ class LiberoEnv:
     def suite_tasks(cls, **params: Any) -> list[TaskSpec]:
         """The tasks these constructor params give, from LIBERO's tables: no simulator, no
         MuJoCo import."""
-        return _list_tasks(cls._protocol_of(params))
+        return list_tasks(cls._protocol_of(params))
 
     @classmethod
     def describe(cls, **params: Any) -> EnvIO:
@@ -306,8 +210,8 @@ class LiberoEnv:
             return
         self._close_sim()
         suite, index = spec.suite, int(spec.task_id.rsplit("/", 1)[1])
-        bench = _suite(suite)
-        self._init_states = _init_states(bench, index)
+        bench = benchmark_suite(suite)
+        self._init_states = fixed_init_states(bench, index)
         self._sim = self._make_sim(bench.get_task_bddl_file_path(index), spec.max_steps)
         self._sim_task = spec.task_id
 
@@ -315,7 +219,7 @@ class LiberoEnv:
         from workers.rendering import configure_rendering
 
         configure_rendering()  # before robosuite/MuJoCo are imported (no-op if already chosen)
-        _check_assets()
+        check_assets()
         from libero.libero.envs import OffScreenRenderEnv
 
         p = self.protocol
@@ -336,20 +240,8 @@ class LiberoEnv:
             horizon=max(1000, max_steps + p.num_noops),
         )
         if lazy:
-            self._install_snapshot(sim.env)
+            install_snapshot(sim.env, self._snapshots)
         return sim
-
-    def _install_snapshot(self, inner: Any) -> None:
-        """Copy ``MjData`` whenever robosuite samples ``SNAPSHOT_OBSERVABLE``: the moments its
-        camera observables rendered at. A filter doubles as an observer (robosuite's own
-        words) and survives hard resets, which replace only sensors."""
-        snapshots = self._snapshots
-
-        def snapshot(value: Any) -> Any:
-            snapshots.take(inner.sim)
-            return value
-
-        inner.modify_observable(SNAPSHOT_OBSERVABLE, "filter", snapshot)
 
     def _close_sim(self) -> None:
         self._snapshots.clear()
@@ -458,28 +350,15 @@ class LiberoEnv:
         """An image as robosuite's camera observable gives it -> as observations carry it."""
         return np.ascontiguousarray(img[::-1, ::-1] if self.protocol.flip_images else img)
 
-    def _render(self, frame: _Frame, cam: str) -> np.ndarray:
-        """``cam`` of ``frame`` as robosuite's camera sensor (``robot_env._create_camera_sensors``)
-        renders it, then ``_finish``: the same ``sim.render`` call on the same context, with
-        ``MjData`` swapped for the frame's copy, the only thing the render reads from it."""
+    def _render(self, frame: Frame, cam: str) -> np.ndarray:
+        """``cam`` of ``frame`` as robosuite's camera sensor renders it
+        (``snapshots.render_frame``), then ``_finish``."""
         if self._sim is None or frame.sim is not self._sim.env.sim:
             raise RuntimeError(
                 f"camera {cam!r}: this observation is from before the last reset() or close(), "
                 "and its images were not read in time: its simulator is gone"
             )
-        from robosuite import macros
-        from robosuite.utils.mjcf_utils import IMAGE_CONVENTION_MAPPING
-
-        size = self.protocol.image_size
-        ctx = frame.sim._render_context_offscreen
-        ctx.gl_ctx.make_current()  # another env in this process may have made its own current
-        live = ctx.data
-        ctx.data = types.SimpleNamespace(_data=frame.data)
-        try:
-            img = frame.sim.render(camera_name=CAMERAS[cam][0], width=size, height=size)
-        finally:
-            ctx.data = live
-        return self._finish(img[:: IMAGE_CONVENTION_MAPPING[macros.IMAGE_CONVENTION]])
+        return self._finish(render_frame(frame, CAMERAS[cam][0], self.protocol.image_size))
 
     # -- status ---------------------------------------------------------------------------
 

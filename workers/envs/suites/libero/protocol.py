@@ -101,6 +101,34 @@ def named_protocol(name: str) -> NamedProtocol:
     return PROTOCOLS[name]
 
 
+def _checked_names(
+    suites: Sequence[str], cameras: Sequence[str], max_steps: Mapping[str, int] | None
+) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """The suites and cameras as tuples (a lone name from a YAML override too), each known and
+    distinct, and no unknown suite in ``max_steps``; else ValueError naming the param."""
+    if isinstance(suites, str):  # a lone name from a YAML override
+        suites = (suites,)
+    if isinstance(cameras, str):
+        cameras = (cameras,)
+    unknown = [s for s in suites if s not in SUPPORTED_SUITES]
+    if not suites or unknown or len(set(suites)) != len(suites):
+        raise ValueError(
+            f"env.params.suites: {unknown or list(suites)} empty, unknown or repeated; "
+            f"valid: {list(SUPPORTED_SUITES)}"
+        )
+    stray = [s for s in max_steps or {} if s not in SUPPORTED_SUITES]
+    if stray:
+        raise ValueError(
+            f"env.params.max_steps: {stray} unknown suites; valid: {list(SUPPORTED_SUITES)}"
+        )
+    bad = [c for c in cameras if c not in CAMERAS]
+    if bad or len(set(cameras)) != len(cameras):
+        raise ValueError(
+            f"env.params.cameras={list(cameras)}: use distinct names from {list(CAMERAS)}"
+        )
+    return tuple(suites), tuple(cameras)
+
+
 def _positive_int(name: str, value: object) -> None:
     if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
         raise ValueError(f"env.params.{name} must be an int > 0, got {value!r}")
@@ -136,26 +164,7 @@ class LiberoProtocol:
         control_hz: float,
     ) -> LiberoProtocol:
         named = named_protocol(protocol)
-        if isinstance(suites, str):  # a lone name from a YAML override
-            suites = (suites,)
-        if isinstance(cameras, str):
-            cameras = (cameras,)
-        unknown = [s for s in suites if s not in SUPPORTED_SUITES]
-        if not suites or unknown or len(set(suites)) != len(suites):
-            raise ValueError(
-                f"env.params.suites: {unknown or list(suites)} empty, unknown or repeated; "
-                f"valid: {list(SUPPORTED_SUITES)}"
-            )
-        stray = [s for s in max_steps or {} if s not in SUPPORTED_SUITES]
-        if stray:
-            raise ValueError(
-                f"env.params.max_steps: {stray} unknown suites; valid: {list(SUPPORTED_SUITES)}"
-            )
-        bad = [c for c in cameras if c not in CAMERAS]
-        if bad or len(set(cameras)) != len(cameras):
-            raise ValueError(
-                f"env.params.cameras={list(cameras)}: use distinct names from {list(CAMERAS)}"
-            )
+        suites, cameras = _checked_names(suites, cameras, max_steps)
         steps = {**named.max_steps, **(max_steps or {})}
         for suite in suites:
             if suite not in steps:
@@ -174,10 +183,10 @@ class LiberoProtocol:
             raise ValueError(f"env.params.control_hz must be > 0, got {control_hz!r}")
         return cls(
             name=named.name,
-            suites=tuple(suites),
+            suites=suites,
             image_size=named.default_image_size if size is None else size,
             image_size_from_checkpoint=size is None,
-            cameras=tuple(cameras),
+            cameras=cameras,
             num_noops=noops,
             max_steps={s: steps[s] for s in suites},
             flip_images=bool(flip_images),

@@ -1,7 +1,7 @@
 """The ``simpler`` suite: SIMPLER (Li et al., SimplerEnv) as its official evaluator runs it.
 
 What ``simpler_env/evaluation/maniskill2_evaluator.py`` and the ``scripts/`` grids do, and this
-adapter with it (the tables are in ``workers.envs.suites.simpler.protocol``):
+adapter with it (the tables are beside it: ``protocol``, ``grids``, ``assets``):
 
 - a task is a SimplerEnv task under one setup, ``google_robot_open_top_drawer/visual_matching``;
   episode ``e`` is the ``e``-th episode of the official list (robot pose, object position or
@@ -33,7 +33,6 @@ import inspect
 import os
 import sys
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -41,6 +40,9 @@ import numpy as np
 from workers.envs.base import EnvObservation, LazyState, TaskSpec, checked_action
 from workers.envs.suites.simpler import protocol as sp
 from workers.envs.suites.simpler import vulkan_cpu as vk
+from workers.envs.suites.simpler.assets import checkout, missing_assets
+from workers.envs.suites.simpler.grids import TASKS, episodes_of, split_task_id
+from workers.envs.suites.simpler.state import privileged_state, robot_state
 from workers.io_spec import EnvIO
 
 SUITE = "simpler"
@@ -49,55 +51,11 @@ SETUP_HINT = (
     "make setup-simpler creates .venv-simpler (Python 3.11 + SAPIEN 2.2.2) and .vulkan-cpu; "
     "then set env.python=.venv-simpler/bin/python"
 )
-CHECKOUT_HINT = (
-    "point env.params.maniskill2_real2sim (or $MS2_REAL2SIM, or $SIMPLER_ENV with its "
-    "ManiSkill2_real2sim submodule) at a checkout of github.com/simpler-env/ManiSkill2_real2sim "
-    "with its data/ (git lfs is not used: plain git files)"
-)
 RT_ON_CPU = (
     "ray tracing (shader rt, the official shader of the drawer and apple tasks) on lavapipe takes "
     "~80 s per step here: set env.params.shader=ibl (recorded with every episode as a deviation "
     "from the official protocol), or render on a GPU"
 )
-
-
-def checkout(path: str | None = None) -> Path:
-    """The ManiSkill2_real2sim checkout; ValueError naming the fix."""
-    root = path or os.environ.get("MS2_REAL2SIM")
-    if not root and os.environ.get("SIMPLER_ENV"):
-        root = str(Path(os.environ["SIMPLER_ENV"]) / "ManiSkill2_real2sim")
-    if not root:
-        raise ValueError(f"env.params.maniskill2_real2sim is not set: {CHECKOUT_HINT}")
-    p = Path(root).expanduser()
-    if not (p / "mani_skill2_real2sim" / "envs").is_dir():
-        raise ValueError(f"env.params.maniskill2_real2sim={root}: not a checkout; {CHECKOUT_HINT}")
-    return p
-
-
-def missing_assets(data: Path, episodes: Sequence[sp.Episode]) -> list[str]:
-    """The files under ``data`` that these episodes need and lack (a missing stage would
-    give a scene without a table: objects fall to z = -18 m and every episode fails)."""
-    import json
-
-    keys: dict[str, list[str]] = {}
-    for name in set(sp.MODEL_JSONS.values()) | {"custom/info_pick_custom_v0.json"}:
-        f = data / name
-        keys[name] = list(json.loads(f.read_text())) if f.is_file() else []
-    needed = dict.fromkeys(p for ep in episodes for p in sp.episode_assets(ep, keys))
-    missing = []
-    for path in needed:
-        if path.endswith("/textured.*"):
-            folder = data / path.removesuffix("/textured.*")
-            if not any((folder / v).is_file() for v in sp.VISUALS):
-                missing.append(f"{path.removesuffix('*')}{{obj,dae,glb}}")
-        elif not (data / path).is_file():
-            missing.append(path)
-    return missing
-
-
-def _episodes(task_id: str) -> list[sp.Episode]:
-    task, setup = sp.split_task_id(task_id)
-    return task.setups[setup]
 
 
 class SimplerEnv:
@@ -187,7 +145,7 @@ class SimplerEnv:
                 instruction=task.instruction,
                 episodes_total=len(episodes),
             )
-            for name, task in sp.TASKS.items()
+            for name, task in TASKS.items()
             for setup, episodes in task.setups.items()
         ]
 
@@ -260,7 +218,7 @@ class SimplerEnv:
         and ray tracing refused on lavapipe."""
         p = cls._checked(params)
         root = checkout(p["maniskill2_real2sim"])
-        need = [ep for task_id in task_ids for ep in _episodes(task_id)[:episodes]]
+        need = [ep for task_id in task_ids for ep in episodes_of(task_id)[:episodes]]
         if lost := missing_assets(root / "data", need):
             raise ValueError(
                 f"SIMPLER assets missing under {root / 'data'} (tasks {list(task_ids)}): "
@@ -309,8 +267,8 @@ class SimplerEnv:
             raise ValueError(
                 f"task_id={task_id!r} is not a SIMPLER task; valid: {list(self._specs)}"
             )
-        task, _ = sp.split_task_id(task_id)
-        episodes = _episodes(task_id)
+        task, _ = split_task_id(task_id)
+        episodes = episodes_of(task_id)
         if not 0 <= episode_index < len(episodes):
             raise ValueError(
                 f"episode {episode_index}: {task_id} has {len(episodes)} official episodes "
@@ -355,41 +313,13 @@ class SimplerEnv:
             privileged=LazyState(lambda: self.privileged(state), current),
         )
 
-    def _base_inv(self) -> Any:
-        """The world-to-robot-base rotation (SAPIEN quaternions are (w, x, y, z))."""
-        from scipy.spatial.transform import Rotation
-
-        return Rotation.from_quat(np.roll(self._env.unwrapped.agent.robot.pose.q, -1)).inv()
-
-    def _in_base(self, pose: Any) -> np.ndarray:
-        """A SAPIEN pose's position in the robot base frame."""
-        base = self._env.unwrapped.agent.robot.pose
-        return self._base_inv().apply(np.asarray(pose.p) - np.asarray(base.p))
-
     def privileged(self, state: np.ndarray) -> dict[str, Any]:
-        """Simulator state for scripted controllers in tests (never for learned policies): the
-        TCP (of the observation's ``state``) and, in the drawer tasks, the target drawer's link
-        origin, in the robot base frame, and the drawer's opening (m)."""
-        out: dict[str, Any] = {"tcp_pos": state[:3].astype(np.float64)}
-        u = self._env.unwrapped
-        if getattr(u, "drawer_obj", None) is not None:
-            out["drawer_pos"] = self._in_base(u.drawer_obj.pose)
-            out["drawer_qpos"] = float(u.art_obj.get_qpos()[u.joint_idx])
-        return out
+        """Simulator state for scripted controllers in tests (never for learned policies):
+        ``state.privileged_state``."""
+        return privileged_state(self._env.unwrapped, state)
 
     def _state(self) -> np.ndarray:
-        """TCP pose in the robot base frame (position, axis-angle) and the two finger joints."""
-        from scipy.spatial.transform import Rotation
-
-        agent = self._env.unwrapped.agent
-        link = self._robot.tcp_link
-        tcp = next(x for x in agent.robot.get_links() if x.name == link).pose
-        pos = self._in_base(tcp)
-        rot = (self._base_inv() * Rotation.from_quat(np.roll(tcp.q, -1))).as_rotvec()
-        joints = agent.robot.get_active_joints()
-        qpos = agent.robot.get_qpos()
-        fingers = [qpos[i] for i, j in enumerate(joints) if "finger" in j.name][:2]
-        return np.concatenate([pos, rot, np.resize(fingers or [0.0], 2)]).astype(np.float32)
+        return robot_state(self._env.unwrapped, self._robot.tcp_link)
 
     def _close_env(self) -> None:
         env, self._env = self._env, None

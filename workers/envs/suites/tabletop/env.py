@@ -15,81 +15,25 @@ position, axis-angle, two gripper joint positions); an agent-view and a wrist ca
 
 Initial states come from (seed, episode index, task), so every cell of a grid sees the same
 scenes. The env also exposes privileged simulator state (``EnvObservation.privileged``) for
-the scripted experts; policies never see it.
+the scripted experts; policies never see it. Beside this module: ``episodes`` (the layouts,
+instructions and scoring rules), ``sim`` (the robosuite scene), ``layout`` (its dimensions).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
 
 from workers.envs.base import EnvObservation, LazyImages, LazyState, TaskSpec
 from workers.envs.mujoco.stability import mujoco_instability, raise_if_unstable
-from workers.envs.suites.tabletop.layout import BIN_CENTER, BIN_INNER_HALF, CUBE_HALF, TABLE_TOP_Z
+from workers.envs.suites.tabletop.episodes import Episode, free_spots, new_episode, update_progress
 from workers.io_spec import ROBOSUITE_CAMERA_ALIASES, EnvIO
 
 SUITE = "tabletop"
 CAMERAS = {"agentview": "agentview", "wrist": "robot0_eye_in_hand"}
 DEFAULT_MAX_STEPS = {"pick_color": 120, "stack_color": 220, "organize": 1000}
 DEFAULT_SUBTASK_BUDGET = 200
-LIFT_HEIGHT = 0.05  # pick_color: the cube's bottom this far above the table counts as picked
-
-
-@dataclass
-class _Episode:
-    task_id: str
-    colors: tuple[str, ...]
-    cube_xy: np.ndarray
-    instruction: str
-    targets: list[int]  # pick: [cube]; stack: [top, bottom]; organize: the order
-    steps: int = 0
-    subtasks_done: int = 0
-    last_progress_step: int = 0
-    success: bool = False
-    failed: str | None = None  # why the episode ended early (text)
-    failed_cause: str | None = None  # the same as a stable code: wrong_order | subtask_budget
-    init_state_id: str = ""
-    scene_key: str = ""  # which scene: the task's, or the task's with distractors
-
-    def __post_init__(self) -> None:
-        self.scene_key = self.scene_key or self.task_id
-
-    placed: set[int] = field(default_factory=set)
-
-
-def _sample_xy(
-    rng: np.random.Generator,
-    n: int,
-    x: tuple[float, float],
-    y: tuple[float, float],
-    min_dist: float,
-) -> np.ndarray:
-    """n points in the box, pairwise at least min_dist apart (rejection sampling)."""
-    for _ in range(1000):
-        pts = np.stack([rng.uniform(*x, size=n), rng.uniform(*y, size=n)], axis=1)
-        d = np.linalg.norm(pts[:, None] - pts[None], axis=-1) + np.eye(n) * 1e9
-        if d.min() >= min_dist:
-            return pts
-    raise RuntimeError("could not place the cubes apart; widen the placement range")
-
-
-def _free_spots(rng: np.random.Generator, taken: np.ndarray, n: int, with_bin: bool) -> np.ndarray:
-    """n (x, y) spots on the table at least a cube's spacing from the task's cubes, each
-    other and (organize) the bin: where the distractors go."""
-    spots: list[np.ndarray] = []
-    for _ in range(10_000):
-        if len(spots) == n:
-            return np.array(spots)
-        xy = np.array([rng.uniform(-0.15, 0.15), rng.uniform(-0.28, 0.14)])
-        others = [*taken, *spots]
-        if min(np.linalg.norm(np.asarray(others) - xy, axis=1)) < 0.07:
-            continue
-        if with_bin and np.abs(xy - BIN_CENTER).max() < BIN_INNER_HALF + 0.06:
-            continue
-        spots.append(xy)
-    raise RuntimeError(f"could not place {n} distractors apart from the task's cubes")
 
 
 class TabletopEnv:
@@ -148,7 +92,7 @@ class TabletopEnv:
         self._renderers: dict[str, Any] = {}
         self._perturbers: dict[str, Any] = {}
         self._perturbation: Any = None  # for the next reset (set_perturbation)
-        self._ep: _Episode | None = None
+        self._ep: Episode | None = None
 
     @staticmethod
     def _check_max_steps(max_steps: dict[str, int] | None) -> dict[str, int]:
@@ -175,7 +119,7 @@ class TabletopEnv:
         cameras: tuple[str, ...] | list[str] = ("agentview", "wrist"),
         **_: Any,
     ) -> EnvIO:
-        """What the suite gives a policy (the README's table): images uint8 at ``image_size``
+        """What the suite gives a policy (docs/suites/index.md): images uint8 at ``image_size``
         px, not flipped; state and action as LIBERO's; no protocol beyond its params."""
         return EnvIO(
             cameras=tuple(cameras),
@@ -222,31 +166,6 @@ class TabletopEnv:
         return self._perturbers[task_id]
 
     # -- episode -----------------------------------------------------------------------------
-    def _new_episode(self, task_id: str, episode_index: int, seed: int) -> _Episode:
-        task_index = list(DEFAULT_MAX_STEPS).index(task_id)
-        rng = np.random.default_rng([seed, episode_index, task_index, 20])
-        colors = self.TASK_COLORS[task_id]
-        if task_id == "organize":
-            xy = _sample_xy(rng, 5, (-0.13, 0.13), (-0.27, 0.06), 0.075)
-            order = [int(i) for i in rng.permutation(5)]
-            names = [colors[i] for i in order]
-            text = (
-                f"put the {', '.join(names[:-1])} and {names[-1]} cubes in the bin, in that order"
-            )
-            targets = order
-        else:
-            xy = _sample_xy(rng, 3, (-0.13, 0.13), (-0.25, 0.12), 0.08)
-            if task_id == "pick_color":
-                targets = [int(rng.integers(3))]
-                text = f"pick up the {colors[targets[0]]} cube"
-            else:
-                top, bottom = (int(i) for i in rng.permutation(3)[:2])
-                targets = [top, bottom]
-                text = f"stack the {colors[top]} cube on the {colors[bottom]} cube"
-        return _Episode(
-            task_id, colors, xy, text, targets, init_state_id=f"{task_id}/{seed}/{episode_index}"
-        )
-
     def _spec(self, task_id: str) -> TaskSpec:
         for t in self.tasks():
             if t.task_id == task_id:
@@ -257,7 +176,8 @@ class TabletopEnv:
 
     def reset(self, task_id: str, episode_index: int, seed: int) -> EnvObservation:
         self._spec(task_id)
-        ep = self._new_episode(task_id, episode_index, seed)
+        task_index = list(DEFAULT_MAX_STEPS).index(task_id)
+        ep = new_episode(task_id, task_index, self.TASK_COLORS[task_id], episode_index, seed)
         p = self._perturbation
         if p is not None and p.kind == "distractors":
             ep.scene_key = f"{task_id}+d{int(p.severity)}"
@@ -272,7 +192,7 @@ class TabletopEnv:
             if p.kind == "init_jitter":  # each cube moved by up to severity
                 ep.cube_xy = ep.cube_xy + rng.uniform(-p.severity, p.severity, ep.cube_xy.shape)
             else:
-                distractor_xy = _free_spots(rng, ep.cube_xy, int(p.severity), task_id == "organize")
+                distractor_xy = free_spots(rng, ep.cube_xy, int(p.severity), task_id == "organize")
             ep.init_state_id = join_task(ep.init_state_id, p)
         scene.place_cubes(ep.cube_xy, distractor_xy)
         self._last_obs = scene.reset()
@@ -297,48 +217,8 @@ class TabletopEnv:
         self._last_obs, _, _, _ = scene.step(np.clip(action, -1.0, 1.0))
         self._ep.steps += 1
         raise_if_unstable(data, f"at step {self._ep.steps} of {self._ep.init_state_id}")
-        self._update_progress(scene)
+        update_progress(self._ep, scene, self.subtask_budget)
         return self._observe()
-
-    def _update_progress(self, scene: Any) -> None:
-        ep = self._ep
-        pos = scene.cube_positions()
-
-        if ep.task_id == "pick_color":
-            if pos[ep.targets[0], 2] - CUBE_HALF > TABLE_TOP_Z + LIFT_HEIGHT:
-                ep.success, ep.subtasks_done = True, 1
-        elif ep.task_id == "stack_color":
-            top, bottom = ep.targets
-            d = pos[top] - pos[bottom]
-            on_top = np.linalg.norm(d[:2]) < 0.025 and 1.6 * CUBE_HALF < d[2] < 2.4 * CUBE_HALF
-            if on_top and not scene.is_grasped(top) and not scene.is_grasped(bottom):
-                ep.success, ep.subtasks_done = True, 1
-        else:
-            inside = (np.abs(pos[:, :2] - BIN_CENTER).max(axis=1) < BIN_INNER_HALF) & (
-                pos[:, 2] < TABLE_TOP_Z + 3 * CUBE_HALF
-            )
-            for i in np.flatnonzero(inside):
-                i = int(i)
-                if i in ep.placed or scene.is_grasped(i):
-                    continue
-                expected = ep.targets[ep.subtasks_done]
-                if i != expected:
-                    ep.failed = (
-                        f"{ep.colors[i]} cube put in the bin before the {ep.colors[expected]} one"
-                    )
-                    ep.failed_cause = "wrong_order"
-                    return
-                ep.placed.add(i)
-                ep.subtasks_done += 1
-                ep.last_progress_step = ep.steps
-                if ep.subtasks_done == 5:
-                    ep.success = True
-                    return
-            if ep.steps - ep.last_progress_step >= self.subtask_budget:
-                ep.failed = (
-                    f"subtask {ep.subtasks_done + 1} not done within {self.subtask_budget} steps"
-                )
-                ep.failed_cause = "subtask_budget"
 
     def _observe(self) -> EnvObservation:
         from robosuite.utils.transform_utils import quat2axisangle

@@ -1,0 +1,561 @@
+"""MkDocs hook: the fault table and the benchmark figures, rendered from benchmarks/results/*.json.
+
+A page asks for a table with a line of its own, ``<!-- results: NAME -->``; the line is replaced
+by the Markdown that ``RENDERERS[NAME]`` makes of ``benchmarks/results/NAME.json``. A name without
+a renderer, or a missing file, raises: the build fails instead of showing an empty table.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from mkdocs.exceptions import PluginError
+
+if TYPE_CHECKING:
+    from mkdocs.config.defaults import MkDocsConfig
+    from mkdocs.structure.files import Files
+    from mkdocs.structure.pages import Page
+
+RESULTS = Path(__file__).resolve().parents[2] / "benchmarks" / "results"
+MARKER = re.compile(r"^<!--\s*results:\s*(.*?)\s*-->[ \t]*$", re.MULTILINE)
+
+Data = dict[str, Any]
+
+
+# -- formatting ---------------------------------------------------------------------------------
+
+
+def num(x: Any, sig: int = 3) -> str:
+    """A measured number for a table: ints with thousands separators, floats to ``sig`` figures."""
+    if isinstance(x, bool):
+        return "yes" if x else "no"
+    if isinstance(x, int):
+        return f"{x:,}"
+    if isinstance(x, float):
+        if x.is_integer() and abs(x) < 1e6:
+            return f"{int(x):,}"
+        if abs(x) >= 10 ** (sig - 1):
+            return f"{x:,.0f}"
+        return f"{x:#.{sig}g}".rstrip(".")
+    if x is None:
+        return "-"
+    return str(x)
+
+
+def pct(x: float) -> str:
+    """A fraction as a percentage (one decimal below 1%)."""
+    return f"{100 * x:.0f}%" if x == 0 or abs(x) >= 0.01 else f"{100 * x:.1f}%"
+
+
+def table(header: Iterable[str], rows: Iterable[Iterable[Any]]) -> str:
+    """A Markdown table; cells are strings or numbers (formatted by :func:`num`)."""
+    cells = [[c if isinstance(c, str) else num(c) for c in row] for row in rows]
+    head = list(header)
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines += ["| " + " | ".join(c.replace("|", "\\|") for c in row) + " |" for row in cells]
+    return "\n".join(lines)
+
+
+def machine(data: Mapping[str, Any]) -> str:
+    """The machine line a result records, if any."""
+    m = data.get("machine")
+    if isinstance(m, Mapping):
+        spelled = {
+            "device_name": "{}",
+            "cpus": "{} CPUs",
+            "threads": "{} threads",
+            "python": "Python {}",
+            "torch": "torch {}",
+            "cuda": "CUDA {}",
+        }
+        return ", ".join(f.format(m[k]) for k, f in spelled.items() if k in m)
+    return str(m) if m else ""
+
+
+def source(name: str, data: Mapping[str, Any], *extra: str) -> str:
+    """The caption under a table: which file, on what machine, when."""
+    bits = [f"`benchmarks/results/{name}.json`"]
+    if m := machine(data):
+        bits.append(f"machine: {m}")
+    for key in ("date", "generated_at"):
+        if key in data:
+            bits.append(f"{key.replace('_', ' ')}: {data[key]}")
+    bits.extend(e for e in extra if e)
+    return "*" + "; ".join(bits) + "*"
+
+
+def block(*parts: str) -> str:
+    """Paragraphs and tables separated by blank lines."""
+    return "\n\n" + "\n\n".join(p for p in parts if p) + "\n\n"
+
+
+def key_values(rows: Iterable[tuple[str, Any]]) -> str:
+    """A two-column table of named figures."""
+    return table(["what", "figure"], rows)
+
+
+# -- one renderer per results file --------------------------------------------------------------
+
+_COMMON = ("lost", "duplicated", "unexpected", "unreadable_files", "temp_files_left")
+_COMMON += ("orphan_step_files",)
+
+
+def faults(d: Data) -> str:
+    """faults.json: every injected fault, what is guaranteed and what the test measured."""
+    totals = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in d["totals"].items())
+    head = (
+        f"**{len(d['faults'])} faults** injected by `python benchmarks/fault_report.py` "
+        f"(pytest exit code {d['pytest_exit_code']}, {num(d['wall_seconds'])} s). "
+        f"Totals over every run: **{totals}**."
+    )
+    rows = []
+    for f in d["faults"]:
+        out = f["outcome"]
+        shown = {k: v for k, v in out.items() if not (k in _COMMON and v == 0)}
+        measured = ", ".join(f"{k.replace('_', ' ')}: {num(v)}" for k, v in shown.items())
+        test = f["test"].removeprefix("tests/pipeline/")
+        rows.append([f["fault"], f["injected"], f["guaranteed"], measured, f"`{test}`"])
+    body = table(["fault", "how injected", "what is guaranteed", "measured", "test"], rows)
+    return block(head, body, source("faults", d, f"command: `python {d['command']}`"))
+
+
+def default_run(d: Data) -> str:
+    """default_run.json: the run's pace, success per cell and task, where the time goes."""
+    run = d["run"]
+    pace = key_values(
+        [
+            ("episodes", run["episodes"]),
+            ("workers", run["workers"]),
+            ("wall time (min)", run["wall_minutes"]),
+            ("episodes per minute", run["episodes_per_minute"]),
+            (
+                "mean episode (s) / env steps",
+                f"{num(run['episode_seconds_mean'])} / {num(run['env_steps_mean'])}",
+            ),
+        ]
+    )
+    success: dict[str, dict[str, float]] = {}
+    for key, value in run["success_by_cell_task"].items():
+        cell, _, task = key.partition("/")
+        success.setdefault(task, {})[cell] = value
+    seen = {c: None for by_cell in success.values() for c in by_cell}
+    cells = [c for c in d.get("per_cell", {}) if c in seen] + [
+        c for c in seen if c not in d.get("per_cell", {})
+    ]
+    succ = table(
+        ["task", *cells],
+        [[task, *(pct(by[c]) if c in by else "-" for c in cells)] for task, by in success.items()],
+    )
+    share = table(
+        ["part of the episode time", "share", "ms per call"],
+        [[k.replace("_", " "), pct(v), num(d["ms_per_call"].get(k))] for k, v in d["share"].items()]
+        + [["Parquet + MLflow logging", pct(d["logging_share_of_episode_time"]), "-"]],
+    )
+    note = f"{d['config']}, `{run['run_dir']}`; time shares from {d['episodes']} episodes: "
+    return block(pace, succ, share, source("default_run", d, note + d["note"]))
+
+
+def engine(d: Data) -> str:
+    """engine.json: scheduling overhead, scaling, store writes, aggregation."""
+    s, w = d["scheduling_overhead"], d["scaling_1_vs_2_workers"]
+    st, ag = d["store_write"], d["aggregate_steps"]
+    rows = [
+        ("Ray scheduling overhead per episode vs inline (ms)", s["ray_overhead_ms_per_episode"]),
+        ("2 Ray workers vs 1, CPU-bound fake episodes (throughput)", f"{num(w['speedup'])}x"),
+        ("store write rate (rows/s)", st["rows_per_s"]),
+        (f"aggregate a {num(ag['rows'])}-row steps table (s)", ag["seconds"]),
+    ]
+    return block(key_values(rows), source("engine", d))
+
+
+def tabletop_env(d: Data) -> str:
+    """tabletop_env.json: ms per step by task, image size, cameras and look."""
+    rows = [
+        [r["task"], r["image_size"], r["cameras"], r["look"], r["ms_per_step"], r["steps_per_s"]]
+        for r in d["rows"]
+    ]
+    body = table(["task", "px", "cameras", "look", "ms per step", "steps/s"], rows)
+    return block(body, source("tabletop_env", d, f"render backend {d['backend']}"))
+
+
+def libero_env(d: Data) -> str:
+    """libero_env.json: per-step cost by cameras and size; eager vs lazy rendering."""
+    by_size = table(
+        ["cameras", "px", "ms per step", "build + first reset (s)", "reset (s)"],
+        [
+            [
+                ", ".join(r["cameras"]) or "none",
+                r["image_size"],
+                r["ms_per_step"],
+                r["build_and_first_reset_s"],
+                r["reset_s"],
+            ]
+            for r in d["results"]
+        ],
+    )
+    lazy = table(
+        ["rendering", "images read", "px", "ms per step", "reset (s)", "pixels equal eager"],
+        [
+            [
+                "lazy" if p["lazy_render"] else "eager",
+                f"every {p['read_every']} step(s)",
+                p["image_size"],
+                p["ms_per_step"],
+                p["reset_s"],
+                p["pixels_equal_eager"],
+            ]
+            for p in d["patterns"]
+        ],
+    )
+    return block(by_size, lazy, source("libero_env", d, f"task {d['task']}"))
+
+
+def env_server(d: Data) -> str:
+    """env_server.json: the same env in-process vs in an env server."""
+    rows = [
+        [case.replace("_", " "), v["in_process_ms"], v["server_ms"], v["overhead_ms"]]
+        for case, v in d["per_step"].items()
+    ]
+    body = table(["per step", "in-process ms", "env server ms", "difference ms"], rows)
+    same = "identical states and pixels" if d["identical"] else "states or pixels differ"
+    return block(body, source("env_server", d, same, f"render backend {d['render_backend']}"))
+
+
+def calvin_env(d: Data) -> str:
+    """calvin_env.json: CALVIN in its env server, by renderer."""
+    rows = [
+        [
+            name,
+            r["open_loop_ms_per_step"],
+            r["rendered_ms_per_step"],
+            r["rendered_steps_per_s_per_core"],
+            r["new_sequence_reset_s"],
+        ]
+        for name, r in d["renderers"].items()
+    ]
+    header = [
+        "renderer",
+        "physics + oracle ms/step",
+        "rendered ms/step",
+        "rendered steps/s",
+        "new sequence (s)",
+    ]
+    return block(table(header, rows), source("calvin_env", d, d["what"]))
+
+
+def policy_service(d: Data) -> str:
+    """policy_service.json: round trip, batching, overlap and the one-GPU model."""
+    rt = d["round_trip"]
+    trip = key_values(
+        [
+            ("round trip per inference, in-process (ms)", rt["in_process_ms"]),
+            ("round trip per inference, policy actor (ms)", rt["policy_actor_ms"]),
+            ("Ray's bare round trip (ms)", rt["ray_round_trip_ms"]),
+        ]
+    )
+    names = list(d["batching"])
+    ns = [r["n"] for r in d["batching"][names[0]]]
+    batching = table(
+        ["N requests", *(f"{b}: one forward / N forwards" for b in names)],
+        [[n, *(num(d["batching"][b][i]["ratio"]) + "x" for b in names)] for i, n in enumerate(ns)],
+    )
+    o = d["overlap"]
+    overlap = table(
+        ["policy", "env steps/s", "episodes/min"],
+        [[k, v["env_steps_per_s"], v["episodes_per_min"]] for k, v in o.items() if k != "model"]
+        + [
+            ["model: in-actor predicted", o["model"]["in_actor_predicted_steps_per_s"], "-"],
+            ["model: shared ceiling", o["model"]["shared_ceiling_steps_per_s"], "-"],
+        ],
+    )
+    g = d["gpu_node_model"]
+    gpu = table(
+        [
+            "simulator cores",
+            "simulator-bound obs/s",
+            "compute-bound obs/s (IDR)",
+            "lerobot eager pi0.5 obs/s",
+        ],
+        [
+            [
+                r["sim_cores"],
+                r["sim_bound_obs_per_s"],
+                r["predicted_obs_per_s_compute_bound"],
+                r["predicted_obs_per_s_lerobot_eager"],
+            ]
+            for r in g["rows"]
+        ],
+    )
+    assumptions = "; ".join(f"{k.replace('_', ' ')}: {v}" for k, v in g["assumptions"].items())
+    return block(
+        trip,
+        batching,
+        overlap,
+        gpu,
+        f"Model assumptions: {assumptions}.",
+        vla_eval(g.get("vla_eval")),
+        source("policy_service", d),
+    )
+
+
+def vla_eval(v: Mapping[str, Any] | None) -> str:
+    """The public reference the one-GPU model is set against (vla-eval's harness, no IDR)."""
+    if not v:
+        return ""
+    shards = " / ".join(num(x) for x in v["obs_per_s_16_32_shards"])
+    return (
+        f"Reference, vla-eval's harness without IDR: {shards} obs/s on 16 / 32 shards, "
+        f"{num(v['ceiling_50_shards'])} obs/s at saturation (50 shards)."
+    )
+
+
+def remote_backbone(d: Data) -> str:
+    """remote_backbone.json: an IDR inference in-process vs over websockets."""
+    p = d["per_inference"]
+    rows = [(k.replace("_ms", "").replace("_", " "), v) for k, v in p.items()]
+    return block(table(["IDR inference", "ms"], rows), source("remote_backbone", d, d["what"]))
+
+
+def report_scale(d: Data) -> str:
+    """report_scale.json: reading a 100,000-episode run dir before and after compaction."""
+    r = d["run_dir"]
+    rows = []
+    for what in ("key_scan", "report", "compare"):
+        u, c = d["uncompacted"][what], d["compacted"][what]
+        s = "scan_seconds" if what == "key_scan" else "seconds"
+        rows.append([what.replace("_", " "), u[s], u["peak_mb"], c[s], c["peak_mb"]])
+    rows.append(["compaction", d["compaction"]["seconds"], d["compaction"]["peak_mb"], "-", "-"])
+    body = table(["", "uncompacted s", "peak MB", "compacted s", "peak MB"], rows)
+    what = (
+        f"{num(r['episodes'])} episodes, {num(r['step_rows'])} step rows, {num(r['files'])} files"
+    )
+    return block(body, source("report_scale", d, what))
+
+
+def tracking_scale(d: Data) -> str:
+    """tracking_scale.json: MLflow logging of a large grid."""
+    rows = [
+        ("grid", f"{d['cells']} cells x {d['tasks']} tasks, {num(d['episodes'])} episodes"),
+        ("store", d["store"]),
+        ("open the store (s)", d["open_s"]),
+        ("start: parent + child runs (s)", d["start_s"]),
+        ("finish: metrics, tables, runs ended (s)", d["finish_s"]),
+        ("of which aggregation (s)", d["finish_of_which_aggregation_s"]),
+        ("metrics per child", f"{d['metrics_per_child_min']}-{d['metrics_per_child_max']}"),
+    ]
+    return block(key_values(rows), source("tracking_scale", d))
+
+
+def cluster(d: Data) -> str:
+    """cluster.json: a real two-node Ray cluster on one machine."""
+    o, t = d["overhead"], d["throughput"]
+    rows = [
+        (
+            "episodes/s, one node vs two",
+            f"{num(t['one_node_episodes_per_s'])} vs "
+            f"{num(t['two_nodes_episodes_per_s'])} ({num(t['speedup'])}x)",
+        ),
+        (
+            "ms per episode: inline / local Ray",
+            f"{num(o['inline_ms_per_episode'])} / {num(o['local_ray_ms_per_episode'])}",
+        ),
+        (
+            "ms per episode on the cluster: actor on the driver's node / the other",
+            f"{num(o['cluster_same_node_ms_per_episode'])} / "
+            f"{num(o['cluster_other_node_ms_per_episode'])}",
+        ),
+        (
+            "`ray start` of the head / of a second node (s)",
+            f"{num(d['head_start_s'])} / {num(d['node_start_s'])}",
+        ),
+    ]
+    return block(key_values(rows), source("cluster", d, d["cluster"]))
+
+
+def perturbations(d: Data) -> str:
+    """perturbations.json: reset and step cost under each perturbation."""
+
+    def rows(cases: Mapping[str, Any]) -> list[list[Any]]:
+        return [
+            [k, v["reset_ms"], v["step_ms"], f"{num(v['step_ratio'])}x"] for k, v in cases.items()
+        ]
+
+    head = ["perturbation", "reset ms", "step ms", "step vs none"]
+    lib = d["libero"]
+    return block(
+        f"Tabletop ({d['episodes']} episodes x {d['steps_per_episode']} steps, "
+        f"{d['image_size']} px):",
+        table(head, rows(d["cases"])),
+        f"LIBERO, {lib['task']} ({lib['episodes']} episodes x {lib['steps_per_episode']} steps, "
+        f"{lib['image_size']} px):",
+        table(head, rows(lib["cases"])),
+        source("perturbations", d),
+    )
+
+
+def plugin_latency(d: Data) -> str:
+    """plugin_latency.json: the lerobot policy type idr per chunk, base vs IDR."""
+    rows = [
+        [
+            name,
+            f"{num(b['median_ms']['baseline'])} / {num(b['p90_ms']['baseline'])}",
+            b["median_ms"]["diagnose"],
+            b["median_ms"]["E"],
+            f"{num(b['ratio_E_vs_baseline'])}x",
+        ]
+        for name, b in d["backbones"].items()
+    ]
+    head = ["base", "baseline ms (median / p90)", "diagnose ms", "E ms", "E / baseline"]
+    return block(table(head, rows), source("plugin_latency", d, d["what"]))
+
+
+def _passes(name: str, d: Data) -> str:
+    rows = []
+    for b, v in d["backbones"].items():
+        if "median_ms" not in v:
+            continue
+        m = v["median_ms"]
+        rows.append(
+            [
+                b,
+                m["single"],
+                m["batched_3pass"],
+                m["sequential_3pass"],
+                f"{num(v['ratio_batched_vs_single'])}x",
+                f"{num(v['ratio_sequential_vs_single'])}x",
+            ]
+        )
+    head = [
+        "backbone",
+        "one call ms",
+        "3 passes, one 3B forward ms",
+        "3 calls ms",
+        "3B / one",
+        "3 calls / one",
+    ]
+    return block(table(head, rows), source(name, d))
+
+
+def idr_passes(d: Data) -> str:
+    """idr_passes.json: IDR's three passes as one batched forward vs one call (CPU)."""
+    return _passes("idr_passes", d)
+
+
+def gpu_idr_passes(d: Data) -> str:
+    """gpu_idr_passes.json: the same on a GPU (medians; the machine as recorded)."""
+    return _passes("gpu_idr_passes", d)
+
+
+def gpu_rendering(d: Data) -> str:
+    """gpu_rendering.json: MuJoCo frames on a GPU's EGL."""
+    rows = [
+        [
+            r["image_size"],
+            r["cameras"],
+            r["render_ms_per_frame_median"],
+            r["render_ms_p90"],
+            r["fps_frames"],
+        ]
+        for r in d["rows"]
+    ]
+    head = ["px", "cameras", "ms per frame (median)", "ms per step p90", "frames/s"]
+    return block(
+        table(head, rows), source("gpu_rendering", d, f"backend {d['backend']}", d["scene"])
+    )
+
+
+def tabletop_env_egl_h100(d: Data) -> str:
+    """tabletop_env_egl_h100.json: the tabletop env on a GPU machine's EGL."""
+    rows = [
+        (
+            "render per frame, agentview / wrist (ms)",
+            f"{num(d['render_ms_per_frame_agentview'])} / {num(d['render_ms_per_frame_wrist'])}",
+        ),
+        ("step + both cameras (ms)", d["step_plus_2_renders_ms"]),
+        ("reset (ms)", d["reset_ms"]),
+        ("scene build (s)", d["scene_build_s"]),
+    ]
+    extra = (f"device: {d['device']}", f"backend {d['backend']}, {d['image_size']} px")
+    return block(key_values(rows), source("tabletop_env_egl_h100", d, *extra))
+
+
+def tiny_vla_alignment(d: Data) -> str:
+    """tiny_vla_alignment.json: carry actions vs the expert's, by distance to the goal."""
+    parts = [f"{d['task']}, seed {d['seed']}, {d['replan_steps']} actions per inference."]
+    for ckpt, c in d["checkpoints"].items():
+        outcomes = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in c["outcomes"].items())
+        parts.append(f"`{ckpt}`, {c['episodes']} episodes: {outcomes}.")
+        rows = []
+        for b in c["by_distance"]:
+            lo, hi = b["distance_cm"]
+            span = f"> {num(lo)}" if hi is None else f"{num(lo)}-{num(hi)}"
+            rows.append(
+                [span, b["inferences"], b["cosine_mean"], b["policy_xy_norm"], b["expert_xy_norm"]]
+            )
+        head = [
+            "distance to goal (cm)",
+            "inferences",
+            "cosine policy vs expert",
+            "policy xy norm",
+            "expert xy norm",
+        ]
+        parts.append(table(head, rows))
+    return block(*parts, source("tiny_vla_alignment", d))
+
+
+RENDERERS: dict[str, Callable[[Data], str]] = {
+    f.__name__: f
+    for f in (
+        faults,
+        default_run,
+        engine,
+        tabletop_env,
+        libero_env,
+        env_server,
+        calvin_env,
+        policy_service,
+        remote_backbone,
+        report_scale,
+        tracking_scale,
+        cluster,
+        perturbations,
+        plugin_latency,
+        idr_passes,
+        gpu_idr_passes,
+        gpu_rendering,
+        tabletop_env_egl_h100,
+        tiny_vla_alignment,
+    )
+}
+
+
+def render(name: str, results: Path = RESULTS) -> str:
+    """The Markdown for one marker; raises on a name without a renderer or a missing file."""
+    if name not in RENDERERS:
+        raise PluginError(f"unknown results marker {name!r}; known: {sorted(RENDERERS)}")
+    path = results / f"{name}.json"
+    if not path.is_file():
+        raise PluginError(f"results marker {name!r}: {path} does not exist")
+    try:
+        return RENDERERS[name](json.loads(path.read_text()))
+    except (KeyError, TypeError, ValueError, IndexError) as e:
+        raise PluginError(f"results marker {name!r}: {path} has another shape ({e!r})") from e
+
+
+def on_page_markdown(
+    markdown: str, page: Page | None, config: MkDocsConfig | None, files: Files | None
+) -> str:
+    """MkDocs event: replace every results marker of the page by its table."""
+    where = page.file.src_uri if page is not None else "<markdown>"
+
+    def one(m: re.Match[str]) -> str:
+        try:
+            return render(m.group(1))
+        except PluginError as e:
+            raise PluginError(f"{where}: {e}") from e
+
+    return MARKER.sub(one, markdown)

@@ -1,0 +1,142 @@
+"""Whose run dir this is: a new run claims it, the same config resumes it, another config is
+refused, a run dir whose run.json was lost is adopted on request; run.json's record of the run
+(run id, fingerprint, code version, checkpoint digest, env server, fit, protocol)."""
+
+from __future__ import annotations
+
+import logging
+import subprocess
+import uuid
+from pathlib import Path
+
+from pipeline.errors import RunDirLostError
+from pipeline.planning.config import ConfigError, RunConfig, dump_config
+from pipeline.planning.plan import RunPlan
+from pipeline.planning.provenance import checkpoint_path, checkpoint_record
+from pipeline.results.store import RunStore
+from pipeline.rundir import (
+    CONFIG_YAML,
+    EPISODES_DIR,
+    LOCK_FILE,
+    MARKERS,
+    RUN_JSON,
+    read_run_json,
+    write_run_json,
+    write_text_atomic,
+)
+
+log = logging.getLogger("idr_eval.runner")
+
+
+def code_version() -> str:
+    here = Path(__file__).resolve().parent.parent
+    try:
+        out = subprocess.run(
+            ["git", "-C", str(here), "describe", "--always", "--dirty", "--abbrev=12"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+            check=True,
+        )
+        return out.stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        from importlib.metadata import version
+
+        return f"idr-eval-{version('idr-eval')}"
+
+
+def resume_or_claim(cfg: RunConfig, run_dir: Path, adopt: bool = False) -> str:
+    """Return the run id; refuse a RUN_DIR that holds another config's results. ``adopt``:
+    take over a run dir whose run.json was lost but whose config.yaml and data are intact."""
+    fingerprint = cfg.fingerprint()
+    meta = read_run_json(run_dir)
+    if meta is not None:
+        if meta.get("fingerprint") != fingerprint:
+            raise ConfigError(
+                f"{run_dir} holds results of a different config (fingerprint {meta.get('fingerprint')} "
+                f"vs {fingerprint}); results of two configs are never mixed. Use a new --out, or "
+                f"delete {run_dir} to start fresh"
+            )
+        return str(meta["run_id"])
+    if not (run_dir.exists() and any(p.name != LOCK_FILE for p in run_dir.iterdir())):
+        return uuid.uuid4().hex[:12]
+    stored = RunStore(run_dir, read_only=True)
+    if not (run_dir / EPISODES_DIR).is_dir():
+        raise ConfigError(f"{run_dir} exists and is not an idr-eval run dir; choose an empty --out")
+    if not adopt:
+        raise ConfigError(
+            f"{run_dir} has no {RUN_JSON} but holds {stored.stored_count()} stored episodes (its "
+            f"{RUN_JSON} was lost?); pass --adopt to check its config.yaml against this config "
+            "and resume it, or choose another --out"
+        )
+    return _adopt(cfg, run_dir, stored)
+
+
+def _adopt(cfg: RunConfig, run_dir: Path, stored: RunStore) -> str:
+    """The run id of a run dir without run.json, once its config.yaml is this config."""
+    from pipeline.planning.config import config_from_dict, safe_load_yaml
+
+    saved = run_dir / CONFIG_YAML
+    if not saved.is_file():
+        raise ConfigError(
+            f"--adopt: {run_dir} has no config.yaml, so its episodes cannot be checked against "
+            "this config; choose another --out"
+        )
+    theirs = config_from_dict(safe_load_yaml(saved.read_text()) or {}, source=str(saved))
+    if theirs.fingerprint() != cfg.fingerprint():
+        raise ConfigError(
+            f"--adopt: {saved} is a different config (fingerprint {theirs.fingerprint()} vs "
+            f"{cfg.fingerprint()}); results of two configs are never mixed"
+        )
+    ids = set(stored.episodes(columns=["run_id"]).column("run_id").to_pylist())
+    if len(ids) > 1:
+        raise ConfigError(f"--adopt: {run_dir} holds episodes of several runs: {sorted(ids)}")
+    run_id = ids.pop() if ids else uuid.uuid4().hex[:12]
+    log.warning("adopting %s (run %s): its %s was missing", run_dir, run_id, RUN_JSON)
+    return str(run_id)
+
+
+def check_run_dir_intact(run_dir: Path, markers: tuple[str, ...] = MARKERS) -> None:
+    """Raise RunDirLostError when the run dir lost ``markers`` (deleted mid-run)."""
+    missing = [n for n in markers if not (run_dir / n).exists()]
+    if missing:
+        raise RunDirLostError(
+            f"{run_dir} lost {', '.join(missing)} while this run was writing to it (deleted or "
+            "unmounted?): stopping, so that nothing is written into a directory that no longer "
+            "holds the run. Episodes stored there may be lost; restore the directory and run "
+            "the same command again, or run again with a new --out"
+        )
+
+
+def checkpoint_digest(cfg: RunConfig, run_dir: Path) -> dict[str, object] | None:
+    """The checkpoint's digest, reusing run.json's when its files did not change."""
+    root = checkpoint_path(cfg)
+    if root is None:
+        return None
+    previous = (read_run_json(run_dir) or {}).get("checkpoint")
+    return checkpoint_record(root, previous)
+
+
+def write_meta(plan: RunPlan) -> None:
+    plan.run_dir.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(plan.run_dir / CONFIG_YAML, dump_config(plan.cfg))
+    meta: dict[str, object] = {
+        "run_id": plan.run_id,
+        "fingerprint": plan.cfg.fingerprint(),
+        "name": plan.cfg.name,
+        "code_version": plan.code_version,
+    }
+    if plan.checkpoint is not None:
+        meta["checkpoint"] = plan.checkpoint
+    if plan.env_server is not None:
+        meta["env_server"] = plan.env_server
+    if plan.fit is not None:
+        meta["fit"] = plan.fit.record()
+        if plan.fit.protocol:
+            meta["protocol"] = dict(plan.fit.protocol)
+    old = read_run_json(plan.run_dir)
+    if old is not None:  # what earlier drivers recorded (quarantined files) is kept
+        kept = old.get("quarantined")
+        if kept:
+            meta["quarantined"] = kept
+    write_run_json(plan.run_dir, meta)

@@ -1,0 +1,135 @@
+"""``executor``: where episodes run (Ray actors or inline), how many, with which resources, and
+the policy's placement (in each actor, or a shared policy service)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, field_validator, model_validator
+
+from pipeline.planning.config_model import StrictModel
+
+
+class ExecutorConfig(StrictModel):
+    kind: Literal["ray", "inline"] = "ray"
+    workers: int = Field(default=2, ge=1, description="actors (each holds a backbone and an env)")
+    cpus_per_worker: float = Field(default=1.0, gt=0)
+    gpus_per_worker: float = Field(default=0.0, ge=0)
+    address: str | None = Field(default=None, description="existing Ray cluster; None = local")
+    max_in_flight: int | None = Field(
+        default=None, ge=1, description="episodes running at once; None: one per worker"
+    )
+    max_attempts: int = Field(default=3, ge=1, description="tries per episode before giving up")
+    oversubscribe: bool = Field(
+        default=False, description="allow more local worker CPUs than this machine has"
+    )
+    flush_every: int = Field(default=8, ge=1, description="episodes per Parquet batch")
+    episode_timeout_s: float | None = Field(
+        default=None,
+        gt=0,
+        description="wall-clock limit per episode: a hung episode's actor is replaced and the "
+        "episode retried (inline: SIGALRM, main thread only); None: no limit",
+    )
+    # -- where the model lives
+    policy: Literal["in_actor", "shared"] = Field(
+        default="in_actor",
+        description="in_actor: each actor holds a backbone and an env (the default; small "
+        "policies, one machine); shared: actors hold only envs and send each inference to "
+        "policy actors that batch many episodes' requests into one forward (a GPU per policy "
+        "actor, or executor.actors_per_gpu of them per GPU); the same results",
+    )
+    policy_actors: int = Field(default=1, ge=1, description="shared: policy actors")
+    envs_per_worker: int = Field(
+        default=1,
+        ge=1,
+        description="shared: envs each actor holds, each episode in a thread of its own, so one "
+        "steps while another waits for its inference (in_actor: 1)",
+    )
+    policy_cpus: float = Field(default=1.0, gt=0, description="shared: CPUs per policy actor")
+    max_batch: int = Field(
+        default=32, ge=1, description="shared: requests (episodes) per forward at most"
+    )
+    batch_wait_ms: float = Field(
+        default=2.0,
+        ge=0,
+        description="shared: how long a policy actor gathers requests for one forward",
+    )
+    # -- placement on a cluster (pipeline.execution.cluster checks it against the nodes before any work)
+    actors_per_gpu: int | None = Field(
+        default=None,
+        ge=1,
+        description="actors sharing one GPU: each asks for 1/n of a GPU (instead of "
+        "gpus_per_worker); None: gpus_per_worker decides",
+    )
+    resources: dict[str, float] = Field(
+        default_factory=dict,
+        description="custom Ray resources per actor, e.g. {node_type_gpu: 0.01} to pin actors "
+        "to nodes started with --resources (a local run declares them on its one node)",
+    )
+    placement: Literal["default", "spread"] = Field(
+        default="default",
+        description="spread: actors on as many nodes as possible (Ray's SPREAD strategy); "
+        "default: Ray's (fill a node, then the next)",
+    )
+    autoscaling: bool = Field(
+        default=False,
+        description="the cluster adds nodes on demand (Ray autoscaler, KubeRay): do not refuse "
+        "a run that the nodes up now cannot hold",
+    )
+
+    @field_validator("resources")
+    @classmethod
+    def _custom_resources(cls, v: dict[str, float]) -> dict[str, float]:
+        for name, amount in v.items():
+            if name in ("CPU", "GPU", "memory", "object_store_memory"):
+                raise ValueError(
+                    f"{name!r} is not a custom resource: use cpus_per_worker / gpus_per_worker / "
+                    "actors_per_gpu"
+                )
+            if not (amount > 0 and amount == amount and amount != float("inf")):
+                raise ValueError(f"resources.{name}: must be a finite number > 0 (got {amount})")
+        return v
+
+    @model_validator(mode="after")
+    def _one_gpu_setting(self) -> ExecutorConfig:
+        if self.actors_per_gpu is not None and self.gpus_per_worker not in (
+            0,
+            1 / self.actors_per_gpu,
+        ):
+            raise ValueError(
+                f"actors_per_gpu={self.actors_per_gpu} and gpus_per_worker="
+                f"{self.gpus_per_worker:g} disagree: set one of them"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _envs_need_a_shared_policy(self) -> ExecutorConfig:
+        if self.envs_per_worker > 1 and self.policy != "shared":
+            raise ValueError(
+                f"envs_per_worker={self.envs_per_worker} needs policy=shared: in_actor, an "
+                "actor's one backbone serves one episode at a time"
+            )
+        return self
+
+    @property
+    def gpu_share(self) -> float:
+        """GPUs asked for by one actor (fractional when actors share a GPU)."""
+        return 1 / self.actors_per_gpu if self.actors_per_gpu else self.gpus_per_worker
+
+    def actor_demand(self) -> dict[str, float]:
+        """What one (episode) actor asks the cluster for, as Ray resource names; with a shared
+        policy it holds only an env: no GPU."""
+        gpu = 0.0 if self.policy == "shared" else self.gpu_share
+        return {"CPU": self.cpus_per_worker, "GPU": gpu, **self.resources}
+
+    def actor_groups(self) -> list[tuple[str, int, dict[str, float]]]:
+        """(what, how many, what each asks for) of every kind of actor the run starts."""
+        groups = [("executor.workers", self.workers, self.actor_demand())]
+        if self.policy == "shared":
+            demand = {"CPU": self.policy_cpus, "GPU": self.gpu_share}
+            groups.insert(0, ("executor.policy_actors", self.policy_actors, demand))
+        return groups
+
+    def local_cpus(self) -> float:
+        """CPUs a local Ray is started with: every actor's."""
+        return sum(n * d["CPU"] for _, n, d in self.actor_groups())
