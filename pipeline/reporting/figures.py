@@ -241,6 +241,8 @@ def success_sweep(
         xs = [pos[label] for label in t["label"]]
         y = 100 * t["success"].to_numpy()
         err = 100 * np.vstack([t["success"] - t["ci_low"], t["ci_high"] - t["success"]])
+        # Wilson's bound at 0% or 100% lies a rounding error inside the rate: never negative
+        err = np.clip(err, 0.0, None)
         ax.errorbar(xs, y, yerr=err, marker="o", capsize=3, label=names[s])
     if baseline is not None:
         name, rate, lo, hi = baseline

@@ -13,6 +13,7 @@ from pipeline.execution.runner import execute, plan_run
 from pipeline.planning.config import load_config
 from pipeline.reporting import figures as F
 from pipeline.reporting import run_data as D
+from pipeline.results import aggregate as agg
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 # baseline, diagnose, and E / F at (alpha, tau) = (0.08, cal), (0.5, cal), (0.08, 999): an alpha
@@ -245,3 +246,23 @@ def test_gripper_events_equal_the_per_episode_definition() -> None:
     for kind in want:
         assert got[kind] == pytest.approx(want[kind])
     assert D.gripper_events(steps.iloc[:0]) == {"close": [], "open": []}
+
+
+def test_a_sweep_with_a_cell_at_100_percent_is_drawn() -> None:
+    """Wilson's upper bound at 10/10 is 0.9999999999999999: the error bar must not go below 0
+    (matplotlib refuses negative yerr; the τ grid's figure failed on it)."""
+    lo, hi = agg.wilson(10, 10)
+    assert hi < 1.0  # the rounding the figure has to tolerate
+    table = pd.DataFrame(
+        {
+            "x": [0.5, 1.0],
+            "label": ["0.5", "1"],
+            "series": ["mode=E, alpha=0.08", "mode=E, alpha=0.08"],
+            "success": [1.0, 0.9],
+            "ci_low": [lo, agg.wilson(9, 10)[0]],
+            "ci_high": [hi, agg.wilson(9, 10)[1]],
+        }
+    )
+    fig = F.success_sweep(table, "tau")
+    (line,) = [c for c in fig.axes[0].containers]
+    assert list(line.lines[0].get_ydata()) == [100.0, 90.0]
