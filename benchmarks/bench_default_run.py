@@ -54,9 +54,12 @@ class Timers:
 
 
 def run_dir_throughput(run_dir: Path) -> dict[str, Any]:
-    import pyarrow.parquet as pq
+    import dataclasses
 
-    eps = pq.read_table(run_dir / "episodes").to_pandas()
+    from pipeline.results import aggregate as agg
+    from pipeline.results.store import RunStore
+
+    eps = RunStore(run_dir, read_only=True).episodes().to_pandas()
     start = min(datetime.fromisoformat(s) for s in eps["started_at"])
     end = max(datetime.fromisoformat(s) for s in eps["finished_at"])
     minutes = (end - start).total_seconds() / 60
@@ -72,6 +75,9 @@ def run_dir_throughput(run_dir: Path) -> dict[str, Any]:
             f"{c}/{t}": float(g["success"].mean())
             for (c, t), g in eps.groupby(["cell_id", "task_id"])
         },
+        # each cell against the reference on the same episodes: the report's main table
+        "reference": agg.reference_cell(set(eps["cell_id"])),
+        "paired": [dataclasses.asdict(d) for d in agg.paired_vs_baseline(eps)],
     }
 
 

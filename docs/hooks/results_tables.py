@@ -155,8 +155,26 @@ def default_run(d: Data) -> str:
         [[k.replace("_", " "), pct(v), num(d["ms_per_call"].get(k))] for k, v in d["share"].items()]
         + [["Parquet + MLflow logging", pct(d["logging_share_of_episode_time"]), "-"]],
     )
+    paired = table(
+        [
+            "cell",
+            f"Δ vs {run.get('reference', 'the reference')} (pp, bootstrap 95% CI)",
+            "p (McNemar)",
+            "pairs",
+        ],
+        [
+            [
+                p["cell_id"],
+                f"{100 * p['diff']:+.1f} [{100 * p['ci_low']:+.1f}, {100 * p['ci_high']:+.1f}]",
+                num(p["p_value"]),
+                p["n_pairs"],
+            ]
+            for p in run.get("paired", [])
+        ],
+    )
     note = f"{d['config']}, `{run['run_dir']}`; time shares from {d['episodes']} episodes: "
-    return block(pace, succ, share, source("default_run", d, note + d["note"]))
+    parts = [pace, succ, paired, share] if run.get("paired") else [pace, succ, share]
+    return block(*parts, source("default_run", d, note + d["note"]))
 
 
 def engine(d: Data) -> str:

@@ -43,6 +43,7 @@ from pipeline.planning.config import ConfigError, RunConfig
 from pipeline.planning.env_runtime import check_env_runtime
 from pipeline.planning.plan import CellPlan, RunPlan, SpecGrid
 from pipeline.planning.provenance import check_resume
+from pipeline.reporting.run_data import load_run
 from pipeline.reporting.write import write_report
 from pipeline.results.calibration import calibrate
 from pipeline.results.store import RunStore
@@ -62,6 +63,7 @@ from workers.episode import EpisodeResult, WorkerSpec
 
 if TYPE_CHECKING:
     from pipeline.planning.checkpoint_fit import Fit
+    from pipeline.reporting.run_data import RunData
     from pipeline.tracking.tracker import Tracker
     from workers.envs.base import TaskSpec
     from workers.envs.server.client import ServerSpec
@@ -228,6 +230,16 @@ def _execute(plan: RunPlan) -> RunSummary:
     return summary
 
 
+def _read_once(run_dir: Path) -> RunData | None:
+    """The run's tables for every view of it; None (each view reads for itself, and the one
+    that cannot says so) when they cannot be read together."""
+    try:
+        return load_run(run_dir)
+    except Exception as e:
+        log.warning("reading the run once for its views failed: %s: %s", type(e).__name__, e)
+        return None
+
+
 def _open_tracker(plan: RunPlan) -> Tracker | None:
     """The run's MLflow runs, opened (and on resume reopened) before any actor starts."""
     from pipeline.tracking.store import resolve_uri
@@ -257,21 +269,23 @@ def _report_and_track(
     """The end of a run, however it ended: the report (unless writing it would fail too:
     `idr-eval report RUN_DIR` rebuilds it later), then the MLflow runs marked ``status``."""
     report = plan.run_dir / REPORT_MD
+    data = None
     try:
         if no_report:
             log.error("report not written: %s", no_report)
-        else:
-            report = write_report(plan.run_dir)
+        else:  # the store read once: the same tables for the report, figures, slices, MLflow
+            data = _read_once(plan.run_dir)
+            report = write_report(plan.run_dir, data=data)
     except Exception as e:
         _after_stop(status, "writing the report", e)
     if tracker is None:
         return
     try:
-        episodes = store.episodes().to_pandas()
+        episodes = data.episodes if data is not None else store.episodes().to_pandas()
         figures = sorted((plan.run_dir / FIGURES_DIR).glob("*.png"))
         extra = [plan.run_dir / CONFIG_YAML, plan.run_dir / CALIBRATION_FILE]
         page = report.with_suffix(".html")
-        tracker.finish(episodes, [report, page, *extra, *figures], status)
+        tracker.finish(episodes, [report, page, *extra, *figures], status, data=data)
     except Exception as e:
         _after_stop(status, f"marking the MLflow runs {status}", e)
 

@@ -373,12 +373,15 @@ def save(fig: Figure, path: Path) -> Path:
     return write_atomic(path, lambda tmp: fig.savefig(tmp, dpi=100, format="png"))
 
 
-def write_figures(run_dir: str | Path) -> tuple[dict[str, Path], dict[str, str]]:
-    """Build and save the run's figures to RUN_DIR/figures/<name>.png (stale ones removed).
+def write_figures(
+    run_dir: str | Path, data: RunData | None = None
+) -> tuple[dict[str, Path], dict[str, str]]:
+    """Build and save the run's figures to RUN_DIR/figures/<name>.png (stale ones removed);
+    ``data``: the run as the caller read it already.
 
     Returns (name -> path, name -> why skipped)."""
     run_dir = Path(run_dir)
-    figs = build_figures(load_run(run_dir))
+    figs = build_figures(data if data is not None else load_run(run_dir))
     out_dir = run_dir / FIGURES_DIR
     paths = {name: save(fig, out_dir / f"{name}.png") for name, fig in figs.built.items()}
     for name in figs.skipped:

@@ -15,12 +15,10 @@ What the UI shows, and why:
   The tau a cell used is the numeric param ``cell.tau_value`` (per suite
   ``cell.tau_value/<suite>`` when a run spans several); a calibrated tau's spelling stays in
   ``cell.tau``.
-- Per-cell numbers live on the children: success in percent (the unit of the report and of
-  ``idr-eval compare``), Avg Len, times, diagnostics, Δ vs baseline in percentage points, all
-  rounded to 4 significant figures; R_img and the gate rate per progress bin are step-indexed
-  metrics (``progress/r_img``, ``progress/gate_rate``; step = % of the episode), so MLflow's
-  line charts overlay cells. Each child has its slice of the report (Markdown and HTML with
-  its figures embedded), its figures and its per-task table as artifacts.
+- Per-cell numbers live on the children (pipeline.tracking.metrics); R_img and the gate rate
+  per progress bin are step-indexed metrics (``progress/r_img``; step = % of the episode), so
+  MLflow's line charts overlay cells. Each child has its slice of the report (Markdown and HTML
+  with its figures embedded), its figures and its per-task table as artifacts.
 - The parent keeps run-level metrics only (episodes stored, errors, the calibrated tau) and the
   whole report (also as HTML), the figures, and the per-cell table ``tables/cells.csv``.
 - The experiment is tagged as model development, so the UI opens in its ML view, not GenAI.
@@ -36,7 +34,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pandas as pd
 
@@ -52,6 +50,9 @@ from pipeline.tracking.metrics import (
     task_tables,
 )
 from pipeline.tracking.store import answers, bounded_client, probe, sqlite_path, store_lock
+
+if TYPE_CHECKING:
+    from pipeline.reporting.run_data import RunData
 
 log = logging.getLogger("idr_eval.tracking")
 RECHECK_S = 2.0  # how often a tracking server that went down is asked whether it is back
@@ -306,13 +307,18 @@ class Tracker:
             self._call(lambda: self._log_metrics(parent, {"episodes_stored": done}, step=done))
 
     def finish(
-        self, episodes: pd.DataFrame, artifacts: list[Path], status: str = "FINISHED"
+        self,
+        episodes: pd.DataFrame,
+        artifacts: list[Path],
+        status: str = "FINISHED",
+        data: RunData | None = None,
     ) -> bool:
-        """Log the per-cell metrics and the artifacts, and end the runs with ``status``.
+        """Log the per-cell metrics and the artifacts, and end the runs with ``status``;
+        ``data``: the run as the caller read it (else read here for the cells' slices).
 
         Returns False when the tracking server is down and stayed down (for up to
         ``reconnect_wait_s`` after a finished run): MLflow is then left to a rerun."""
-        if self._call(lambda: self._finish(episodes, artifacts, status)):
+        if self._call(lambda: self._finish(episodes, artifacts, status, data)):
             return True
         wait = self.reconnect_wait_s if status == "FINISHED" else 0.0
         if wait > 0:
@@ -335,7 +341,9 @@ class Tracker:
         )
         return False
 
-    def _finish(self, episodes: pd.DataFrame, artifacts: list[Path], status: str) -> None:
+    def _finish(
+        self, episodes: pd.DataFrame, artifacts: list[Path], status: str, data: RunData | None
+    ) -> None:
         if not episodes.empty:
             chains = agg.chain_metrics(episodes)  # bootstrapped once, for both below
             per_cell = cell_metrics(episodes, chains)
@@ -356,7 +364,7 @@ class Tracker:
                     "cells": int(episodes["cell_id"].nunique()),
                 },
             )
-            self._log_cell_views()
+            self._log_cell_views(data)
         for p in artifacts:
             if p.exists():
                 folder = FIGURES_DIR if p.suffix == ".png" else None
@@ -365,7 +373,7 @@ class Tracker:
             self.client.set_terminated(rid, status=status)
         self.client.set_terminated(self.parent_id, status=status)
 
-    def _log_cell_views(self) -> None:
+    def _log_cell_views(self, data: RunData | None = None) -> None:
         """Each child's slice of the report (and its figures, its per-task table) as artifacts,
         and its progress curves as step-indexed metrics. A failure here (a figure) is logged
         and never costs the run its metrics or its status."""
@@ -374,7 +382,7 @@ class Tracker:
         from pipeline.reporting.run_data import load_run
 
         try:
-            data = load_run(self.run_dir)
+            data = data if data is not None else load_run(self.run_dir)
             curves = progress_curves(data)
             for cell_id, rid in self.children.items():
                 if not (data.episodes["cell_id"] == cell_id).any():
