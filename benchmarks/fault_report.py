@@ -26,8 +26,8 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).parent / "results" / "faults.json"
 TESTS = [
     *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "tests/pipeline").glob("test_faults_*.py")),
-    "tests/pipeline/test_scheduler.py",  # ray.kill, a crashing actor, SIGKILL to the driver
-    "tests/pipeline/test_shared_policy.py",  # a policy actor out of device memory
+    "tests/pipeline/execution/test_scheduler.py",  # ray.kill, a crashing actor, SIGKILL to the driver
+    "tests/pipeline/execution/test_shared_policy.py",  # a policy actor out of device memory
 ]
 COUNTS = ("lost", "duplicated", "unreadable_files", "temp_files_left", "orphan_step_files")
 

@@ -10,13 +10,13 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from fault_audit import assert_clean, audit
 
 from pipeline import cli
 from pipeline.errors import DiskFullError
 from pipeline.execution.runner import execute, plan_run
 from pipeline.planning.config import load_config
 from pipeline.results.store import RunStore
+from tests.support.fault_audit import assert_clean, audit
 
 ROOT = Path(__file__).resolve().parents[2]
 

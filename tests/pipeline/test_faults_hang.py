@@ -8,13 +8,13 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
-from fault_audit import assert_clean, audit
 
 from pipeline.execution.runner import plan_run, run_episodes
 from pipeline.execution.timeouts import EpisodeTimeout, alarm
 from pipeline.planning.config import load_config
 from pipeline.results.store import RunStore
 from tests.doubles.backbones import FaultyMarkerBackbone
+from tests.support.fault_audit import assert_clean, audit
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 GUARANTEE = (

@@ -12,12 +12,12 @@ from collections import Counter
 from pathlib import Path
 
 import pytest
-from fault_audit import assert_clean, audit
 
 from pipeline.execution.lock import RunDirLock
 from pipeline.planning.config import ConfigError
 from pipeline.results.store import RunStore
 from pipeline.rundir import LOCK_FILE
+from tests.support.fault_audit import assert_clean, audit
 
 ROOT = Path(__file__).resolve().parents[2]
 

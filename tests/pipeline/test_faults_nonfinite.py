@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from fault_audit import assert_clean, audit
 
 from pipeline.execution.runner import plan_run, run_episodes
 from pipeline.planning.config import config_from_dict, load_config
 from pipeline.results.store import VOLATILE_COLUMNS, RunStore
+from tests.support.fault_audit import assert_clean, audit
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 GUARANTEE = (

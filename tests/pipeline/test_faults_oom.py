@@ -7,12 +7,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from fault_audit import assert_clean, audit
 
 from pipeline.execution.runner import plan_run, run_episodes
 from pipeline.planning.config import load_config
 from pipeline.results.store import RunStore
 from tests.doubles.faults import exhaust_memory
+from tests.support.fault_audit import assert_clean, audit
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 GUARANTEE = "the actor is replaced, the episode retried on a fresh one; the run completes"

@@ -10,13 +10,13 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
-from fault_audit import assert_clean, audit
 
 from pipeline.errors import RunDirLostError
 from pipeline.execution import claim
 from pipeline.execution.runner import execute, plan_run, run_episodes
 from pipeline.planning.config import ConfigError, load_config
 from pipeline.results.store import RunStore
+from tests.support.fault_audit import assert_clean, audit
 
 ROOT = Path(__file__).resolve().parents[2]
 SMOKE = ROOT / "conf" / "smoke.yaml"

@@ -1,6 +1,6 @@
 """Fault 3, the driver stopped by SIGTERM or SIGINT: finished episodes are flushed, files
 closed, MLflow runs marked KILLED, exit 128+signal; the next ``idr-eval run`` on the same
-RUN_DIR resumes and completes. (SIGKILL: tests/pipeline/test_scheduler.py.)"""
+RUN_DIR resumes and completes. (SIGKILL: tests/pipeline/execution/test_scheduler.py.)"""
 
 from __future__ import annotations
 
@@ -14,11 +14,11 @@ import time
 from pathlib import Path
 
 import pytest
-from fault_audit import assert_clean, audit
 
 from pipeline.execution.runner import execute, plan_run
 from pipeline.execution.signals import RunInterrupted, stop_on_signals
 from pipeline.planning.config import load_config
+from tests.support.fault_audit import assert_clean, audit
 
 ROOT = Path(__file__).resolve().parents[2]
 EXPECTED = {(c, "reach", i) for c in ("baseline", "E") for i in range(3)}

@@ -10,10 +10,10 @@ import time
 from pathlib import Path
 
 import pytest
-from fault_audit import assert_clean, audit
 
 from pipeline.execution.runner import plan_run
 from pipeline.planning.config import ConfigError, load_config
+from tests.support.fault_audit import assert_clean, audit
 
 ROOT = Path(__file__).resolve().parents[2]
 CONF = ROOT / "conf"

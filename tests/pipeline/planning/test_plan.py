@@ -9,7 +9,7 @@ from pathlib import Path
 from pipeline.execution.runner import plan_run
 from pipeline.planning.config import load_config
 
-SMOKE = Path(__file__).resolve().parents[2] / "conf" / "smoke.yaml"
+SMOKE = Path(__file__).resolve().parents[3] / "conf" / "smoke.yaml"
 BASE = ["tracking.enabled=false", "executor.kind=inline"]
 
 

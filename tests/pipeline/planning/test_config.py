@@ -8,7 +8,7 @@ import pytest
 
 from pipeline.planning.config import ConfigError, apply_overrides, config_from_dict, load_config
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = Path(__file__).resolve().parents[3] / "conf"
 
 
 def _base() -> dict:

@@ -1,5 +1,5 @@
 """``idr-eval ui`` and the Compare URL, client side: the URL, the store checks, the bind
-address (the browser test is tests/pipeline/test_mlflow_ui_browser.py)."""
+address (the browser test is tests/pipeline/tracking/test_mlflow_ui_browser.py)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from pipeline.planning.config import ConfigError, load_config
 from pipeline.tracking.store import check_store
 from pipeline.tracking.ui import Selection, select
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = Path(__file__).resolve().parents[3] / "conf"
 
 
 @pytest.fixture(scope="module")

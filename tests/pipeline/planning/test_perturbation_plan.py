@@ -14,7 +14,7 @@ from pipeline.planning.config import ConfigError, load_config
 from pipeline.reporting.markdown import build_report
 from pipeline.results.store import RunStore
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = Path(__file__).resolve().parents[3] / "conf"
 INLINE = ["executor.kind=inline", "tracking.enabled=false", "episodes_per_task=2"]
 
 

@@ -70,7 +70,7 @@ def test_bad_grids(grid, pattern) -> None:
 
 # -- calibrated tau forms, diagnose collapse, the paper's ablation presets ------------------------
 
-GRIDS = Path(__file__).resolve().parents[2] / "conf" / "grids"
+GRIDS = Path(__file__).resolve().parents[3] / "conf" / "grids"
 
 
 @pytest.mark.parametrize(

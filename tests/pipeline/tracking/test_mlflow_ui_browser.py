@@ -24,7 +24,7 @@ import pytest
 from pipeline.execution.runner import execute, plan_run
 from pipeline.planning.config import load_config
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 CHROMIUM = shutil.which("chromium")
 pytestmark = [
     pytest.mark.slow,

@@ -11,7 +11,7 @@ import pytest
 
 from pipeline.execution.run_log import RunLog
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 @pytest.fixture

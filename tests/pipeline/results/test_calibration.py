@@ -15,7 +15,7 @@ from pipeline.results.calibration import calibrate
 from pipeline.results.store import KEY, RunStore
 from tests.doubles.rows import result as hand_made
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = Path(__file__).resolve().parents[3] / "conf"
 
 
 def test_calibrated_tau_is_the_diagnose_mean_and_is_used(tmp_path) -> None:

@@ -15,7 +15,7 @@ import pytest
 from pipeline.results.store import KEY, SOURCES_KEY, RunStore
 from tests.doubles.rows import result
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def _fill(run_dir: Path, batches: int = 3) -> None:

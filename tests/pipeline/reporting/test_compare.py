@@ -18,7 +18,7 @@ from pipeline.results.store import RunStore
 from pipeline.tracking.ui import mlflow_lines
 from tests.doubles.rows import result as hand_made
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = Path(__file__).resolve().parents[3] / "conf"
 
 
 def _episodes(cells: dict[str, dict[str, list[int]]], errors: int = 0) -> pd.DataFrame:

@@ -16,9 +16,9 @@ import pytest
 from pipeline.execution.runner import execute, plan_run
 from pipeline.planning.config import ConfigError, load_config
 from pipeline.results.store import RunStore
-from tests.pipeline.test_runner import _episodes, _steps
+from tests.pipeline.execution.test_runner import _episodes, _steps
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = Path(__file__).resolve().parents[3] / "conf"
 SERVER = f"env.python={sys.executable}"
 
 

@@ -11,7 +11,7 @@ from pipeline.execution.runner import execute, plan_run
 from pipeline.planning.config import ConfigError, load_config
 from pipeline.results.store import VOLATILE_COLUMNS, RunStore
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = Path(__file__).resolve().parents[3] / "conf"
 
 
 def _episodes(run_dir: Path) -> pd.DataFrame:

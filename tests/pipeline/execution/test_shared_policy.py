@@ -14,9 +14,9 @@ from pipeline.execution.cluster import check_capacity
 from pipeline.execution.runner import execute, plan_run
 from pipeline.planning.config import ConfigError, load_config
 from pipeline.results.store import RunStore
-from tests.pipeline.test_runner import _episodes, _steps
+from tests.pipeline.execution.test_runner import _episodes, _steps
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = Path(__file__).resolve().parents[3] / "conf"
 SHARED = ["executor.policy=shared", "executor.cpus_per_worker=0.5", "executor.policy_cpus=1"]
 
 

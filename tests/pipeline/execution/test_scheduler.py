@@ -13,14 +13,14 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
-from fault_audit import assert_clean, audit
 
 from pipeline.execution.executors.ray_pool import RayActorPool
 from pipeline.execution.runner import plan_run, run_episodes
 from pipeline.planning.config import load_config
 from pipeline.results.store import RunStore
+from tests.support.fault_audit import assert_clean, audit
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 CONF = ROOT / "conf"
 
 

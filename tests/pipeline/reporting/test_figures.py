@@ -15,7 +15,7 @@ from pipeline.reporting import figures as F
 from pipeline.reporting import run_data as D
 from pipeline.results import aggregate as agg
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = Path(__file__).resolve().parents[3] / "conf"
 # baseline, diagnose, and E / F at (alpha, tau) = (0.08, cal), (0.5, cal), (0.08, 999): an alpha
 # series and a tau series per mode
 GRID = (

@@ -143,7 +143,7 @@ def test_a_space_the_backbone_cannot_intervene_in_is_refused_before_work(tmp_pat
     from pipeline.execution.runner import plan_run
     from pipeline.planning.config import load_config
 
-    conf = Path(__file__).resolve().parents[2] / "conf" / "smoke.yaml"
+    conf = Path(__file__).resolve().parents[3] / "conf" / "smoke.yaml"
     cfg = load_config(conf, [where, "tracking.enabled=false"])
     with pytest.raises(
         ConfigError, match=r"_space='normalized' is not supported by backbone 'fake_marker'"

@@ -25,10 +25,10 @@ from pipeline.rundir import TRACKING_FILE
 from pipeline.tracking import tracker as tracking
 from pipeline.tracking.store import default_uri
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from localcluster import MlflowServer, Postgres, postgres_bin
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = Path(__file__).resolve().parents[3] / "conf"
 SMOKE = [
     "executor.kind=inline",
     "executor.flush_every=1",

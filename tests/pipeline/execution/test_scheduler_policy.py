@@ -16,7 +16,7 @@ from pipeline.results.store import RunStore
 from tests.doubles.executors import ScriptedExecutor
 from workers.episode import SPEC_COLUMNS, EpisodeResult, EpisodeRow, EpisodeSpec
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = Path(__file__).resolve().parents[3] / "conf"
 
 
 def _specs(tmp_path: Path, n: int = 4) -> list[EpisodeSpec]:

@@ -14,7 +14,7 @@ from pipeline.execution.cluster import check_capacity, probe_address
 from pipeline.planning.config import ConfigError, ExecutorConfig, load_config
 from workers.actor import EpisodeWorker, current_node, remote_worker_class
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = Path(__file__).resolve().parents[3] / "conf"
 
 
 def _closed_port() -> int:
