@@ -5,8 +5,8 @@ MuJoCo simulation, SIGTERM / SIGINT / SIGKILL to the driver, a full tmpfs, an al
 past RLIMIT_AS, a killed or crashing actor, fuzzed configs, hostile paths and pickles) and
 records its outcome: episodes lost or duplicated, unreadable or left-over files.
 
-Writes ``benchmarks/results/faults.json`` and prints its table (docs/guarantees.md renders it from the JSON). Usage:
-``python benchmarks/fault_report.py`` (about 5 minutes on the 2-core machine).
+Writes ``benchmarks/results/faults.json`` and prints its table (docs/guarantees.md renders it
+from the JSON). Usage: ``python benchmarks/fault_report.py`` (about 5 minutes on 2 cores).
 """
 
 from __future__ import annotations
