@@ -306,9 +306,6 @@ def build_report(
         "",
         main_table(paired if focus is not None else episodes),
         *perturbation_section(paired if focus is not None else episodes),
-        "",
-        "## Success by task (%, Wilson 95% interval)",
-        "",
     ]
     for table in TABLES:
         if (built := table(episodes)) is not None:

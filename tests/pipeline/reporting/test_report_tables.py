@@ -116,6 +116,12 @@ def test_the_main_table_holds_the_rates_and_the_paired_difference(report) -> Non
 
 def test_every_table_equals_the_aggregation_it_is_built_from(report) -> None:
     run, tables = report
+    text = build_report(run)
+    headings = [line for line in text.splitlines() if line.startswith("## ")]
+    assert len(headings) == len(set(headings)), headings  # each section once
+    for title in tables:  # and each heading followed by its table
+        after = text.split(f"## {title}\n", 1)[1].lstrip("\n")
+        assert after.startswith("| "), title
     episodes = RunStore(run, read_only=True).episodes().to_pandas()
     for table in TABLES:
         built = table(episodes)
