@@ -101,10 +101,24 @@ def _fake_checkout(tmp_path: Path) -> Path:
     ):
         (root / "conf" / folder).mkdir(parents=True, exist_ok=True)
         (root / "conf" / folder / f"{name}.yaml").write_text("")
+    for needed in calvin_checkout.CONF_NEEDED:
+        (root / "conf" / needed).parent.mkdir(parents=True, exist_ok=True)
+        (root / "conf" / needed).write_text("")
     ann = tmp_path / "calvin" / calvin_checkout.ANNOTATIONS_IN_CALVIN
     ann.parent.mkdir(parents=True)
     ann.write_text("open_drawer: [pull the handle to open the drawer]\n")
     return root
+
+
+def test_an_incomplete_checkout_is_refused_naming_what_it_lacks(tmp_path) -> None:
+    """A copy of calvin_env without the config groups the env is composed from (a snapshot
+    that dropped conf/env and conf/vr_input) is refused before any work, naming them."""
+    root = _fake_checkout(tmp_path)
+    (root / "conf" / "env" / "play_table_env.yaml").unlink()
+    with pytest.raises(
+        ValueError, match=r"incomplete calvin_env checkout.*'env/play_table_env.yaml'"
+    ):
+        calvin_checkout.find_checkout(str(root))
 
 
 @pytest.mark.parametrize(

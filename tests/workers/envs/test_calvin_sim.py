@@ -18,6 +18,7 @@ import pytest
 
 from workers.envs.checks import check_env
 from workers.envs.server.client import EnvServerClient, ServerSpec
+from workers.envs.suites.calvin.checkout import find_checkout
 from workers.envs.suites.calvin.sequences import load_sequences
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -25,10 +26,22 @@ PYTHON = Path(os.environ.get("IDR_CALVIN_PYTHON", ROOT / ".venv-calvin" / "bin" 
 CHECKOUT = os.environ.get("CALVIN_ENV")
 ENTRY = "workers.envs.suites.calvin.env:CalvinEnv"
 
+
+def _checkout_problem() -> str | None:
+    """Why CALVIN_ENV cannot build the env here (the adapter's own check), or None."""
+    try:
+        find_checkout(CHECKOUT)
+    except ValueError as e:
+        return str(e)
+    return None
+
+
 if not PYTHON.exists():
     pytestmark = pytest.mark.skip(reason=f"no CALVIN interpreter at {PYTHON}: make setup-calvin")
 elif not CHECKOUT or not Path(CHECKOUT, "calvin_env").is_dir():
     pytestmark = pytest.mark.skip(reason="CALVIN_ENV does not point at a calvin_env checkout")
+elif problem := _checkout_problem():
+    pytestmark = pytest.mark.skip(reason=problem)
 else:
     pytestmark = pytest.mark.sim
 

@@ -19,6 +19,18 @@ TASKS_IN_CALVIN_ENV = "conf/tasks/new_playtable_tasks.yaml"
 BUTTON_BUG_COMMIT = "1431a46"
 
 
+# the config groups the env is composed from (config_data_collection.yaml's defaults, with the
+# evaluation's cameras): a copy of the repository without them cannot build the env
+CONF_NEEDED = (
+    "config_data_collection.yaml",
+    "env/play_table_env.yaml",
+    "vr_input/vr_input.yaml",
+    "cameras/static_and_gripper.yaml",
+    "recorder/recorder.yaml",
+    TASKS_IN_CALVIN_ENV.removeprefix("conf/"),
+)
+
+
 def find_checkout(calvin_env: str | None) -> Path:
     """The calvin_env checkout; ValueError naming the field and where to get one."""
     root = calvin_env or os.environ.get("CALVIN_ENV")
@@ -33,6 +45,11 @@ def find_checkout(calvin_env: str | None) -> Path:
         raise ValueError(
             f"env.params.calvin_env={root}: not a calvin_env checkout (no calvin_env/envs/"
             "play_table_env.py); point it at the calvin_env folder of a mees/calvin clone"
+        )
+    if lost := [c for c in CONF_NEEDED if not (path / "conf" / c).is_file()]:
+        raise ValueError(
+            f"env.params.calvin_env={root}: an incomplete calvin_env checkout, its conf/ lacks "
+            f"{lost} (the env is composed from them); clone github.com/mees/calvin_env whole"
         )
     return path
 
