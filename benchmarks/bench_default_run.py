@@ -117,22 +117,22 @@ def main() -> None:
     for spec in plan.all_specs():
         if spec in plan.calibrated:  # tau: the diagnose cell's mean E_img, as the runner does
             if tau is None:
-                e = [s["e_img"] for r in results for s in r.steps if s["e_img"] is not None]
+                e = [s.e_img for r in results for s in r.steps if s.e_img is not None]
                 tau = sum(e) / len(e)
             spec = replace(spec, idr=replace(spec.idr, tau=tau))
         before = dict(timers.seconds)
         t0 = time.perf_counter()
         res = worker.run_episode(spec)
         dt = time.perf_counter() - t0
-        if res.episode["error"]:
-            raise RuntimeError(res.episode["error"])
+        if res.episode.error:
+            raise RuntimeError(res.episode.error)
         results.append(res)
         episode_seconds += dt
-        env_steps += res.episode["steps"]
+        env_steps += res.episode.steps
         cell = per_cell.setdefault(spec.cell_id, defaultdict(float))
         cell["episodes"] += 1
         cell["seconds"] += dt
-        cell["env_steps"] += res.episode["steps"]
+        cell["env_steps"] += res.episode.steps
         for k, v in timers.seconds.items():
             cell[k] += v - before.get(k, 0.0)
     worker.close()
