@@ -32,7 +32,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
     run_dir = Path(args.out) if args.out else Path(cfg.output_root) / cfg.name
     _import_logging_libraries(cfg)
     plan = plan_run(
-        cfg, run_dir, yes=args.yes, adopt=args.adopt, allow_code_change=args.allow_code_change
+        cfg,
+        run_dir,
+        yes=args.yes,
+        adopt=args.adopt,
+        allow_code_change=args.allow_code_change,
+        allow_numerics_change=args.allow_numerics_change,
     )
     cells = [c.cell_id for c in (*plan.specs.cells, *plan.calibrated.cells)]
     print(
@@ -46,6 +51,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
             print(f"protocol: {protocol_line(plan.fit.protocol)}")
         for note in plan.fit.notes:
             print(f"pre-flight: {note}")
+    if plan.numerics == "remote":
+        print("numerics: remote (the policy server's forward shapes are its own)")
+    elif plan.numerics.startswith("dynamic"):
+        print(
+            "numerics: dynamic batching: reruns differ in float rounding "
+            "(executor.batching=fixed gives the same tables every run)"
+        )
     try:
         with stop_on_signals():  # SIGTERM / SIGINT: flush, mark MLflow KILLED, exit 143 / 130
             summary = execute(plan)
@@ -261,6 +273,12 @@ def _add_run(sub: Subparsers) -> None:
         "--allow-code-change",
         action="store_true",
         help="resume a run dir made by another code version (git describe) of idr-eval",
+    )
+    run.add_argument(
+        "--allow-numerics-change",
+        action="store_true",
+        help="resume a run dir on another numerical path (executor.policy / batching / "
+        "forward_rows / torch_threads); the report names both",
     )
     run.set_defaults(func=_cmd_run)
 

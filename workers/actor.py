@@ -82,6 +82,7 @@ class EpisodeWorker:
         # Imported after the rendering backend is set: env modules may import MuJoCo.
         from workers.backbones.factory import make_backbone
         from workers.envs.factory import make_env
+        from workers.forward_shape import fix_forward_shape, set_torch_threads
         from workers.idr_policy import IDRPolicy
 
         if spec.policy_actor is not None:  # shared: the model lives in a policy actor
@@ -93,9 +94,12 @@ class EpisodeWorker:
             self.backbone = None
             self.policy: Any = PolicyServiceClient(spec.policy_actor, info)
             self.cameras = info["cameras"]
+            self.numerics = info["numerics"]
         else:
+            set_torch_threads(spec.torch_threads)
             self.backbone = make_backbone(spec.backbone_kind, spec.backbone_params)
             self.policy = IDRPolicy(self.backbone, batched=spec.batched)
+            self.numerics = fix_forward_shape(self.policy, spec.forward_rows, spec.torch_threads)
             self.cameras = backbone_member(self.backbone, "cameras")  # None: all the env has
         self.env = make_env(spec.env_suite, spec.env_params, spec.env_server, spec.perturbations)
         # shared policy: more envs, each episode on one of them in its own thread (Ray runs up
@@ -119,7 +123,12 @@ class EpisodeWorker:
 
     def run_episode(self, spec: EpisodeSpec) -> EpisodeResult:
         started, t0 = _now(), time.perf_counter()
-        where = {"worker": self.worker_id, "node": self.node, "render_backend": self.render_backend}
+        where = {
+            "worker": self.worker_id,
+            "node": self.node,
+            "render_backend": self.render_backend,
+            "numerics": self.numerics,
+        }
         env = self._envs.get()
         try:
             steps, outcome = self._rollout_restarting(spec, env)

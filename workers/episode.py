@@ -43,6 +43,10 @@ class WorkerSpec:
     log_dir: str | None = None  # where a Ray actor writes its output (workers.worker_log)
     # the run's perturbations (``none`` / ``kind:severity``): the env's tasks crossed with them
     perturbations: tuple[str, ...] = ()
+    # the forward's shape (workers.forward_shape): rows per forward (in-actor: None, each
+    # inference's own; shared: rows, or "dynamic") and torch's CPU threads (None: unchanged)
+    forward_rows: int | str | None = None
+    torch_threads: int | None = None
 
 
 @dataclass(frozen=True)
@@ -123,6 +127,9 @@ class EpisodeRow:
     worker: str | None = None
     node: str | None = None  # HOSTNAME/RAY_NODE_ID of the actor (inline: the hostname)
     render_backend: str | None = None
+    # the numerical path that produced the episode (workers.forward_shape.numerics_label):
+    # episodes with one label, config and seed have the same actions bit for bit
+    numerics: str | None = None
     crn: bool | None = None
     started_at: str | None = None
     finished_at: str | None = None

@@ -42,11 +42,13 @@ class BatchingPolicyActor:
         max_batch: int,
         batch_wait_ms: float,
         log_dir: str | None = None,
+        rows: int | str | None = None,
+        threads: int | None = None,
     ) -> None:
         from workers.worker_log import log_to_file
 
         log_to_file(log_dir, "policy")  # its output in the run dir, not on the terminal
-        self.worker = PolicyWorker(kind, params, batched)
+        self.worker = PolicyWorker(kind, params, batched, rows, threads)
         self.max_batch = max_batch
         self.wait_s = batch_wait_ms / 1e3
         self._queue: queue.SimpleQueue[_Pending] = queue.SimpleQueue()

@@ -24,6 +24,12 @@ from typing import Any
 import numpy as np
 
 from workers.backbones.base import Observation, backbone_member, concat_observations
+from workers.forward_shape import (
+    NumericsError,
+    check_row_independence,
+    fix_forward_shape,
+    set_torch_threads,
+)
 from workers.idr import Diagnostics, IDRConfig, refine
 from workers.idr_policy import IDRPolicy, IDRStep
 from workers.interventions import InterventionConfig
@@ -156,16 +162,34 @@ class PolicyWorker:
     """A backbone wrapped by IDR that answers many episodes' requests (no per-episode state:
     the backbone is called on whole chunks, never through a queue of its own).
 
-    A forward that runs out of device memory is split: the requests are halved and the halves
-    retried, down to a single request; the largest number of requests that fit is remembered
-    (``fit``), and later batches are cut to it before their forward. Only a request that fails
-    alone becomes an error (its episode's row); its batch mates are answered."""
+    ``rows``: every forward has that many rows (``workers.forward_shape``; a row's actions then
+    do not depend on its batch mates, checked on the first request); "dynamic" or None: as many
+    as the batch holds.
 
-    def __init__(self, kind: str, params: dict[str, Any], batched: bool | None = None) -> None:
+    A dynamic forward that runs out of device memory is split: the requests are halved and the
+    halves retried, down to a single request; the largest number of requests that fit is
+    remembered (``fit``), and later batches are cut to it before their forward. Only a request
+    that fails alone becomes an error (its episode's row); its batch mates are answered. A
+    fixed-shape forward is never split (that would change its shape): its requests fail with
+    an error naming executor.forward_rows."""
+
+    def __init__(
+        self,
+        kind: str,
+        params: dict[str, Any],
+        batched: bool | None = None,
+        rows: int | str | None = None,
+        threads: int | None = None,
+    ) -> None:
         from workers.backbones.factory import make_backbone
 
+        set_torch_threads(threads)
         self.backbone = make_backbone(kind, params)
         self.policy = IDRPolicy(self.backbone, batched=batched)
+        self.numerics = fix_forward_shape(self.policy, rows, threads)
+        self.rows = self.policy.backbone.rows if self.policy.backbone is not self.backbone else None
+        self.refusal: NumericsError | None = None  # the backbone failed the row check
+        self.checked = self.rows is None
         self.forwards = 0
         self.requests = 0
         self.fit: int | None = None  # requests per forward that fit in memory (None: any)
@@ -176,6 +200,7 @@ class PolicyWorker:
             "name": self.backbone.name,
             "cameras": backbone_member(self.backbone, "cameras"),
             "batched": self.policy.batched,
+            "numerics": self.numerics,
         }
 
     def infer_many(self, requests: list[InferRequest]) -> list[IDRStep]:
@@ -191,11 +216,36 @@ class PolicyWorker:
         alone (out of memory on its own) or with all its batch mates (any other error)."""
         self.requests += len(requests)
         requests = [dataclasses.replace(r, obs=_as_torch(r.obs)) for r in requests]
+        if not self.checked:
+            self._check_rows(requests[0])
+        if self.refusal is not None:
+            return [self.refusal] * len(requests)
         size = self.fit or len(requests)
         out: list[IDRStep | BaseException] = []
         for k in range(0, len(requests), size):
             out += self._fitting(requests[k : k + size])
         return out
+
+    def _check_rows(self, req: InferRequest) -> None:
+        """The first request's factual row through the fixed-shape check (two forwards): a
+        backbone whose rows interact answers every request with the refusal."""
+        inner = self.policy.backbone.inner
+        noise = inner.make_noise(req.obs.batch_size, req.step_seed)
+        try:
+            check_row_independence(inner, req.obs, noise, self.rows)
+        except NumericsError as exc:
+            self.refusal = exc
+        except Exception as exc:
+            if not is_out_of_memory(exc):
+                raise
+            self.refusal = self._too_big(exc)
+        self.checked = True
+
+    def _too_big(self, exc: BaseException) -> NumericsError:
+        return NumericsError(
+            f"a forward of executor.forward_rows={self.rows} rows does not fit in device memory "
+            f"({exc}): set a smaller executor.forward_rows (or executor.max_batch)"
+        )
 
     def _fitting(self, requests: list[InferRequest]) -> list[IDRStep | BaseException]:
         self.forwards += 1
@@ -205,6 +255,8 @@ class PolicyWorker:
             if not is_out_of_memory(exc):
                 raise
             _free_device_memory()
+            if self.rows is not None:  # halving would change the forward's shape
+                return [self._too_big(exc)] * len(requests)
             if len(requests) == 1:
                 return [exc]
             self.splits += 1

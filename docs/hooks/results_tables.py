@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import re
+import statistics
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -525,6 +526,55 @@ def tiny_vla_alignment(d: Data) -> str:
     return block(*parts, source("tiny_vla_alignment", d))
 
 
+def shared_numerics(d: Data) -> str:
+    """shared_numerics.json: forward cost per numerical path, run-to-run equality in closed loop."""
+    parts = []
+    for model, rows in d["forward_cost"].items():
+        paths = [k.removesuffix("_ms") for k in rows[0] if k.endswith("_ms")]
+        head = [
+            "N requests",
+            *(f"{p} (ms)" for p in paths),
+            "rows=96 / dynamic",
+            "rows=12 / dynamic",
+        ]
+        ratios = ("rows=96_vs_dynamic", "rows=12_vs_dynamic")
+        body = [
+            [r["n"], *(r[f"{p}_ms"] for p in paths), *(num(r[k]) + "x" for k in ratios)]
+            for r in rows
+        ]
+        parts += [f"**{model}**, answering N IDR requests (3 rows each):", table(head, body)]
+    loop = d.get("closed_loop")
+    if loop:
+        body = []
+        for path, rec in loop.items():
+            if path == "episodes_per_task":
+                continue
+            runs = rec["runs"]
+            rates = "; ".join(
+                f"{cell} {100 * v['success']:.0f}% [{100 * v['ci95'][0]:.0f}, {100 * v['ci95'][1]:.0f}]"
+                for cell, v in sorted(runs[0]["success"].items())
+            )
+            body.append(
+                [
+                    path,
+                    len(runs),
+                    rec.get("episode_rows_differing", "-"),
+                    " vs ".join(str(s) for s in rec.get("step_rows", [])) or "-",
+                    " vs ".join(num(r["tau"][0]) if r["tau"] else "-" for r in runs),
+                    num(statistics.mean(r["episodes_per_min"] for r in runs)),
+                    rates,
+                ]
+            )
+        head = ["path", "runs", "episode rows differing", "step rows", "calibrated τ",
+                "episodes/min", "success (first run, Wilson 95%)"]  # fmt: skip
+        parts += [
+            f"The default preset at {loop['episodes_per_task']} episodes per task, twice per "
+            "shared path (2 episode actors x 3 envs, one policy actor), once in-actor:",
+            table(head, body),
+        ]
+    return block(*parts, source("shared_numerics", d))
+
+
 RENDERERS: dict[str, Callable[[Data], str]] = {
     f.__name__: f
     for f in (
@@ -536,6 +586,7 @@ RENDERERS: dict[str, Callable[[Data], str]] = {
         env_server,
         calvin_env,
         policy_service,
+        shared_numerics,
         remote_backbone,
         report_scale,
         tracking_scale,

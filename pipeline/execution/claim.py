@@ -117,6 +117,12 @@ def checkpoint_digest(cfg: RunConfig, run_dir: Path) -> dict[str, object] | None
     return checkpoint_record(root, previous)
 
 
+REMOTE_NUMERICS = (
+    "the policy server's numerics are its own: identical tables run to run need a server that "
+    "runs each request alone or on one fixed shape"
+)
+
+
 def write_meta(plan: RunPlan) -> None:
     plan.run_dir.mkdir(parents=True, exist_ok=True)
     write_text_atomic(plan.run_dir / CONFIG_YAML, dump_config(plan.cfg))
@@ -126,6 +132,10 @@ def write_meta(plan: RunPlan) -> None:
         "name": plan.cfg.name,
         "code_version": plan.code_version,
     }
+    if plan.numerics:
+        meta["numerics"] = plan.numerics
+    if plan.numerics == "remote":
+        meta["numerics_note"] = REMOTE_NUMERICS
     if plan.checkpoint is not None:
         meta["checkpoint"] = plan.checkpoint
     if plan.env_server is not None:

@@ -98,7 +98,8 @@ def connect(ex: ExecutorConfig) -> None:
         )
     else:
         resources = {k: v * ex.workers for k, v in ex.resources.items()} or None
-        init_ray(None, ex.local_cpus(), resources=resources)
+        # a local Ray takes whole CPUs only (1 x 0.5 + 1 policy CPU: 2)
+        init_ray(None, math.ceil(ex.local_cpus()), resources=resources)
     if ex.autoscaling:
         log.info("executor.autoscaling: not checking the actors against the nodes up now")
         return

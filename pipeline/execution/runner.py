@@ -41,8 +41,8 @@ from pipeline.execution.writer import BatchWriter
 from pipeline.planning.checkpoint_fit import fit_config
 from pipeline.planning.config import ConfigError, RunConfig
 from pipeline.planning.env_runtime import check_env_runtime
-from pipeline.planning.plan import CellPlan, RunPlan, SpecGrid
-from pipeline.planning.provenance import check_resume
+from pipeline.planning.plan import CellPlan, RunPlan, SpecGrid, planned_numerics
+from pipeline.planning.provenance import check_numerics, check_resume
 from pipeline.reporting.run_data import load_run
 from pipeline.reporting.write import write_report
 from pipeline.results.calibration import calibrate
@@ -77,6 +77,7 @@ def plan_run(
     yes: bool = False,
     adopt: bool = False,
     allow_code_change: bool = False,
+    allow_numerics_change: bool = False,
 ) -> RunPlan:
     """Everything checked, nothing started; ``yes`` confirms a grid larger than max_cells."""
     run_dir = check_run_dir(run_dir, cfg.output_root)
@@ -94,13 +95,15 @@ def plan_run(
     version = code_version()
     checkpoint = checkpoint_digest(cfg, run_dir)
     meta = read_run_json(run_dir)
+    numerics = planned_numerics(cfg)
     if meta is not None:
         check_resume(meta, checkpoint, version, run_dir, allow_code_change)
+        check_numerics(meta, numerics, run_dir, allow_numerics_change)
     specs, deferred = _stages(cfg, run_id, tasks, version)
     worker_spec = _worker_spec(cfg, fit, server, run_dir, tasks)
     return RunPlan(
         cfg, run_dir, run_id, tasks, specs, worker_spec, deferred, version, checkpoint, fit,
-        server_hello,
+        server_hello, numerics,
     )  # fmt: skip
 
 
@@ -137,6 +140,8 @@ def _worker_spec(
         envs_per_worker=cfg.executor.envs_per_worker,
         log_dir=str((run_dir / LOGS_DIR).resolve()),
         perturbations=perturbations_of(tasks),
+        forward_rows=cfg.executor.forward_shape(),
+        torch_threads=cfg.executor.threads(),
     )
 
 

@@ -36,7 +36,8 @@ class ExecutorConfig(StrictModel):
         description="in_actor: each actor holds a backbone and an env (the default; small "
         "policies, one machine); shared: actors hold only envs and send each inference to "
         "policy actors that batch many episodes' requests into one forward (a GPU per policy "
-        "actor, or executor.actors_per_gpu of them per GPU); the same results",
+        "actor, or executor.actors_per_gpu of them per GPU); the same tables run to run "
+        "(docs/reproducibility.md)",
     )
     policy_actors: int = Field(default=1, ge=1, description="shared: policy actors")
     envs_per_worker: int = Field(
@@ -53,6 +54,27 @@ class ExecutorConfig(StrictModel):
         default=2.0,
         ge=0,
         description="shared: how long a policy actor gathers requests for one forward",
+    )
+    # -- the forward's shape (a row's float rounding depends on it: workers.forward_shape)
+    batching: Literal["fixed", "dynamic"] = Field(
+        default="fixed",
+        description="shared: fixed: every forward of the policy service has the same number of "
+        "rows (executor.forward_rows), padded, so a run gives the same tables every time; "
+        "dynamic: as many rows as the batch gathered (no padding; runs differ in float rounding)",
+    )
+    forward_rows: int | None = Field(
+        default=None,
+        ge=1,
+        description="rows of every backbone forward (padded to it, or cut into forwards of it); "
+        "None: shared, 3 x max_batch (one IDR request is 3 rows); in_actor, each inference's own "
+        "rows (1, or 3 for IDR). The same value in both modes gives the same tables",
+    )
+    torch_threads: int | None = Field(
+        default=None,
+        ge=1,
+        description="torch's CPU threads in every process holding a backbone (a CPU forward's "
+        "float order depends on them); None: the CPUs it holds (policy_cpus shared, "
+        "cpus_per_worker in_actor), at least 1",
     )
     # -- placement on a cluster (pipeline.execution.cluster checks it against the nodes before any work)
     actors_per_gpu: int | None = Field(
@@ -110,6 +132,32 @@ class ExecutorConfig(StrictModel):
                 "actor's one backbone serves one episode at a time"
             )
         return self
+
+    @model_validator(mode="after")
+    def _one_forward_shape(self) -> ExecutorConfig:
+        if self.batching == "dynamic" and self.policy != "shared":
+            raise ValueError(
+                "batching=dynamic needs policy=shared: in_actor, each forward is one inference's"
+            )
+        if self.batching == "dynamic" and self.forward_rows is not None:
+            raise ValueError(
+                f"batching=dynamic and forward_rows={self.forward_rows} disagree: a dynamic "
+                "forward has as many rows as its batch; drop one of them"
+            )
+        return self
+
+    def forward_shape(self) -> int | Literal["dynamic"] | None:
+        """Rows of every forward (see ``forward_rows``); "dynamic"; None: each inference's own."""
+        if self.policy == "shared":
+            return (
+                "dynamic" if self.batching == "dynamic" else self.forward_rows or 3 * self.max_batch
+            )
+        return self.forward_rows
+
+    def threads(self) -> int:
+        """torch threads of a process holding a backbone (see ``torch_threads``)."""
+        cpus = self.policy_cpus if self.policy == "shared" else self.cpus_per_worker
+        return self.torch_threads or max(1, int(cpus))
 
     @property
     def gpu_share(self) -> float:

@@ -114,6 +114,18 @@ class Chain(Sequence[EpisodeSpec]):
             yield from p
 
 
+def planned_numerics(cfg: RunConfig) -> str:
+    """The numerical path ``cfg`` runs on (workers.forward_shape.numerics_label), known before
+    any backbone is built: a backbone that turns out not to batch says ``per_pass`` in its rows."""
+    from workers.backbones.factory import backbone_class
+    from workers.forward_shape import numerics_label
+
+    ex = cfg.executor
+    remote = bool(getattr(backbone_class(cfg.backbone.kind), "remote", False))
+    batched = cfg.backbone.batched is not False
+    return numerics_label(ex.forward_shape(), ex.threads(), batched, remote)
+
+
 @dataclass
 class RunPlan:
     cfg: RunConfig
@@ -127,6 +139,7 @@ class RunPlan:
     checkpoint: dict[str, object] | None = None  # pipeline.planning.provenance.checkpoint_record
     fit: Fit | None = None  # what the pre-flight settled (pipeline.planning.checkpoint_fit)
     env_server: dict[str, object] | None = None  # the env server's hello (python, version)
+    numerics: str = ""  # the numerical path the config asks for (workers.forward_shape)
 
     def all_specs(self) -> Chain:
         return Chain((self.specs, self.calibrated))

@@ -78,3 +78,20 @@ def check_resume(
             "versions are not mixed by default: use a new --out, or pass --allow-code-change "
             "if the change cannot affect results"
         )
+
+
+def check_numerics(
+    meta: dict[str, Any], numerics: str, run_dir: Path, allow_numerics_change: bool = False
+) -> None:
+    """Refuse resuming ``run_dir`` on another numerical path (workers.forward_shape) unless
+    ``allow_numerics_change``: its episodes would differ from the first ones in float rounding,
+    which in closed loop grows into other trajectories. Run dirs from before it was recorded are
+    resumed as before; a mixed run's report names its paths (from the episodes' column)."""
+    was = meta.get("numerics")
+    if was and was != numerics and not allow_numerics_change:
+        raise ConfigError(
+            f"{run_dir} was run on the numerical path {was!r}, this config gives {numerics!r} "
+            "(executor.policy / batching / forward_rows / torch_threads): its episodes would "
+            "differ in float rounding. Use the same executor settings, a new --out, or pass "
+            "--allow-numerics-change (the report then names both paths)"
+        )

@@ -267,6 +267,25 @@ def _protocol(run_dir: Path) -> list[str]:
     return [f"Env protocol: {protocol_line(protocol)}.", ""] if protocol else []
 
 
+def numerics_lines(episodes: pd.DataFrame) -> list[str]:
+    """The numerical path the episodes ran on (workers.forward_shape), and a warning when a
+    resumed run mixes paths (--allow-numerics-change): those episodes differ in float rounding."""
+    if "numerics" not in episodes:
+        return []
+    counts = episodes["numerics"].dropna().value_counts()
+    if len(counts) == 1:
+        return [f"Numerical path: `{counts.index[0]}`."]
+    if len(counts) > 1:
+        paths = ", ".join(
+            f"`{p}` ({n} episode{'' if n == 1 else 's'})" for p, n in sorted(counts.items())
+        )
+        return [
+            f"**Mixed numerical paths**: {paths}. Episodes of different paths differ in float "
+            "rounding (see docs/reproducibility.md)."
+        ]
+    return []
+
+
 def build_report(
     run_dir: str | Path,
     figures: tuple[dict[str, Path], dict[str, str]] | str | None = None,
@@ -300,6 +319,7 @@ def build_report(
     parts += [
         f"{len(episodes)} episodes, {episodes['cell_id'].nunique()} cells, "
         f"{episodes['task_id'].nunique()} tasks; {n_err} error rows (excluded from rates).",
+        *numerics_lines(episodes),
         *files,
         "",
         "## Success rate (%) by suite, with the paired difference against baseline",

@@ -103,6 +103,11 @@ OPTIONAL_BACKBONE_MEMBERS: dict[str, tuple[Any, str]] = {
         "observation shaped like the env's (a served model), raising ValueError naming both "
         "sides when the answer does not fit the env; the pre-flight calls it; None: no trial",
     ),
+    "remote": (
+        False,
+        "bool: the model runs in another process (a policy server) whose numerics are its own: "
+        "its forwards are not padded to executor.forward_rows, and runs record numerics=remote",
+    ),
     "describe": (
         None,
         "classmethod(params) -> workers.io_spec.PolicyIO | None: the cameras, image shapes, "

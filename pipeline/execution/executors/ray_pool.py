@@ -165,6 +165,8 @@ class RayActorPool:
                 ex.max_batch,
                 ex.batch_wait_ms,
                 log_dir=spec.log_dir,
+                rows=spec.forward_rows,
+                threads=spec.torch_threads,
             )
             for _ in range(ex.policy_actors)
         ]
@@ -176,6 +178,7 @@ class RayActorPool:
             raise RunError(
                 f"the policy actors cannot load: {load_error(exc) or type(exc).__name__}"
             ) from None
+        log.info("policy actors: numerical path %s", infos[0]["numerics"])
         for info in infos:
             self.stats.workers.append(f"policy {info['worker']}")
             if not info["batched"]:

@@ -1,5 +1,7 @@
-"""Runs with a shared policy service (executor.policy=shared): the same tables as in-actor,
-a policy actor that dies is restarted and its requests retried, refusals before any work."""
+"""Runs with a shared policy service (executor.policy=shared): the same tables as in-actor for a
+row-wise fake and, for a real network (the tiny VLA), the same tables run to run whatever the
+arrival of requests, and as in-actor on the same forward shape; a policy actor that dies is
+restarted and its requests retried; refusals before any work."""
 
 from __future__ import annotations
 
@@ -30,8 +32,11 @@ def test_shared_policy_gives_the_same_tables_as_in_actor(tmp_path, ray_local) ->
     )
     shared = execute(plan_run(cfg, tmp_path / "shared"))
     assert in_actor.stored == shared.stored == 12 and shared.errors == 0
-    # actions, E_img, success: everything but timing and worker columns
-    pd.testing.assert_frame_equal(_episodes(tmp_path / "in_actor"), _episodes(tmp_path / "shared"))
+    # actions, E_img, success: everything but timing and worker columns, and the numerical path
+    # (the closed-form fake's rows give the same floats on any forward shape)
+    a, b = _episodes(tmp_path / "in_actor"), _episodes(tmp_path / "shared")
+    assert set(a.numerics) == {"request threads=1"} and set(b.numerics) == {"rows=96 threads=1"}
+    pd.testing.assert_frame_equal(a.drop(columns="numerics"), b.drop(columns="numerics"))
     pd.testing.assert_frame_equal(_steps(tmp_path / "in_actor"), _steps(tmp_path / "shared"))
     assert any(w.startswith("policy ") for w in shared.workers)
     assert cfg.fingerprint() == load_config(CONF / "smoke.yaml", base).fingerprint()
@@ -67,6 +72,12 @@ def test_a_policy_actor_that_dies_is_restarted_and_its_requests_retried(tmp_path
         (["executor.policy=sharded"], "executor.policy"),
         (["executor.policy=shared", "executor.policy_actors=4"], "needs 6 CPUs"),
         (["executor.envs_per_worker=2"], "envs_per_worker=2 needs policy=shared"),
+        (["executor.batching=dynamic"], "batching=dynamic needs policy=shared"),
+        (
+            ["executor.policy=shared", "executor.batching=dynamic", "executor.forward_rows=12"],
+            "batching=dynamic and forward_rows=12 disagree",
+        ),
+        (["executor.forward_rows=0"], "forward_rows"),
     ],
 )
 def test_bad_policy_settings_are_refused_before_work(tmp_path, overrides, pattern) -> None:
@@ -108,6 +119,7 @@ def test_a_policy_actor_out_of_device_memory_splits_and_loses_nothing(
         [
             *base,
             *SHARED,
+            "executor.batching=dynamic",  # a fixed shape is never split (it would change)
             "executor.batch_wait_ms=50",
             "executor.envs_per_worker=3",
             "backbone.kind=tests.doubles.backbones:SmallDeviceMarkerBackbone",
@@ -117,7 +129,8 @@ def test_a_policy_actor_out_of_device_memory_splits_and_loses_nothing(
     with caplog.at_level(logging.INFO):
         shared = execute(plan_run(cfg, tmp_path / "shared"))
     assert shared.stored == in_actor.stored == 12 and shared.errors == 0
-    name = ["backbone"]  # the double's entry point vs fake_marker: everything else equal
+    # the double's entry point vs fake_marker, the path: everything else equal
+    name = ["backbone", "numerics"]
     pd.testing.assert_frame_equal(
         _episodes(tmp_path / "in_actor").drop(columns=name),
         _episodes(tmp_path / "shared").drop(columns=name),
@@ -138,3 +151,70 @@ def test_a_policy_actor_out_of_device_memory_splits_and_loses_nothing(
             "tables_equal_in_actor": True,
         },
     )
+
+
+REAL = [  # the tiny VLA on two tabletop tasks, diagnose and E with tau calibrated: 8 episodes
+    "tracking.enabled=false",
+    "env.tasks=[pick_color,pick_color@light_dim:0.36]",
+    "episodes_per_task=2",
+    "grid=[{mode: [diagnose, E]}]",
+    "executor.max_batch=4",
+]
+
+
+def _real(tmp_path: Path, name: str, *overrides: str):
+    cfg = load_config(CONF / "tiny_vla.yaml", [*REAL, *overrides])
+    summary = execute(plan_run(cfg, tmp_path / name))
+    assert summary.stored == 8 and summary.errors == 0
+    return _episodes(tmp_path / name), _steps(tmp_path / name)
+
+
+@pytest.mark.slow
+def test_a_real_network_gives_the_same_tables_run_to_run_and_as_in_actor(tmp_path, ray_local):
+    """The tiny VLA (a real lerobot policy; its actions move by ~1e-5 between forward shapes):
+    shared twice with other arrivals (2 actors x 2 envs gathering for 20 ms, 1 actor x 4 envs
+    not waiting) gives identical tables and one calibrated tau; in-actor with the same forward
+    rows gives them too."""
+    if not (CONF.parent / "checkpoints" / "tiny_vla" / "config.json").exists():
+        pytest.skip("checkpoints/tiny_vla not built (make setup builds it)")
+    shared = [*SHARED, "executor.max_batch=4"]
+    eps1, steps1 = _real(
+        tmp_path, "a", *shared, "executor.envs_per_worker=2", "executor.batch_wait_ms=20"
+    )
+    eps2, steps2 = _real(
+        tmp_path, "b", *shared, "executor.workers=1", "executor.envs_per_worker=4",
+        "executor.batch_wait_ms=0",
+    )  # fmt: skip
+    assert set(eps1.numerics) == {"rows=12 threads=1"}
+    pd.testing.assert_frame_equal(eps1, eps2)
+    pd.testing.assert_frame_equal(steps1, steps2)
+    assert eps1[eps1.cell_id == "E"].tau.nunique() == 1  # one calibrated tau per config
+    eps3, steps3 = _real(tmp_path, "c", "executor.forward_rows=12")  # in-actor, same shape
+    pd.testing.assert_frame_equal(eps1, eps3)
+    pd.testing.assert_frame_equal(steps1, steps3)
+
+
+def test_resuming_on_another_numerical_path_is_refused(tmp_path) -> None:
+    cfg = load_config(CONF / "smoke.yaml", ["tracking.enabled=false", "executor.kind=inline"])
+    execute(plan_run(cfg, tmp_path / "run"))
+    other = load_config(
+        CONF / "smoke.yaml",
+        ["tracking.enabled=false", "executor.kind=inline", "executor.forward_rows=6"],
+    )
+    with pytest.raises(ConfigError, match=r"'request threads=1'.*'rows=6 threads=1'.*--allow-num"):
+        plan_run(other, tmp_path / "run")
+    plan = plan_run(other, tmp_path / "run", allow_numerics_change=True)
+    assert plan.numerics == "rows=6 threads=1"
+
+
+def test_a_local_ray_is_started_with_whole_cpus(monkeypatch) -> None:
+    """1 episode actor x 0.5 CPU + a policy actor's 1 CPU: Ray refuses 1.5 CPUs, so 2."""
+    import pipeline.execution.cluster as cluster
+
+    started = {}
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    monkeypatch.setattr(cluster, "init_ray", lambda a, n, resources=None: started.update(n=n))
+    monkeypatch.setattr(cluster, "alive_nodes", lambda: [{"CPU": 2.0, "_id": "a"}])
+    cfg = load_config(CONF / "smoke.yaml", [*SHARED, "executor.workers=1"])
+    cluster.connect(cfg.executor)
+    assert started["n"] == 2

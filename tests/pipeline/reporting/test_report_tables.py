@@ -153,3 +153,18 @@ def test_every_table_equals_the_aggregation_it_is_built_from(report) -> None:
     assert diag.loc["baseline", "E_img"] == "–"
     errors = tables["Errors (not counted as failures)"]
     assert errors.values.tolist() == [["E", "pick", "4", "3", "RuntimeError: boom"]]
+
+
+def test_the_report_names_the_numerical_path_and_warns_when_a_run_mixes_them() -> None:
+    from pipeline.reporting.markdown import numerics_lines
+
+    one = pd.DataFrame({"numerics": ["rows=96 threads=1"] * 3})
+    assert numerics_lines(one) == ["Numerical path: `rows=96 threads=1`."]
+    mixed = pd.DataFrame(
+        {"numerics": ["request threads=1", "rows=96 threads=1", None, "request threads=1"]}
+    )
+    (line,) = numerics_lines(mixed)
+    assert "Mixed numerical paths" in line
+    assert "`request threads=1` (2 episodes), `rows=96 threads=1` (1 episode)" in line
+    assert numerics_lines(pd.DataFrame({"numerics": [None]})) == []  # rows from before the column
+    assert numerics_lines(pd.DataFrame({"x": [1]})) == []

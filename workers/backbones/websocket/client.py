@@ -74,6 +74,7 @@ class WebsocketBackbone:
 
     native_intervention_spaces: ClassVar[frozenset[str]] = frozenset()
     can_batch = True  # predict_chunk takes any batch (one request, or one per row)
+    remote = True  # the server's forward shapes and float order are its own
 
     def __init__(
         self,
