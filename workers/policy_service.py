@@ -82,9 +82,17 @@ def to_numpy_step(step: IDRStep) -> IDRStep:
     )
 
 
-def infer_many(policy: IDRPolicy, requests: list[InferRequest]) -> list[IDRStep]:
+def infer_many(
+    policy: IDRPolicy, requests: list[InferRequest], by_instruction: bool = False
+) -> list[IDRStep]:
     """Every request answered; one backbone forward per group of requests that share how the
-    backbone applies interventions (all of them, unless some use normalized-space ones)."""
+    backbone applies interventions (all of them, unless some use normalized-space ones), and
+    with ``by_instruction`` their instruction too.
+
+    ``by_instruction`` is what a fixed forward shape needs: a text encoder may shape its work
+    by the batch's instructions (the tiny VLA packs its RNN's sequences by length, so a row's
+    float order depends on its mates' instruction lengths), and an in-actor forward holds one
+    instruction; forwards of one instruction each give every row the same float order."""
     if not policy.batched:  # a backbone that cannot batch: each request's passes in turn
         out = []
         for req in requests:
@@ -92,9 +100,10 @@ def infer_many(policy: IDRPolicy, requests: list[InferRequest]) -> list[IDRStep]
             out.append(policy.infer(req.obs, req.step_seed))
         return out
 
-    def forward_group(pair: tuple[int, InferRequest]) -> str:  # "" : raw-space, all together
+    def forward_group(pair: tuple[int, InferRequest]) -> tuple[str, str]:  # "": all together
         iv = pair[1].intervention
-        return repr(iv) if _native(iv) else ""
+        text = "\n".join(pair[1].obs.instruction) if by_instruction else ""
+        return (repr(iv) if _native(iv) else "", text)
 
     answers: dict[int, IDRStep] = {}
     indexed = sorted(enumerate(requests), key=forward_group)
@@ -250,7 +259,10 @@ class PolicyWorker:
     def _fitting(self, requests: list[InferRequest]) -> list[IDRStep | BaseException]:
         self.forwards += 1
         try:
-            answers = [to_numpy_step(s) for s in infer_many(self.policy, requests)]
+            answers = [
+                to_numpy_step(s)
+                for s in infer_many(self.policy, requests, by_instruction=self.rows is not None)
+            ]
         except Exception as exc:
             if not is_out_of_memory(exc):
                 raise

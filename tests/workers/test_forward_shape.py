@@ -90,21 +90,30 @@ def test_a_backbone_whose_rows_interact_is_refused_naming_why() -> None:
         check_row_independence(FakeMixingBackbone(), obs, None, 8)
 
 
+INSTRUCTIONS = ("pick up the red block", "put all the blocks in the bin one by one")
+
+
 def _request(backbone, seed: int, idr: IDRConfig) -> InferRequest:
     o = _obs(backbone, 1, seed)
-    plain = Observation({k: v.numpy() for k, v in o.images.items()}, o.state.numpy(), o.instruction)
+    text = [INSTRUCTIONS[seed % 3 == 0]]  # two lengths: the tiny VLA packs its RNN by length
+    plain = Observation({k: v.numpy() for k, v in o.images.items()}, o.state.numpy(), text)
     return InferRequest(plain, seed, idr, InterventionConfig(state_space="normalized"))
 
 
 def test_the_service_answers_a_request_the_same_in_any_batch_and_as_in_actor(real) -> None:
-    """Fixed shape: the same step for a request alone, first or last among others, in another
-    order; and the same as an in-actor IDRPolicy given forwards of the same rows."""
+    """Fixed shape: the same step for a request alone, first or last among others (with other
+    instructions, of other lengths), in another order; and the same as an in-actor IDRPolicy
+    given forwards of the same rows."""
     worker = PolicyWorker(*real, rows=12, threads=1)
     e, base = IDRConfig(mode="E", tau=0.5), IDRConfig(mode="baseline")
-    reqs = [_request(worker.backbone, s, e if s % 2 else base) for s in range(6)]
+    reqs = [_request(worker.backbone, s, e) for s in range(1, 7)]
     first = worker.infer_many(reqs)
     again = worker.infer_many(reqs[::-1])[::-1]
     alone = [worker.infer_many([r])[0] for r in reqs]
+    b = _request(worker.backbone, 7, base)  # a baseline's one row among IDR's three
+    assert np.array_equal(
+        worker.infer_many([*reqs, b])[-1].action, worker.infer_many([b])[0].action
+    )
     for a, b, c in zip(first, again, alone, strict=True):
         assert np.array_equal(a.action, b.action) and np.array_equal(a.action, c.action)
         assert np.array_equal(a.a_base, c.a_base)
@@ -112,15 +121,15 @@ def test_the_service_answers_a_request_the_same_in_any_batch_and_as_in_actor(rea
     policy = IDRPolicy(make_backbone(*real))
     assert fix_forward_shape(policy, 12, 1) == "rows=12 threads=1"
     policy.set_config(e, InterventionConfig(state_space="normalized"))
-    req = reqs[1]
+    req = reqs[0]
     obs = Observation(
         {k: torch.from_numpy(v) for k, v in req.obs.images.items()},
         torch.from_numpy(req.obs.state),
         req.obs.instruction,
     )
     in_actor = policy.infer(obs, req.step_seed)
-    assert np.array_equal(in_actor.action.numpy(), first[1].action)
-    assert np.array_equal(in_actor.diag.e_img.numpy(), first[1].diag.e_img)
+    assert np.array_equal(in_actor.action.numpy(), first[0].action)
+    assert np.array_equal(in_actor.diag.e_img.numpy(), first[0].diag.e_img)
 
 
 def test_a_fixed_shape_service_refuses_every_request_of_a_backbone_whose_rows_interact(

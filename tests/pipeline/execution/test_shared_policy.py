@@ -155,7 +155,7 @@ def test_a_policy_actor_out_of_device_memory_splits_and_loses_nothing(
 
 REAL = [  # the tiny VLA on two tabletop tasks, diagnose and E with tau calibrated: 8 episodes
     "tracking.enabled=false",
-    "env.tasks=[pick_color,pick_color@light_dim:0.36]",
+    "env.tasks=[pick_color,stack_color]",  # instructions of two lengths
     "episodes_per_task=2",
     "grid=[{mode: [diagnose, E]}]",
     "executor.max_batch=4",
