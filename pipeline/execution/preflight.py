@@ -34,7 +34,12 @@ def select_tasks(cfg: RunConfig, server: ServerSpec | None = None) -> list[TaskS
         split_task,
     )
 
-    tasks = suite_tasks(cfg.env.suite, cfg.env.params, server)
+    try:  # a suite that builds its env to list its tasks refuses bad params there
+        tasks = suite_tasks(cfg.env.suite, cfg.env.params, server)
+    except ConfigError:
+        raise
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
     by_id = {t.task_id: t for t in tasks}
     crossed = [parse(p) for p in cfg.env.perturbations]
     names = cfg.env.tasks if cfg.env.tasks is not None else list(by_id)

@@ -1,4 +1,4 @@
-"""lerobot-eval's own code path on LIBERO, recording what reaches the simulator: its env config
+"""lerobot-eval's own code path (LIBERO, PushT...), recording what reaches the simulator: its env config
 and ``make_env``, ``make_policy``, its policy and env processors and ``eval_policy_all`` (what
 ``lerobot-eval`` runs), with a vector-env wrapper that records each step's action (and, if
 asked, the simulator state after it). The parity tests compare idr-eval's episodes with these."""
@@ -28,13 +28,7 @@ def lerobot_eval_libero(
     """Episodes of ``libero_spatial/0`` as lerobot-eval runs them for the checkpoint (or idr
     folder) in ``policy_dir``: per episode ``{"actions": [...], "states": [...]}``; and
     eval_policy_all's info."""
-    import gymnasium as gym
-    import torch
-    from lerobot.configs.policies import PreTrainedConfig
     from lerobot.envs.configs import LiberoEnv as LiberoEnvConfig
-    from lerobot.envs.factory import make_env, make_env_pre_post_processors
-    from lerobot.policies.factory import make_policy, make_pre_post_processors
-    from lerobot.scripts.lerobot_eval import eval_policy_all
 
     env_cfg = LiberoEnvConfig(
         task="libero_spatial",
@@ -43,6 +37,28 @@ def lerobot_eval_libero(
         observation_height=size,
         observation_width=size,
     )
+
+    def libero_state(vec: Any) -> np.ndarray:
+        return sim_state(vec.unwrapped.envs[0].unwrapped._env.sim)
+
+    return lerobot_eval_env(
+        env_cfg, policy_dir, episodes=episodes, seed=seed, state=libero_state if states else None
+    )
+
+
+def lerobot_eval_env(
+    env_cfg: Any, policy_dir: Path, *, episodes: int, seed: int, state: Any = None
+) -> tuple[list[dict[str, list[np.ndarray]]], dict]:
+    """Episodes of lerobot's env config ``env_cfg`` as lerobot-eval runs them for the checkpoint
+    in ``policy_dir``: per episode ``{"actions": [...], "states": [...]}`` (``state(vec_env)``
+    after each step, when given); and eval_policy_all's info."""
+    import gymnasium as gym
+    import torch
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.envs.factory import make_env, make_env_pre_post_processors
+    from lerobot.policies.factory import make_policy, make_pre_post_processors
+    from lerobot.scripts.lerobot_eval import eval_policy_all
+
     recorded: list[dict[str, list[np.ndarray]]] = []
 
     class Recorder(gym.vector.VectorWrapper):
@@ -59,9 +75,8 @@ def lerobot_eval_libero(
         def step(self, actions):
             out = self.env.step(actions)
             recorded[-1]["actions"].append(np.array(actions[0], copy=True))
-            if states:
-                libero = self.env.unwrapped.envs[0].unwrapped
-                recorded[-1]["states"].append(sim_state(libero._env.sim))
+            if state is not None:
+                recorded[-1]["states"].append(state(self.env))
             return out
 
     envs = make_env(env_cfg, n_envs=1)

@@ -7,13 +7,16 @@ from pathlib import Path
 import torch
 
 
+def _image_key(cam: str) -> str:
+    """``image!``: lerobot's one-camera key ``observation.image`` (PushT), else
+    ``observation.images.<cam>``."""
+    return "observation.image" if cam == "image!" else f"observation.images.{cam}"
+
+
 def _features(image: int, state: int, action: int, cams: tuple[str, ...]):
     from lerobot.configs.types import FeatureType, PolicyFeature
 
-    inputs = {
-        f"observation.images.{c}": PolicyFeature(FeatureType.VISUAL, (3, image, image))
-        for c in cams
-    }
+    inputs = {_image_key(c): PolicyFeature(FeatureType.VISUAL, (3, image, image)) for c in cams}
     inputs["observation.state"] = PolicyFeature(FeatureType.STATE, (state,))
     return inputs, {"action": PolicyFeature(FeatureType.ACTION, (action,))}
 
@@ -35,7 +38,7 @@ def _stats(image: int, state: int, action: int, cams: tuple[str, ...]) -> dict:
         },
     }
     for c in cams:
-        stats[f"observation.images.{c}"] = {
+        stats[_image_key(c)] = {
             "mean": torch.full((3, 1, 1), 0.4),
             "std": torch.full((3, 1, 1), 0.2),
             "min": torch.zeros(3, 1, 1),

@@ -39,6 +39,17 @@ from workers.io_spec import PolicyIO
 
 STATE_KEY = "observation.state"
 IMAGE_PREFIX = "observation.images."
+SINGLE_IMAGE_KEY = "observation.image"  # one-camera checkpoints (lerobot's PushT): camera "image"
+
+
+def image_suffix(key: str) -> str | None:
+    """The camera name a policy image key stands for (``observation.images.<cam>`` -> cam,
+    ``observation.image`` -> ``image``); None for a key that is not an image."""
+    if key.startswith(IMAGE_PREFIX):
+        return key.removeprefix(IMAGE_PREFIX)
+    return "image" if key == SINGLE_IMAGE_KEY else None
+
+
 # config.json keys by which a policy resizes its images to its own resolution (pi0, pi0.5,
 # pi0-FAST, SmolVLA, X-VLA, Diffusion's resize_shape...): any rendered size then fits it.
 RESIZE_KEYS = (
@@ -98,9 +109,9 @@ def policy_io(path: Path, chunk_len: int | None = None) -> PolicyIO:
             "output_features.action, so what the policy reads cannot be checked"
         )
     images = {
-        k.removeprefix(IMAGE_PREFIX): _shape(cfg_path, k, f)
+        suffix: _shape(cfg_path, k, f)
         for k, f in inputs.items()
-        if k.startswith(IMAGE_PREFIX)
+        if (suffix := image_suffix(k)) is not None
     }
     for key, shape in images.items():
         if len(shape) != 3:
@@ -198,11 +209,10 @@ class LerobotBackbone:
             cfg, pretrained_path=path, preprocessor_overrides=overrides
         )
         self.name = f"lerobot:{cfg.type}"
-        image_keys = [k for k in cfg.input_features if k.startswith(IMAGE_PREFIX)]
-        mapping = camera_map or {
-            k.removeprefix(IMAGE_PREFIX): k.removeprefix(IMAGE_PREFIX) for k in image_keys
-        }
-        wanted = {IMAGE_PREFIX + v for v in mapping.values()}
+        image_keys = [k for k in cfg.input_features if image_suffix(k) is not None]
+        self._image_key = {str(image_suffix(k)): k for k in image_keys}  # suffix -> policy key
+        mapping = camera_map or {s: s for s in self._image_key}
+        wanted = {self._image_key.get(v, IMAGE_PREFIX + v) for v in mapping.values()}
         if wanted != set(image_keys):
             raise ValueError(
                 f"backbone.params.camera_map={mapping} gives policy image keys {sorted(wanted)}, "
@@ -267,13 +277,14 @@ class LerobotBackbone:
                     f"the policy needs camera {env_cam!r}; the observation has {list(obs.images)}"
                 )
             img = torch.as_tensor(obs.images[env_cam]).float()
-            want = self.image_shapes[IMAGE_PREFIX + key]
+            policy_key = self._image_key[key]
+            want = self.image_shapes[policy_key]
             if tuple(img.shape[1:]) != want:
                 raise ValueError(
                     f"camera {env_cam!r} gives images {tuple(img.shape[1:])}, policy key "
-                    f"{IMAGE_PREFIX + key!r} expects {want}: set env.params.image_size to match"
+                    f"{policy_key!r} expects {want}: set env.params.image_size to match"
                 )
-            batch[IMAGE_PREFIX + key] = img
+            batch[policy_key] = img
         if self.state_dim:
             state = torch.as_tensor(obs.state).float()
             if state.shape[1] != self.state_dim:

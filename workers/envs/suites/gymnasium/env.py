@@ -1,0 +1,281 @@
+"""Any registered Gymnasium env whose observation is a dict of camera images and state vectors.
+
+``env.suite: gymnasium`` with ``env.params.id`` (a registered id; ``module:Id`` imports the
+module that registers it first) and ``env.params.kwargs`` for ``gymnasium.make``. The config
+maps the observation: ``images`` (camera name -> observation key, ``a/b`` for a nested dict;
+default: every (H, W, 3) uint8 entry, under its own key), ``state`` (keys concatenated, in order;
+default: every 1-D numeric entry, sorted by key), ``instruction`` (envs without one, such as
+PushT, get this fixed string, recorded with every episode) and ``success_key`` (the ``info``
+entry that says the task is done; ``is_success`` by Gymnasium's convention).
+
+Episode ``i`` of a run with seed ``s`` resets with ``seed = s + i`` (lerobot-eval's rule with one
+env). The episode ends at success, at ``terminated`` / ``truncated``, or after ``max_steps``
+(default: the env spec's ``max_episode_steps``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import difflib
+import importlib
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from workers.envs.base import EnvObservation, TaskSpec
+from workers.io_spec import EnvIO
+
+DEFAULT_INSTRUCTION = "do the task"
+
+
+def import_registering_module(env_id: str) -> str:
+    """``module:Id`` -> Id with ``module`` imported; ``namespace/Id`` -> the namespace module
+    imported when it exists (gym_pusht registers gym_pusht/PushT-v0 on import)."""
+    if ":" in env_id:
+        module, env_id = env_id.split(":", 1)
+        importlib.import_module(module)
+        return env_id
+    if "/" in env_id:
+        with contextlib.suppress(ModuleNotFoundError):
+            importlib.import_module(env_id.split("/", 1)[0])
+    return env_id
+
+
+def check_registered(env_id: str) -> str:
+    """The registered id, or a ValueError naming the field, close ids and how to register."""
+    import gymnasium as gym
+
+    try:
+        bare = import_registering_module(env_id)
+    except ModuleNotFoundError as exc:
+        raise ValueError(
+            f"env.params.id={env_id!r}: module {exc.name!r} is not installed (it registers the "
+            "env): install its package"
+        ) from None
+    if bare not in gym.registry:
+        close = difflib.get_close_matches(bare, list(gym.registry), n=3, cutoff=0.6)
+        hint = f" (did you mean {', '.join(close)}?)" if close else ""
+        namespace = bare.split("/", 1)[0] if "/" in bare else None
+        pkg = f"; install the package that registers {namespace!r}" if namespace else ""
+        raise ValueError(f"env.params.id={env_id!r} is not a registered Gymnasium env{hint}{pkg}")
+    return bare
+
+
+def _get(obs: Mapping[str, Any], path: str) -> Any:
+    node: Any = obs
+    for part in path.split("/"):
+        if not isinstance(node, Mapping) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+def _leaves(space: Any, prefix: str = "") -> dict[str, Any]:
+    """Observation-space leaves by ``a/b`` path."""
+    spaces = getattr(space, "spaces", None)
+    if not isinstance(spaces, Mapping):
+        return {prefix.rstrip("/"): space} if prefix else {}
+    out: dict[str, Any] = {}
+    for key, sub in spaces.items():
+        out |= (
+            _leaves(sub, f"{prefix}{key}/")
+            if isinstance(getattr(sub, "spaces", None), Mapping)
+            else {f"{prefix}{key}": sub}
+        )
+    return out
+
+
+def _is_image(space: Any) -> bool:
+    shape = getattr(space, "shape", None)
+    return shape is not None and len(shape) == 3 and shape[-1] == 3 and space.dtype == np.uint8
+
+
+def _is_vector(space: Any) -> bool:
+    shape = getattr(space, "shape", None)
+    return shape is not None and len(shape) == 1 and np.issubdtype(space.dtype, np.number)
+
+
+def map_observation(
+    space: Any, images: Mapping[str, str] | None, state: list[str] | str | None, where: str
+) -> tuple[dict[str, str], list[str]]:
+    """(camera -> observation path, state paths) checked against the observation space."""
+    leaves = _leaves(space)
+    if not leaves:
+        raise ValueError(
+            f"{where}: the observation is not a dict (space {space}); this suite needs a dict "
+            "of camera images and state vectors"
+        )
+    cams = (
+        dict(images)
+        if images is not None
+        else {k.replace("/", "_"): k for k, s in leaves.items() if _is_image(s)}
+    )
+    keys = (
+        [state]
+        if isinstance(state, str)
+        else list(state)
+        if state is not None
+        else sorted(k for k, s in leaves.items() if _is_vector(s))
+    )
+    for role, paths in (("images", list(cams.values())), ("state", keys)):
+        missing = [p for p in paths if p not in leaves]
+        if missing:
+            raise ValueError(
+                f"{where}.{role}: {missing} not in the observation (it has {sorted(leaves)})"
+            )
+    for cam, path in cams.items():
+        if not _is_image(leaves[path]):
+            raise ValueError(
+                f"{where}.images.{cam}: {path!r} is {leaves[path]}, not an (H, W, 3) uint8 image"
+            )
+    if not cams:
+        raise ValueError(f"{where}.images: no (H, W, 3) uint8 entry in {sorted(leaves)}")
+    if not keys:
+        raise ValueError(f"{where}.state: no 1-D numeric entry in {sorted(leaves)}")
+    return cams, keys
+
+
+class GymnasiumEnv:
+    """One Gymnasium env as a suite with one task (see the module docstring)."""
+
+    suite = "gymnasium"
+
+    def __init__(
+        self,
+        id: str,
+        kwargs: dict[str, Any] | None = None,
+        images: dict[str, str] | None = None,
+        state: list[str] | str | None = None,
+        instruction: str | None = None,
+        success_key: str = "is_success",
+        max_steps: int | None = None,
+        control_hz: float | None = None,
+    ) -> None:
+        import gymnasium as gym
+
+        self.env_id = check_registered(id)
+        self._env = gym.make(self.env_id, disable_env_checker=True, **(kwargs or {}))
+        self._setup(images, state, instruction, success_key, max_steps, control_hz, "env.params")
+
+    def _setup(
+        self,
+        images: Mapping[str, str] | None,
+        state: list[str] | str | None,
+        instruction: str | None,
+        success_key: str,
+        max_steps: int | None,
+        control_hz: float | None,
+        where: str,
+    ) -> None:
+        env = self._env
+        self._cams, self._state_keys = map_observation(env.observation_space, images, state, where)
+        self.cameras = tuple(self._cams)
+        leaves = _leaves(env.observation_space)
+        self.state_dim = int(sum(leaves[k].shape[0] for k in self._state_keys))
+        self.action_dim = int(env.action_space.shape[0])
+        self.image_sizes = {c: tuple(leaves[p].shape[:2]) for c, p in self._cams.items()}
+        spec_steps = env.spec.max_episode_steps if env.spec is not None else None
+        steps = max_steps or spec_steps
+        if not steps:
+            raise ValueError(f"{where}.max_steps: the env spec names no max_episode_steps; set it")
+        fps = control_hz or env.metadata.get("render_fps") or 10
+        self.control_hz = float(fps)
+        self.success_key = success_key
+        self._instruction = instruction or DEFAULT_INSTRUCTION
+        self._task_spec = TaskSpec(
+            self.env_id.replace("/", "_"), self.env_id, int(steps), instruction=self._instruction
+        )
+        self._task: TaskSpec | None = None
+        self._steps, self._success, self._ended = 0, False, False
+
+    # -- the Env protocol -----------------------------------------------------------------------
+    def tasks(self) -> list[TaskSpec]:
+        return [self._task_spec]
+
+    def reset(self, task_id: str, episode_index: int, seed: int) -> EnvObservation:
+        if task_id != self._task_spec.task_id:
+            raise ValueError(f"task_id={task_id!r} unknown; allowed: [{self._task_spec.task_id!r}]")
+        self._task = None
+        obs, _ = self._env.reset(seed=int(seed) + int(episode_index))
+        self._task, self._steps, self._success, self._ended = self._task_spec, 0, False, False
+        return self._observe(obs)
+
+    def step(self, action: np.ndarray) -> EnvObservation:
+        action = np.asarray(action, dtype=np.float32)
+        if action.shape != (self.action_dim,):
+            raise ValueError(f"action must have shape ({self.action_dim},), got {action.shape}")
+        if self._task is None:
+            raise RuntimeError("step() before reset()")
+        if self.done:
+            raise RuntimeError("step() after the episode is done; call reset()")
+        obs, _, terminated, truncated, info = self._env.step(action)
+        self._steps += 1
+        self._success = self._success or bool(info.get(self.success_key, False))
+        self._ended = bool(terminated or truncated)
+        return self._observe(obs)
+
+    def _observe(self, obs: Mapping[str, Any]) -> EnvObservation:
+        images = {c: np.ascontiguousarray(_get(obs, p)) for c, p in self._cams.items()}
+        state = np.concatenate(
+            [np.asarray(_get(obs, k), dtype=np.float32).reshape(-1) for k in self._state_keys]
+        )
+        return EnvObservation(images=images, state=state)
+
+    @property
+    def task(self) -> TaskSpec:
+        if self._task is None:
+            raise RuntimeError("no task: call reset() first")
+        return self._task
+
+    @property
+    def instruction(self) -> str:
+        return self._instruction
+
+    @property
+    def success(self) -> bool:
+        return self._success
+
+    @property
+    def done(self) -> bool:
+        return self._success or self._ended or self._steps >= self.task.max_steps
+
+    @property
+    def subtasks_done(self) -> int:
+        return int(self._success)
+
+    @property
+    def steps(self) -> int:
+        return self._steps
+
+    def close(self) -> None:
+        self._env.close()
+
+    # -- pre-flight ------------------------------------------------------------------------------
+    @classmethod
+    def describe(cls, **params: Any) -> EnvIO:
+        env = cls(**params)
+        try:
+            return env_io(env)
+        finally:
+            env.close()
+
+
+def env_io(env: Any) -> EnvIO:
+    """What a built gymnasium-suite env renders and accepts (square images only: the checkpoint
+    pre-flight compares one size per camera)."""
+    for cam, (h, w) in env.image_sizes.items():
+        if h != w:
+            raise ValueError(
+                f"camera {cam!r} renders {h}x{w}: the pre-flight needs square images; set the "
+                "env's observation width and height equal"
+            )
+    sizes = {c: hw[0] for c, hw in env.image_sizes.items()}
+    first = next(iter(sizes.values()))
+    return EnvIO(
+        cameras=env.cameras,
+        image_size=first,
+        state_dim=env.state_dim,
+        action_dim=env.action_dim,
+        camera_sizes={c: s for c, s in sizes.items() if s != first},
+    )

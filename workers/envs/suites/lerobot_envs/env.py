@@ -1,0 +1,209 @@
+"""lerobot's env types as a suite: ``env.suite: lerobot`` with ``env.params: {type: pusht, ...}``.
+
+The env is built by lerobot itself: ``make_env_config(type, **config)`` (third-party
+``lerobot_env_*`` plugins registered first) and the config's ``create_envs(n_envs=1)``, as
+lerobot-eval does, so the scene, its wrappers and its episode length are lerobot's. Each
+``(suite, task_id)`` lerobot returns is a task (``pusht``; ``metaworld/3`` for a multi-task
+type). The observation is read the way lerobot's ``preprocess_observation`` reads it:
+``pixels`` (one image: camera ``image``, policy key ``observation.image``; a dict: one camera
+per key, ``observation.images.<key>``) and ``agent_pos`` (``observation.state``). The
+instruction is the env's ``task_description`` where it has one, else ``instruction`` from the
+config, else a fixed string; success is ``info["is_success"]``; episode ``i`` resets with seed
+``seed + i`` (lerobot-eval's rule with one env).
+
+``suite: libero`` stays the canonical LIBERO (its protocols and parity are pinned there); a
+type whose observation is not pixels and agent_pos (lerobot's LIBERO, RoboCasa...) is refused
+naming that.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from workers.envs.base import EnvObservation, TaskSpec
+from workers.envs.suites.gymnasium.env import DEFAULT_INSTRUCTION, GymnasiumEnv, env_io
+from workers.io_spec import EnvIO
+
+# the package each env type needs, as lerobot's extras name it (what the refusal says to install)
+PACKAGES = {
+    "pusht": "gym-pusht (pip install 'lerobot[pusht]'; make setup installs it)",
+    "aloha": "gym-aloha (pip install 'lerobot[aloha]')",
+    "metaworld": "metaworld (pip install 'lerobot[metaworld]')",
+}
+
+
+def cfg_package(cfg: Any) -> str:
+    """The module a lerobot env config imports to register its env (gym_pusht...)."""
+    try:
+        return str(cfg.package_name)
+    except Exception:  # a config without one
+        return f"gym_{cfg.type}"
+
+
+def known_types() -> list[str]:
+    from lerobot.envs.configs import EnvConfig
+
+    _register_plugins()
+    return sorted(EnvConfig.get_known_choices())
+
+
+def _register_plugins() -> None:
+    try:
+        from lerobot.utils.import_utils import register_third_party_plugins
+    except ImportError:  # an older lerobot: no plugins
+        return
+    register_third_party_plugins()
+
+
+def env_config(type: str, config: Mapping[str, Any]) -> Any:
+    """lerobot's EnvConfig of ``type``, or a ValueError naming the field and the fix."""
+    from lerobot.envs.factory import make_env_config
+
+    types = known_types()
+    if type not in types:
+        close = difflib.get_close_matches(type, types, n=3, cutoff=0.5)
+        hint = f" (did you mean {', '.join(close)}?)" if close else ""
+        raise ValueError(
+            f"env.params.type={type!r} is not a lerobot env type{hint}; known: {types}"
+        )
+    try:
+        return make_env_config(type, **config)
+    except TypeError as exc:
+        raise ValueError(f"env.params (lerobot env type {type!r}): {exc}") from None
+
+
+class _OneOfVector:
+    """A lerobot vector env of one env, seen as a single Gymnasium env (obs unbatched)."""
+
+    def __init__(self, vec: Any) -> None:
+        self.vec = vec
+        self.observation_space = vec.single_observation_space
+        self.action_space = vec.single_action_space
+        self.spec = None
+        self.metadata = dict(getattr(vec, "metadata", {}) or {})
+
+    def reset(self, seed: int) -> tuple[Any, dict]:
+        obs, info = self.vec.reset(seed=[seed])
+        return _unbatch(obs), info
+
+    def step(self, action: np.ndarray) -> tuple[Any, float, bool, bool, dict]:
+        obs, reward, terminated, truncated, info = self.vec.step(action[None])
+        success = info.get("is_success")
+        info = (
+            {"is_success": bool(np.asarray(success).reshape(-1)[0])} if success is not None else {}
+        )
+        return _unbatch(obs), float(reward[0]), bool(terminated[0]), bool(truncated[0]), info
+
+    def call(self, name: str) -> Any:
+        try:
+            return self.vec.call(name)[0]
+        except AttributeError:
+            return None
+
+    def close(self) -> None:
+        self.vec.close()
+
+
+def _unbatch(obs: Any) -> Any:
+    if isinstance(obs, Mapping):
+        return {k: _unbatch(v) for k, v in obs.items()}
+    return np.asarray(obs)[0]
+
+
+class LerobotEnvSuite(GymnasiumEnv):
+    """The tasks of one lerobot env type (see the module docstring)."""
+
+    suite = "lerobot"
+
+    def __init__(self, type: str, instruction: str | None = None, **config: Any) -> None:
+        self.cfg = env_config(type, config)
+        try:
+            built = self.cfg.create_envs(n_envs=1, use_async_envs=False)
+        except ModuleNotFoundError:
+            package = cfg_package(self.cfg)
+            need = PACKAGES.get(type, f"the package that provides {package!r}")
+            raise ValueError(
+                f"env.params.type={type!r}: {package!r} is not installed; install {need}"
+            ) from None
+        many = len(built) > 1 or any(len(t) > 1 for t in built.values())
+        self._suite_of = {
+            (f"{suite}/{tid}" if many else str(suite)): str(suite)
+            for suite, tasks in built.items()
+            for tid in tasks
+        }
+        self._vecs = {
+            (f"{suite}/{tid}" if many else str(suite)): _OneOfVector(vec)
+            for suite, tasks in built.items()
+            for tid, vec in tasks.items()
+        }
+        first = next(iter(self._vecs.values()))
+        self._env = first
+        space = first.observation_space
+        pixels = getattr(space, "spaces", {}).get("pixels") if hasattr(space, "spaces") else None
+        if pixels is None or "agent_pos" not in getattr(space, "spaces", {}):
+            raise ValueError(
+                f"env.params.type={type!r}: its observation ({space}) is not lerobot's pixels + "
+                "agent_pos, which this suite reads; for LIBERO use env.suite=libero"
+            )
+        cams = (
+            {k: f"pixels/{k}" for k in pixels.spaces}
+            if hasattr(pixels, "spaces")
+            else {"image": "pixels"}
+        )
+        steps = getattr(self.cfg, "episode_length", None)
+        self.env_type = self.env_id = type
+        self._setup(
+            cams, ["agent_pos"], instruction, "is_success", steps, self.cfg.fps, "env.params"
+        )
+        self._fixed_instruction = instruction
+        self._specs = {
+            tid: TaskSpec(
+                tid,
+                f"{type}:{tid}",
+                int(self._task_spec.max_steps),
+                suite=self._suite_of[tid],
+                instruction=instruction,
+            )
+            for tid in self._vecs
+        }
+
+    def tasks(self) -> list[TaskSpec]:
+        return list(self._specs.values())
+
+    def reset(self, task_id: str, episode_index: int, seed: int) -> EnvObservation:
+        if task_id not in self._specs:
+            raise ValueError(f"task_id={task_id!r} unknown; allowed: {sorted(self._specs)}")
+        self._task = None
+        self._env = self._vecs[task_id]
+        obs, _ = self._env.reset(seed=int(seed) + int(episode_index))
+        described = self._env.call("task_description")
+        self._instruction = str(described or self._fixed_instruction or DEFAULT_INSTRUCTION)
+        self._task, self._steps, self._success, self._ended = self._specs[task_id], 0, False, False
+        return self._observe(obs)
+
+    def close(self) -> None:
+        for vec in self._vecs.values():
+            vec.close()
+
+    @classmethod
+    def describe(cls, **params: Any) -> EnvIO:
+        """lerobot-eval's protocol: the checkpoint's n_action_steps per inference (``chunk``),
+        lerobot's episode length, seed + episode index."""
+        env = cls(**params)
+        try:
+            io = env_io(env)
+            protocol = {
+                "name": "lerobot",
+                "type": env.env_type,
+                "max_steps": env._task_spec.max_steps,
+                "success": "info['is_success']",
+                "seed": "run seed + episode index",
+            }
+            return dataclasses.replace(io, replan="chunk", protocol=protocol)
+        finally:
+            env.close()
