@@ -37,6 +37,7 @@ EPISODES_DIR = "episodes"
 STEPS_DIR = "steps"
 QUARANTINE_DIR = "quarantine"
 FIGURES_DIR = "figures"  # RUN_DIR/figures/<name>.png
+VIDEOS_DIR = "videos"  # RUN_DIR/videos/cell=<id>/<task>/episode_<i>.mp4 (videos.episodes)
 CALIBRATION_FILE = "calibration.json"
 TRACKING_FILE = "tracking.json"
 LOGS_DIR = "logs"

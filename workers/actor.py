@@ -67,6 +67,7 @@ class _Rollout:
     steps: list[StepRow] = field(default_factory=list)  # one row per inference
     success_step: int | None = None  # the first step at which the env said success
     crn: Any = None  # the last inference's common-random-numbers flag
+    video: Any = None  # workers.videos.EpisodeVideo of a recorded episode
 
 
 class EpisodeWorker:
@@ -180,12 +181,30 @@ class EpisodeWorker:
         policy.set_config(spec.idr, spec.intervention)
         policy.reset()
         ep = _Rollout(obs=env.reset(spec.task_id, spec.episode_index, spec.seed))
+        ep.video = self._video(spec, env)
+        if ep.video is not None:
+            ep.video.add(ep.obs)
         instruction = env.instruction  # the episode's first (CALVIN: one per subtask)
         info = suite_info(env)
         while not env.done:
             chunk = self._infer(policy, env, spec, ep, info.gripper_index)
             self._execute(policy, env, chunk, ep, info.policy_reset_per_subtask)
+        if ep.video is not None:
+            ep.video.write()
         return ep.steps, self._outcome(spec, env, instruction, ep)
+
+    def _video(self, spec: EpisodeSpec, env: Any) -> Any:
+        """The episode's video recorder, for the first ``video_episodes`` of a task and cell."""
+        s = self.spec
+        if spec.episode_index >= s.video_episodes or s.video_dir is None:
+            return None
+        from workers.videos import EpisodeVideo, video_path
+
+        camera = s.video_camera or env.cameras[0]
+        if camera not in env.cameras:
+            raise ValueError(f"videos.camera={camera!r}: the env renders {list(env.cameras)}")
+        path = video_path(s.video_dir, spec.cell_id, spec.task_id, spec.episode_index)
+        return EpisodeVideo(path, camera, s.video_fps or env.control_hz)
 
     def _infer(
         self, policy: Any, env: Any, spec: EpisodeSpec, ep: _Rollout, gripper_index: int | None
@@ -232,6 +251,8 @@ class EpisodeWorker:
                     f"non-finite action at step {env.steps}: {action.tolist()}; not sent to the env"
                 )
             ep.obs = env.step(action)
+            if ep.video is not None:
+                ep.video.add(ep.obs)
             if not np.isfinite(ep.obs.state).all():
                 raise NonFiniteStateError(
                     f"non-finite state after step {env.steps}: {np.asarray(ep.obs.state).tolist()}; "

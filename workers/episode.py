@@ -47,6 +47,12 @@ class WorkerSpec:
     # inference's own; shared: rows, or "dynamic") and torch's CPU threads (None: unchanged)
     forward_rows: int | str | None = None
     torch_threads: int | None = None
+    # episode videos (workers.videos): the first N episodes of each task and cell, into
+    # video_dir; 0: none
+    video_episodes: int = 0
+    video_camera: str | None = None
+    video_fps: float | None = None
+    video_dir: str | None = None
 
 
 @dataclass(frozen=True)

@@ -94,6 +94,17 @@ def perturbations_of(tasks: list[TaskSpec]) -> tuple[str, ...]:
     return tuple(dict.fromkeys(perturbation_of(t.task_id) for t in tasks))
 
 
+def check_videos(cfg: RunConfig) -> None:
+    """A video camera the env does not render is refused, where the suite says what it renders
+    without a simulator (a class attribute); else the first recorded episode says so."""
+    camera = cfg.videos.camera
+    if not cfg.videos.episodes or camera is None:
+        return
+    cams = getattr(env_class(cfg.env.suite), "cameras", None)
+    if isinstance(cams, tuple) and cams and camera not in cams:
+        raise ConfigError(f"videos.camera={camera!r}: suite {cfg.env.suite!r} renders {list(cams)}")
+
+
 def check_executor(cfg: RunConfig) -> None:
     ex = cfg.executor
     if ex.policy == "shared" and ex.kind != "ray":

@@ -30,6 +30,7 @@ from pipeline.execution.preflight import (
     check_executor,
     check_names,
     check_tracking,
+    check_videos,
     perturbations_of,
     select_tasks,
 )
@@ -55,6 +56,7 @@ from pipeline.rundir import (
     MARKERS,
     REPORT_MD,
     RUN_JSON,
+    VIDEOS_DIR,
     check_run_dir,
     read_run_json,
     update_run_json,
@@ -91,6 +93,7 @@ def plan_run(
     cfg, fit = fit_config(cfg)
     check_cell_budget(cfg, len(tasks), yes=yes)
     check_executor(cfg)
+    check_videos(cfg)
     run_id = resume_or_claim(cfg, run_dir, adopt)
     version = code_version()
     checkpoint = checkpoint_digest(cfg, run_dir)
@@ -142,6 +145,10 @@ def _worker_spec(
         perturbations=perturbations_of(tasks),
         forward_rows=cfg.executor.forward_shape(),
         torch_threads=cfg.executor.threads(),
+        video_episodes=cfg.videos.episodes,
+        video_camera=cfg.videos.camera,
+        video_fps=cfg.videos.fps,
+        video_dir=str((run_dir / VIDEOS_DIR).resolve()),
     )
 
 

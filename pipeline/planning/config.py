@@ -109,6 +109,17 @@ class TrackingConfig(StrictModel):
     )
 
 
+class VideoConfig(StrictModel):
+    episodes: int = Field(
+        default=0,
+        ge=0,
+        description="the first N episodes of each task and cell as MP4 (RUN_DIR/videos/, and "
+        "MLflow artifacts of the cell's run); 0: none (each recorded step renders its camera)",
+    )
+    camera: str | None = Field(default=None, description="the env camera; None: its first")
+    fps: float | None = Field(default=None, gt=0, description="None: the env's control rate")
+
+
 class RunConfig(StrictModel):
     name: str = Field(
         default="run", description="run name; the default RUN_DIR is <output_root>/<name>"
@@ -127,6 +138,7 @@ class RunConfig(StrictModel):
     )
     executor: ExecutorConfig = ExecutorConfig()
     tracking: TrackingConfig = TrackingConfig()
+    videos: VideoConfig = VideoConfig()
     output_root: str = "runs"
     max_cells: int = Field(
         default=16,
@@ -193,6 +205,7 @@ class RunConfig(StrictModel):
             exclude={
                 "executor": True,
                 "tracking": True,
+                "videos": True,  # what is recorded, not what happens
                 "output_root": True,
                 "name": True,
                 "max_cells": True,

@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING, Any
 import pandas as pd
 
 from pipeline.results import aggregate as agg
-from pipeline.rundir import FIGURES_DIR, TRACKING_FILE, write_text_atomic
+from pipeline.rundir import FIGURES_DIR, TRACKING_FILE, VIDEOS_DIR, write_text_atomic
 from pipeline.tracking.metrics import (
     cell_metrics,
     cells_table,
@@ -365,6 +365,7 @@ class Tracker:
                 },
             )
             self._log_cell_views(data)
+        self._log_videos()
         for p in artifacts:
             if p.exists():
                 folder = FIGURES_DIR if p.suffix == ".png" else None
@@ -372,6 +373,14 @@ class Tracker:
         for rid in self.children.values():
             self.client.set_terminated(rid, status=status)
         self.client.set_terminated(self.parent_id, status=status)
+
+    def _log_videos(self) -> None:
+        """Each cell's episode videos (RUN_DIR/videos/cell=<id>/, videos.episodes) under
+        ``videos/`` of its child run."""
+        for cell_id, rid in self.children.items():
+            folder = self.run_dir / VIDEOS_DIR / f"cell={cell_id}"
+            if folder.is_dir() and any(folder.rglob("*.mp4")):
+                self.client.log_artifacts(rid, str(folder), VIDEOS_DIR)
 
     def _log_cell_views(self, data: RunData | None = None) -> None:
         """Each child's slice of the report (and its figures, its per-task table) as artifacts,
