@@ -132,13 +132,15 @@ LOOP_PATHS: dict[str, tuple[dict[str, Any], int]] = {  # executor settings, runs
 
 
 def _differing(a: Path, b: Path) -> tuple[int, int, int]:
-    """Episode rows of ``a`` and ``b`` that differ outside the volatile columns; step rows."""
+    """Episode rows of ``a`` and ``b`` that differ outside the volatile columns and the code
+    version (a commit between two runs changes it, not their numbers); step rows."""
     import pandas as pd
 
     from pipeline.results.store import VOLATILE_COLUMNS, RunStore
 
     def eps(d: Path) -> pd.DataFrame:
-        df = RunStore(d).episodes().to_pandas().drop(columns=list(VOLATILE_COLUMNS))
+        drop = [*VOLATILE_COLUMNS, "code_version"]
+        df = RunStore(d).episodes().to_pandas().drop(columns=drop)
         return df.sort_values(["cell_id", "task_id", "episode_index"]).reset_index(drop=True)
 
     x, y = eps(a), eps(b)
@@ -153,8 +155,8 @@ def closed_loop(episodes: int) -> dict[str, Any]:
     from pipeline.planning.config import load_config
     from pipeline.results.aggregate import wilson
 
-    out: dict[str, Any] = {}
     work = Path(tempfile.mkdtemp())
+    out: dict[str, Any] = {"run_dirs": str(work)}
     for path, (ex, runs) in LOOP_PATHS.items():
         dirs, rec = [], {"runs": []}
         for k in range(runs):
@@ -198,7 +200,24 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--episodes", type=int, default=3, help="closed loop: episodes per task")
     ap.add_argument("--skip-loop", action="store_true")
+    ap.add_argument(
+        "--recount",
+        action="store_true",
+        help="recount the differing rows of the closed loop's kept run dirs into the JSON",
+    )
     args = ap.parse_args()
+    if args.recount:
+        result = json.loads(RESULTS.read_text())
+        loop = result["closed_loop"]
+        work = Path(loop["run_dirs"])
+        for path, rec in loop.items():
+            if isinstance(rec, dict) and "episode_rows_differing" in rec:
+                name = path.replace(" ", "_").replace("=", "")
+                differ, s0, s1 = _differing(work / f"{name}_0", work / f"{name}_1")
+                rec |= {"episode_rows_differing": differ, "step_rows": [s0, s1]}
+                print(f"{path}: {differ} episode rows differ; step rows {s0} vs {s1}")
+        RESULTS.write_text(json.dumps(result, indent=2) + "\n")
+        return
     result: dict[str, Any] = {
         "machine": f"{platform.processor() or platform.machine()}, torch {torch.__version__}",
         "torch_threads": 1,

@@ -547,7 +547,7 @@ def shared_numerics(d: Data) -> str:
     if loop:
         body = []
         for path, rec in loop.items():
-            if path == "episodes_per_task":
+            if not isinstance(rec, dict):  # episodes_per_task, run_dirs
                 continue
             runs = rec["runs"]
             rates = "; ".join(
@@ -560,7 +560,7 @@ def shared_numerics(d: Data) -> str:
                     len(runs),
                     rec.get("episode_rows_differing", "-"),
                     " vs ".join(str(s) for s in rec.get("step_rows", [])) or "-",
-                    " vs ".join(num(r["tau"][0]) if r["tau"] else "-" for r in runs),
+                    " vs ".join(num(r["tau"][0], 6) if r["tau"] else "-" for r in runs),
                     num(statistics.mean(r["episodes_per_min"] for r in runs)),
                     rates,
                 ]

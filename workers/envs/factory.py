@@ -18,7 +18,7 @@ ENVS: dict[str, str] = {
     "calvin": "workers.envs.suites.calvin.env:CalvinEnv",  # in an env server: env.python (Python 3.11)
     "simpler": "workers.envs.suites.simpler.env:SimplerEnv",  # in an env server: env.python (Python 3.11)
     # any registered Gymnasium id with a dict observation of images and state vectors
-    "gymnasium": "workers.envs.suites.gymnasium.env:GymnasiumEnv",
+    "gymnasium": "workers.envs.gym_env:GymnasiumEnv",
     # lerobot's env types (pusht, aloha, metaworld...), built by lerobot's own env config
     "lerobot": "workers.envs.suites.lerobot_envs.env:LerobotEnvSuite",
 }

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from workers.envs.base import EnvObservation, TaskSpec
-from workers.envs.suites.gymnasium.env import DEFAULT_INSTRUCTION, GymnasiumEnv, env_io
+from workers.envs.gym_env import DEFAULT_INSTRUCTION, GymnasiumEnv, env_io
 from workers.io_spec import EnvIO
 
 # the package each env type needs, as lerobot's extras name it (what the refusal says to install)
