@@ -143,3 +143,46 @@ def test_the_pusht_preset_runs_with_image_perturbations(tmp_path) -> None:
     steps = RunStore(tmp_path / "run").steps().to_pandas()
     diag = steps[steps.cell_id == "diagnose"]
     assert diag.e_img.notna().all() and len(diag) == 2 * -(-300 // 8)  # ceil(300 / 8) each
+
+
+def test_an_episode_that_ends_is_read_from_final_obs_and_final_info() -> None:
+    """lerobot's vector envs reset an ended episode in the same step (SAME_STEP): success and
+    the last observation are then under final_info / final_obs, as lerobot-eval reads them."""
+    import gymnasium as gym
+    from gymnasium.vector import AutoresetMode
+
+    from workers.envs.suites.lerobot_envs.env import _OneOfVector
+
+    class FakeSucceedsAtThree(gym.Env):
+        """FAKE: succeeds (and terminates) at its third step; the observation counts steps."""
+
+        observation_space = gym.spaces.Dict(
+            {
+                "pixels": gym.spaces.Box(0, 255, (4, 4, 3), np.uint8),
+                "agent_pos": gym.spaces.Box(-9, 9, (2,), np.float32),
+            }
+        )
+        action_space = gym.spaces.Box(-1, 1, (2,), np.float32)
+
+        def reset(self, seed=None, options=None):
+            super().reset(seed=seed)
+            self.t = 0
+            return self._obs(), {"is_success": False}
+
+        def _obs(self):
+            return {
+                "pixels": np.full((4, 4, 3), self.t, np.uint8),
+                "agent_pos": np.array([self.t, 0], np.float32),
+            }
+
+        def step(self, action):
+            self.t += 1
+            return self._obs(), 0.0, self.t >= 3, False, {"is_success": self.t >= 3}
+
+    vec = gym.vector.SyncVectorEnv([FakeSucceedsAtThree], autoreset_mode=AutoresetMode.SAME_STEP)
+    env = _OneOfVector(vec)
+    env.reset(seed=0)
+    for t in (1, 2, 3):
+        obs, _, terminated, _, info = env.step(np.zeros(2, np.float32))
+        assert obs["agent_pos"][0] == t  # never the next episode's reset
+        assert info["is_success"] == (t == 3) and terminated == (t == 3)

@@ -92,12 +92,21 @@ class _OneOfVector:
         return _unbatch(obs), info
 
     def step(self, action: np.ndarray) -> tuple[Any, float, bool, bool, dict]:
+        """One step. An episode that ends is reset by the vector env in the same step
+        (Gymnasium's SAME_STEP autoreset, as lerobot builds them): its last observation and
+        info are then under ``final_obs`` / ``final_info`` (where lerobot-eval reads success),
+        and the top-level ones are the next episode's reset."""
         obs, reward, terminated, truncated, info = self.vec.step(action[None])
-        success = info.get("is_success")
-        info = (
+        ended = bool(terminated[0] or truncated[0])
+        final = info.get("final_info") if ended else None
+        source = final if isinstance(final, Mapping) else info
+        success = source.get("is_success")
+        out = (
             {"is_success": bool(np.asarray(success).reshape(-1)[0])} if success is not None else {}
         )
-        return _unbatch(obs), float(reward[0]), bool(terminated[0]), bool(truncated[0]), info
+        last = info.get("final_obs") if ended else None
+        obs = last[0] if last is not None else _unbatch(obs)
+        return obs, float(reward[0]), bool(terminated[0]), bool(truncated[0]), out
 
     def call(self, name: str) -> Any:
         try:
