@@ -25,7 +25,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from workers.backbones.base import Observation
+from workers.backbones.base import Observation, concat_observations
 
 
 class NumericsError(RuntimeError):
@@ -88,7 +88,8 @@ def take_rows(obs: Observation, idx: np.ndarray) -> Observation:
     )
 
 
-def _cat(xs: list[Any]) -> Any:
+def cat_rows(xs: list[Any]) -> Any:
+    """Arrays (torch or numpy, as given) stacked along the batch dim."""
     if type(xs[0]).__module__.startswith("torch"):
         import torch
 
@@ -125,7 +126,7 @@ class FixedShapeBackbone:
                 intervention=intervention,
             )
             outs.append(out[:m])
-        return outs[0] if len(outs) == 1 else _cat(outs)
+        return outs[0] if len(outs) == 1 else cat_rows(outs)
 
 
 def fix_forward_shape(policy: Any, rows: int | str | None, threads: int | None) -> str:
@@ -135,11 +136,6 @@ def fix_forward_shape(policy: Any, rows: int | str | None, threads: int | None) 
     if isinstance(rows, int) and policy.batched and not remote:
         policy.backbone = FixedShapeBackbone(policy.backbone, rows)
     return numerics_label(rows, threads, policy.batched, remote)  # type: ignore[arg-type]
-
-
-def _equal(a: Any, b: Any) -> bool:
-    to = (lambda x: x.detach().cpu().numpy()) if hasattr(a, "detach") else np.asarray
-    return bool(np.array_equal(to(a), to(b)))
 
 
 def check_row_independence(backbone: Any, obs: Observation, noise: Any, rows: int) -> None:
@@ -153,11 +149,12 @@ def check_row_independence(backbone: Any, obs: Observation, noise: Any, rows: in
     others = take_rows(obs, (np.arange(rows - n) % n)[::-1].copy())
     others.images = {cam: 1.0 - img for cam, img in others.images.items()}
     others.state = -others.state
-    batch = _concat_obs(others, obs)
-    back_noise = None if noise is None else _cat([_rows(noise, np.arange(rows - n) % n), noise])
+    batch = concat_observations([others, obs])
+    back_noise = None if noise is None else cat_rows([_rows(noise, np.arange(rows - n) % n), noise])
     back = backbone.predict_chunk(batch, noise=back_noise)
-    if not _equal(front[:n], back[rows - n :]):
-        diff = float(np.abs(_numpy(front[:n]) - _numpy(back[rows - n :])).max())
+    a, b = as_numpy(front[:n]), as_numpy(back[rows - n :])
+    if not np.array_equal(a, b):
+        diff = float(np.abs(a - b).max())
         raise NumericsError(
             f"backbone {getattr(backbone, 'name', type(backbone).__name__)!r}: a row's actions "
             f"change with its position and batch mates in a forward of {rows} rows (by up to "
@@ -171,11 +168,6 @@ def _pad(noise: Any, n: int, rows: int) -> Any:
     return None if noise is None else _rows(noise, padded(n, rows))
 
 
-def _numpy(x: Any) -> np.ndarray:
+def as_numpy(x: Any) -> np.ndarray:
+    """A torch tensor (float32 on the CPU) or an array, as numpy."""
     return x.detach().float().cpu().numpy() if hasattr(x, "detach") else np.asarray(x)
-
-
-def _concat_obs(a: Observation, b: Observation) -> Observation:
-    from workers.backbones.base import concat_observations
-
-    return concat_observations([a, b])

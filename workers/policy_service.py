@@ -26,6 +26,8 @@ import numpy as np
 from workers.backbones.base import Observation, backbone_member, concat_observations
 from workers.forward_shape import (
     NumericsError,
+    as_numpy,
+    cat_rows,
     check_row_independence,
     fix_forward_shape,
     set_torch_threads,
@@ -49,20 +51,8 @@ def _native(iv: InterventionConfig) -> bool:
     return iv.image_space != "raw" or iv.state_space != "raw"
 
 
-def _cat(xs: list[Any]) -> Any:
-    if type(xs[0]).__module__.startswith("torch"):
-        import torch
-
-        return torch.cat(xs, dim=0)
-    return np.concatenate(xs, axis=0)
-
-
 def _to_numpy(x: Any) -> Any:
-    if x is None:
-        return None
-    if type(x).__module__.startswith("torch"):
-        return x.detach().float().cpu().numpy()
-    return np.asarray(x)
+    return None if x is None else as_numpy(x)
 
 
 def to_numpy_step(step: IDRStep) -> IDRStep:
@@ -133,7 +123,7 @@ def _one_forward(policy: IDRPolicy, group: list[tuple[int, InferRequest]]) -> di
     native = _native(group[0][1].intervention)
     out = backbone.predict_chunk(
         concat_observations(rows),
-        noise=_cat(noises) if noises else None,
+        noise=cat_rows(noises) if noises else None,
         intervention=group[0][1].intervention if native else None,
     )
     ms = (time.perf_counter() - t0) * 1e3

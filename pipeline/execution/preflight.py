@@ -7,10 +7,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from pipeline.planning.catalog import suite_task_specs
 from pipeline.planning.config import ConfigError, RunConfig
 from workers.backbones.factory import check_backbone
 from workers.envs.base import TaskSpec, suite_hooks, suite_info
-from workers.envs.factory import check_suite, env_class, suite_tasks
+from workers.envs.factory import check_suite, env_class
 from workers.envs.server.client import ServerSpec
 
 
@@ -34,12 +35,7 @@ def select_tasks(cfg: RunConfig, server: ServerSpec | None = None) -> list[TaskS
         split_task,
     )
 
-    try:  # a suite that builds its env to list its tasks refuses bad params there
-        tasks = suite_tasks(cfg.env.suite, cfg.env.params, server)
-    except ConfigError:
-        raise
-    except ValueError as e:
-        raise ConfigError(str(e)) from None
+    tasks = suite_task_specs(cfg.env.suite, cfg.env.params, server)
     by_id = {t.task_id: t for t in tasks}
     crossed = [parse(p) for p in cfg.env.perturbations]
     names = cfg.env.tasks if cfg.env.tasks is not None else list(by_id)

@@ -8,6 +8,8 @@ from __future__ import annotations
 import importlib.util
 from typing import Any
 
+from pipeline.errors import ConfigError
+
 # the module each lerobot env type imports to build its env (lerobot's config names gym_<type>
 # for the single-task ones; the multi-task ones import their own simulators)
 ENV_TYPE_MODULES = {
@@ -87,8 +89,19 @@ def backbones() -> list[tuple[str, str]]:
     return [(name, entry) for name, entry in BACKBONES.items()]
 
 
-def tasks(suite: str, params: dict[str, Any]) -> list[tuple[str, str, int]]:
-    """(task id, name, max steps) of ``suite`` built with ``params``."""
+def suite_task_specs(suite: str, params: dict[str, Any], server: Any = None) -> list[Any]:
+    """``suite``'s TaskSpecs (workers.envs.factory.suite_tasks); a suite that builds its env to
+    list its tasks refuses bad params there, as a ValueError: a ConfigError here."""
     from workers.envs.factory import suite_tasks
 
-    return [(t.task_id, t.name, t.max_steps) for t in suite_tasks(suite, params)]
+    try:
+        return suite_tasks(suite, params, server)
+    except ConfigError:
+        raise
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+
+
+def tasks(suite: str, params: dict[str, Any]) -> list[tuple[str, str, int]]:
+    """(task id, name, max steps) of ``suite`` built with ``params``."""
+    return [(t.task_id, t.name, t.max_steps) for t in suite_task_specs(suite, params)]

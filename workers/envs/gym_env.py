@@ -97,10 +97,14 @@ def _is_vector(space: Any) -> bool:
 
 
 def map_observation(
-    space: Any, images: Mapping[str, str] | None, state: list[str] | str | None, where: str
+    space: Any,
+    leaves: Mapping[str, Any],
+    images: Mapping[str, str] | None,
+    state: list[str] | str | None,
+    where: str,
 ) -> tuple[dict[str, str], list[str]]:
-    """(camera -> observation path, state paths) checked against the observation space."""
-    leaves = _leaves(space)
+    """(camera -> observation path, state paths) checked against the observation space's
+    ``leaves`` (by ``a/b`` path)."""
     if not leaves:
         raise ValueError(
             f"{where}: the observation is not a dict (space {space}); this suite needs a dict "
@@ -169,9 +173,11 @@ class GymnasiumEnv:
         where: str,
     ) -> None:
         env = self._env
-        self._cams, self._state_keys = map_observation(env.observation_space, images, state, where)
-        self.cameras = tuple(self._cams)
         leaves = _leaves(env.observation_space)
+        self._cams, self._state_keys = map_observation(
+            env.observation_space, leaves, images, state, where
+        )
+        self.cameras = tuple(self._cams)
         self.state_dim = int(sum(leaves[k].shape[0] for k in self._state_keys))
         self.action_dim = int(env.action_space.shape[0])
         self.image_sizes = {c: tuple(leaves[p].shape[:2]) for c, p in self._cams.items()}

@@ -140,21 +140,18 @@ class LerobotEnvSuite(GymnasiumEnv):
                 f"env.params.type={type!r}: {package!r} is not installed; install {need}"
             ) from None
         many = len(built) > 1 or any(len(t) > 1 for t in built.values())
-        self._suite_of = {
-            (f"{suite}/{tid}" if many else str(suite)): str(suite)
-            for suite, tasks in built.items()
-            for tid in tasks
-        }
-        self._vecs = {
-            (f"{suite}/{tid}" if many else str(suite)): _OneOfVector(vec)
-            for suite, tasks in built.items()
-            for tid, vec in tasks.items()
-        }
+        self._suite_of: dict[str, str] = {}
+        self._vecs: dict[str, _OneOfVector] = {}
+        for suite, tasks in built.items():
+            for tid, vec in tasks.items():
+                key = f"{suite}/{tid}" if many else str(suite)
+                self._suite_of[key], self._vecs[key] = str(suite), _OneOfVector(vec)
         first = next(iter(self._vecs.values()))
         self._env = first
         space = first.observation_space
-        pixels = getattr(space, "spaces", {}).get("pixels") if hasattr(space, "spaces") else None
-        if pixels is None or "agent_pos" not in getattr(space, "spaces", {}):
+        parts = getattr(space, "spaces", None) or {}
+        pixels = parts.get("pixels")
+        if pixels is None or "agent_pos" not in parts:
             raise ValueError(
                 f"env.params.type={type!r}: its observation ({space}) is not lerobot's pixels + "
                 "agent_pos, which this suite reads; for LIBERO use env.suite=libero"
