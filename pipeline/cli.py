@@ -365,8 +365,8 @@ def _cmd_list(args: argparse.Namespace) -> int:
     sections = {
         "suites": lambda: [("suite", "what"), *catalog.suites()],
         "envs": lambda: [
-            ("lerobot type", "needs", "installed"),
-            *[(t, m, "yes" if ok else "no") for t, m, ok in catalog.lerobot_env_types()],
+            ("lerobot type", "needs", "installed", "note"),
+            *[(t, m, "yes" if ok else "no", n) for t, m, ok, n in catalog.lerobot_env_types()],
         ],
         "perturbations": lambda: [("kind", "what", "suites"), *catalog.perturbation_kinds()],
         "backbones": lambda: [("backbone", "class"), *catalog.backbones()],

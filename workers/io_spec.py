@@ -46,11 +46,18 @@ class EnvIO:
     replan: Replan | None = None
     # the pinned protocol, logged with the run and shown in the report ({}: none)
     protocol: Mapping[str, object] = field(default_factory=dict)
-    # cameras rendered at another square size than image_size (CALVIN: static 200, gripper 84)
-    camera_sizes: Mapping[str, int] = field(default_factory=dict)
+    # cameras rendered at another size than image_size: square px (CALVIN: static 200, gripper
+    # 84) or (height, width) for a camera that is not square (ALOHA: 480x640)
+    camera_sizes: Mapping[str, int | tuple[int, int]] = field(default_factory=dict)
 
-    def size_of(self, camera: str) -> int:
-        return self.camera_sizes.get(camera, self.image_size)
+    def hw_of(self, camera: str) -> tuple[int, int]:
+        """The (height, width) ``camera`` renders at."""
+        size = self.camera_sizes.get(camera, self.image_size)
+        return (size, size) if isinstance(size, int) else (int(size[0]), int(size[1]))
+
+    def size_label(self, camera: str) -> str:
+        h, w = self.hw_of(camera)
+        return str(h) if h == w else f"{h}x{w}"
 
 
 @dataclass(frozen=True)

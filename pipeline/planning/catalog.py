@@ -51,12 +51,20 @@ def _installed(module: str) -> bool:
         return False
 
 
-def lerobot_env_types() -> list[tuple[str, str, bool]]:
-    """(type, module it needs, installed here) for every env type lerobot registers."""
-    from workers.envs.suites.lerobot_envs.env import known_types
+def lerobot_env_types() -> list[tuple[str, str, bool, str]]:
+    """(type, module it needs, installed here, note) for every env type lerobot registers; the
+    note says which types were run here (docs/suites/lerobot.md) and which the suite refuses."""
+    from workers.envs.suites.lerobot_envs.env import LIBERO_TYPES, RUN_HERE, known_types
+
+    def note(t: str) -> str:
+        if t in LIBERO_TYPES:
+            return f"refused: {LIBERO_TYPES[t]}"
+        return RUN_HERE.get(t, "not run here")
 
     return [
-        (t, m, _installed(m)) for t in known_types() for m in [ENV_TYPE_MODULES.get(t, f"gym_{t}")]
+        (t, m, _installed(m), note(t))
+        for t in known_types()
+        for m in [ENV_TYPE_MODULES.get(t, f"gym_{t}")]
     ]
 
 

@@ -42,7 +42,10 @@ class Fit:
 
 
 def _env_side(env: EnvIO) -> str:
-    return f"the env renders {list(env.cameras)} at {env.image_size} px"
+    sizes = {env.size_label(c) for c in env.cameras}
+    if len(sizes) == 1:
+        return f"the env renders {list(env.cameras)} at {sizes.pop()} px"
+    return f"the env renders { ({c: env.size_label(c) for c in env.cameras}) } px"
 
 
 def match_cameras(
@@ -109,14 +112,14 @@ def _image_size(env: EnvIO, policy: PolicyIO, mapping: Mapping[str, str]) -> int
     wrong = {
         key: shape
         for cam, key in mapping.items()
-        if ((shape := policy.images[key])[1], shape[2]) != (env.size_of(cam), env.size_of(cam))
+        if ((shape := policy.images[key])[1], shape[2]) != env.hw_of(cam)
     }
     if wrong and not policy.resizes_images:
         h = next(iter(wrong.values()))[1]
         if env.camera_sizes:  # sizes fixed per camera by the benchmark: nothing to set
-            rendered = {c: env.size_of(c) for c in mapping}
+            rendered = ", ".join(f"{c!r} at {env.size_label(c)}" for c in mapping)
             raise ConfigError(
-                f"image size: the env renders {rendered} px (fixed by its protocol), but "
+                f"image size: the env renders {rendered} px (fixed by the env), but "
                 f"{policy.source} declares {declared} and does not resize its inputs"
             )
         raise ConfigError(

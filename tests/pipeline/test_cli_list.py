@@ -19,7 +19,9 @@ def test_list_names_every_suite_env_type_kind_and_backbone(capsys) -> None:
     lines = {line.split()[0]: line for line in out.splitlines() if line.strip()}
     assert set(ENVS) <= set(lines) and set(KINDS) <= set(lines)
     pusht = importlib.util.find_spec("gym_pusht") is not None
-    assert lines["pusht"].split()[-1] == ("yes" if pusht else "no")
+    assert lines["pusht"].split()[2] == ("yes" if pusht else "no")
+    assert "parity with lerobot-eval tested" in lines["pusht"]
+    assert "refused: use env.suite=libero" in lines["libero"]
     assert lines["camera_shift"].endswith("tabletop, libero")
     assert lines["image_noise"].endswith("every suite")
 

@@ -47,11 +47,19 @@ def lerobot_eval_libero(
 
 
 def lerobot_eval_env(
-    env_cfg: Any, policy_dir: Path, *, episodes: int, seed: int, state: Any = None
+    env_cfg: Any,
+    policy_dir: Path,
+    *,
+    episodes: int,
+    seed: int,
+    state: Any = None,
+    max_steps: int | None = None,
 ) -> tuple[list[dict[str, list[np.ndarray]]], dict]:
     """Episodes of lerobot's env config ``env_cfg`` as lerobot-eval runs them for the checkpoint
     in ``policy_dir``: per episode ``{"actions": [...], "states": [...]}`` (``state(vec_env)``
-    after each step, when given); and eval_policy_all's info."""
+    after each step, when given); and eval_policy_all's info. ``max_steps``: the budget the
+    rollout reads (``env.call("_max_episode_steps")``) for an env whose config does not set it
+    (MetaWorld's is 500), as ``env.params.max_steps`` sets ours; the env is unchanged."""
     import gymnasium as gym
     import torch
     from lerobot.configs.policies import PreTrainedConfig
@@ -70,6 +78,8 @@ def lerobot_eval_env(
             return out
 
         def call(self, name, *args, **kwargs):
+            if name == "_max_episode_steps" and max_steps is not None:
+                return (max_steps,) * self.env.num_envs
             return self.env.call(name, *args, **kwargs)
 
         def step(self, actions):

@@ -268,20 +268,16 @@ class GymnasiumEnv:
 
 
 def env_io(env: Any) -> EnvIO:
-    """What a built gymnasium-suite env renders and accepts (square images only: the checkpoint
-    pre-flight compares one size per camera)."""
-    for cam, (h, w) in env.image_sizes.items():
-        if h != w:
-            raise ValueError(
-                f"camera {cam!r} renders {h}x{w}: the pre-flight needs square images; set the "
-                "env's observation width and height equal"
-            )
-    sizes = {c: hw[0] for c, hw in env.image_sizes.items()}
-    first = next(iter(sizes.values()))
+    """What a built gymnasium-suite env renders and accepts: each camera's (height, width)."""
+    sizes = {c: (int(h), int(w)) for c, (h, w) in env.image_sizes.items()}
+    square = {s[0] for s in sizes.values() if s[0] == s[1]}
+    first = min(square) if square else next(iter(sizes.values()))[0]
     return EnvIO(
         cameras=env.cameras,
         image_size=first,
         state_dim=env.state_dim,
         action_dim=env.action_dim,
-        camera_sizes={c: s for c, s in sizes.items() if s != first},
+        camera_sizes={
+            c: (s[0] if s[0] == s[1] else s) for c, s in sizes.items() if s != (first, first)
+        },
     )

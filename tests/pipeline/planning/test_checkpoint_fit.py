@@ -91,6 +91,19 @@ def test_a_size_mismatch_is_refused_unless_the_policy_resizes() -> None:
     assert fit_backbone_to_env(_env(), resizing, None, None).image_size is None
 
 
+def test_a_camera_that_is_not_square_is_matched_on_height_and_width() -> None:
+    env = _env(cameras=("top",), image_size=480, camera_sizes={"top": (480, 640)})
+    assert env.hw_of("top") == (480, 640) and env.size_label("top") == "480x640"
+    fits = _policy(images={"top": (3, 480, 640)})
+    assert fit_backbone_to_env(env, fits, None, None).camera_map == {"top": "top"}
+    square = _policy(images={"top": (3, 480, 480)})
+    with pytest.raises(ConfigError, match=r"'top' at 480x640 px.*\(3, 480, 480\)"):
+        fit_backbone_to_env(env, square, None, None)
+    transposed = _policy(images={"top": (3, 640, 480)})  # height and width are not swapped
+    with pytest.raises(ConfigError, match="480x640"):
+        fit_backbone_to_env(env, transposed, None, None)
+
+
 @pytest.mark.parametrize(
     ("over", "message"),
     [

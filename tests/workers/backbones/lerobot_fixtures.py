@@ -13,15 +13,17 @@ def _image_key(cam: str) -> str:
     return "observation.image" if cam == "image!" else f"observation.images.{cam}"
 
 
-def _features(image: int, state: int, action: int, cams: tuple[str, ...]):
+def _features(image: int | tuple[int, int], state: int, action: int, cams: tuple[str, ...]):
+    """``image``: a square size in px, or (height, width)."""
     from lerobot.configs.types import FeatureType, PolicyFeature
 
-    inputs = {_image_key(c): PolicyFeature(FeatureType.VISUAL, (3, image, image)) for c in cams}
+    hw = (image, image) if isinstance(image, int) else tuple(image)
+    inputs = {_image_key(c): PolicyFeature(FeatureType.VISUAL, (3, *hw)) for c in cams}
     inputs["observation.state"] = PolicyFeature(FeatureType.STATE, (state,))
     return inputs, {"action": PolicyFeature(FeatureType.ACTION, (action,))}
 
 
-def _stats(image: int, state: int, action: int, cams: tuple[str, ...]) -> dict:
+def _stats(image: int | tuple[int, int], state: int, action: int, cams: tuple[str, ...]) -> dict:
     g = torch.Generator().manual_seed(0)
     stats = {
         "observation.state": {
@@ -59,7 +61,7 @@ def save_checkpoint(policy, cfg, stats: dict, out: Path) -> Path:
 
 def build_act(
     out: Path,
-    image: int = 64,
+    image: int | tuple[int, int] = 64,
     state: int = 8,
     action: int = 7,
     chunk: int = 10,

@@ -2,16 +2,18 @@
 checkpoint and seed give lerobot-eval's episodes, the same action sent at every step, bit for
 bit, and the same success and length.
 
-The reference is lerobot's code path itself: its PushT env config, ``make_env``, ``make_policy``,
-its processors and ``eval_policy_all``. The checkpoint: ACT built offline with PushT's keys
-(``observation.image`` at 96 px, a 2-d ``observation.state``, 2-d actions), random weights,
-replanning every ``n_action_steps`` = 5. Ours: the run's pre-flight (``plan_run``) and episode
-worker on the ``lerobot`` suite.
+The reference is lerobot's code path itself: its env config, ``make_env``, ``make_policy``, its
+processors and ``eval_policy_all``. The checkpoint: ACT built offline with the env's keys
+(``observation.image``, ``observation.state``, the action), random weights, replanning every
+``n_action_steps`` = 5. Ours: the run's pre-flight (``plan_run``) and episode worker on the
+``lerobot`` suite. PushT (pymunk, 96 px) and MetaWorld (MuJoCo, 480 px, ``assembly-v3``).
 """
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -19,25 +21,23 @@ import pytest
 from tests.support.lerobot_eval import lerobot_eval_env
 from tests.workers.backbones.lerobot_fixtures import build_act
 
-pytest.importorskip("gym_pusht", reason="gym-pusht is not installed (make setup installs it)")
-
-SIZE = 96
 STEPS = 50
 EPISODES = 2
 SEED = 5
-ENV = {"type": "pusht", "observation_height": SIZE, "observation_width": SIZE}
 
 
-def _our_episodes(ckpt: Path, tmp_path: Path) -> tuple[list[list[np.ndarray]], list]:
+def _our_episodes(
+    ckpt: Path, tmp_path: Path, env_params: dict[str, Any]
+) -> tuple[list[list[np.ndarray]], list]:
     from pipeline.execution.runner import plan_run
     from pipeline.planning.config import config_from_dict
     from workers.actor import EpisodeWorker
 
     cfg = config_from_dict(
         {
-            "name": "pusht_parity",
+            "name": "lerobot_parity",
             "backbone": {"kind": "lerobot", "params": {"path": str(ckpt)}},
-            "env": {"suite": "lerobot", "params": {**ENV, "episode_length": STEPS}},
+            "env": {"suite": "lerobot", "params": env_params},
             "episodes_per_task": EPISODES,
             "seed": SEED,
             "grid": [{"mode": ["baseline"]}],
@@ -69,21 +69,7 @@ def _our_episodes(ckpt: Path, tmp_path: Path) -> tuple[list[list[np.ndarray]], l
     return actions, rows
 
 
-@pytest.mark.slow
-def test_the_lerobot_suite_gives_lerobot_evals_pusht_episodes(tmp_path) -> None:
-    from lerobot.envs.configs import PushtEnv
-
-    ckpt = build_act(
-        tmp_path / "act", image=SIZE, state=2, action=2, cams=("image!",), chunk=10,
-        n_action_steps=5,
-    )  # fmt: skip
-    ours, rows = _our_episodes(ckpt, tmp_path)
-    theirs, info = lerobot_eval_env(
-        PushtEnv(**{k: v for k, v in ENV.items() if k != "type"}, episode_length=STEPS),
-        ckpt,
-        episodes=EPISODES,
-        seed=SEED,
-    )
+def _assert_same_episodes(theirs, info, ours, rows) -> None:
     assert len(theirs) == len(ours) == EPISODES
     for e, (a, b, row) in enumerate(zip(theirs, ours, rows, strict=True)):
         assert len(a["actions"]) == len(b) == row.steps, f"episode {e}: lengths"
@@ -93,3 +79,50 @@ def test_the_lerobot_suite_gives_lerobot_evals_pusht_episodes(tmp_path) -> None:
     # the two episodes start apart (seed + e) and the actions follow the observation
     assert not np.array_equal(ours[0][0], ours[1][0])
     assert np.ptp(np.stack(ours[0]), axis=0).max() > 0.1  # not one constant action
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(
+    importlib.util.find_spec("gym_pusht") is None,
+    reason="gym-pusht is not installed (make setup installs it)",
+)
+def test_the_lerobot_suite_gives_lerobot_evals_pusht_episodes(tmp_path) -> None:
+    from lerobot.envs.configs import PushtEnv
+
+    size = 96
+    ckpt = build_act(
+        tmp_path / "act", image=size, state=2, action=2, cams=("image!",), chunk=10,
+        n_action_steps=5,
+    )  # fmt: skip
+    env = {"observation_height": size, "observation_width": size, "episode_length": STEPS}
+    ours, rows = _our_episodes(ckpt, tmp_path, {"type": "pusht", **env})
+    theirs, info = lerobot_eval_env(PushtEnv(**env), ckpt, episodes=EPISODES, seed=SEED)
+    _assert_same_episodes(theirs, info, ours, rows)
+
+
+@pytest.mark.slow
+@pytest.mark.sim
+@pytest.mark.skipif(
+    importlib.util.find_spec("metaworld") is None,
+    reason="metaworld is not installed (make setup installs it)",
+)
+def test_the_lerobot_suite_gives_lerobot_evals_metaworld_episodes(tmp_path) -> None:
+    """MetaWorld's episode budget is its env's 500 steps, not the config's episode_length:
+    both sides are cut to STEPS here (ours by env.params.max_steps, lerobot-eval's rollout by
+    the budget it reads)."""
+    from lerobot.envs.configs import MetaworldEnv
+
+    from workers.rendering import configure_rendering
+
+    configure_rendering()
+    ckpt = build_act(
+        tmp_path / "act", image=480, state=4, action=4, cams=("image!",), chunk=10,
+        n_action_steps=5,
+    )  # fmt: skip
+    ours, rows = _our_episodes(
+        ckpt, tmp_path, {"type": "metaworld", "task": "assembly-v3", "max_steps": STEPS}
+    )
+    theirs, info = lerobot_eval_env(
+        MetaworldEnv(task="assembly-v3"), ckpt, episodes=EPISODES, seed=SEED, max_steps=STEPS
+    )
+    _assert_same_episodes(theirs, info, ours, rows)

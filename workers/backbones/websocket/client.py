@@ -286,9 +286,7 @@ class WebsocketBackbone:
                     f"(env cameras: {list(env.cameras)})"
                 )
             obs = Observation(
-                images={
-                    c: torch.zeros(1, 3, env.size_of(c), env.size_of(c)) for c in probe.cameras
-                },
+                images={c: torch.zeros(1, 3, *env.hw_of(c)) for c in probe.cameras},
                 state=torch.zeros(1, env.state_dim),
                 instruction=["dry run"],
             )

@@ -9,7 +9,9 @@ type). The observation is read the way lerobot's ``preprocess_observation`` read
 per key, ``observation.images.<key>``) and ``agent_pos`` (``observation.state``). The
 instruction is the env's ``task_description`` where it has one, else ``instruction`` from the
 config, else a fixed string; success is ``info["is_success"]``; episode ``i`` resets with seed
-``seed + i`` (lerobot-eval's rule with one env).
+``seed + i`` (lerobot-eval's rule with one env) and lerobot's new-rollout option; the step
+budget is the env's ``_max_episode_steps``, which lerobot-eval's rollout reads (MetaWorld: 500,
+whatever the config's ``episode_length`` says), unless ``max_steps`` is given.
 
 ``suite: libero`` stays the canonical LIBERO (its protocols and parity are pinned there); a
 type whose observation is not pixels and agent_pos (lerobot's LIBERO, RoboCasa...) is refused
@@ -18,9 +20,10 @@ naming that.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import difflib
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 import numpy as np
@@ -32,8 +35,20 @@ from workers.io_spec import EnvIO
 # the package each env type needs, as lerobot's extras name it (what the refusal says to install)
 PACKAGES = {
     "pusht": "gym-pusht (pip install 'lerobot[pusht]'; make setup installs it)",
-    "aloha": "gym-aloha (pip install 'lerobot[aloha]')",
-    "metaworld": "metaworld (pip install 'lerobot[metaworld]')",
+    "aloha": "gym-aloha (pip install 'lerobot[aloha]'; make setup installs it)",
+    "metaworld": "metaworld (pip install 'lerobot[metaworld]'; make setup installs it)",
+}
+# the types run here, with what was checked (idr-eval list envs shows it; docs/suites/lerobot.md)
+RUN_HERE = {
+    "pusht": "parity with lerobot-eval tested; conf/pusht_smoke.yaml",
+    "metaworld": "parity with lerobot-eval tested; conf/metaworld_smoke.yaml",
+    "aloha": "runs a checkpoint of its 480x640 size; conf/aloha_smoke.yaml",
+}
+# types whose observation is lerobot's LIBERO robot_state (read by its LIBERO env processor), not
+# agent_pos; refused before lerobot builds them (hf-libero asks on stdin for a dataset folder)
+LIBERO_TYPES = {
+    "libero": "use env.suite=libero (LIBERO with its openpi and lerobot protocols)",
+    "libero_plus": "LIBERO-Plus is not supported; for LIBERO use env.suite=libero",
 }
 
 
@@ -88,7 +103,13 @@ class _OneOfVector:
         self.metadata = dict(getattr(vec, "metadata", {}) or {})
 
     def reset(self, seed: int) -> tuple[Any, dict]:
-        obs, info = self.vec.reset(seed=[seed])
+        try:  # what lerobot-eval's rollout passes: it thaws an env frozen at its episode's end
+            from lerobot.envs.utils import NEW_ROLLOUT_OPTION
+        except ImportError:  # an older lerobot
+            options = None
+        else:
+            options = {NEW_ROLLOUT_OPTION: True}
+        obs, info = self.vec.reset(seed=[seed], options=options)
         return _unbatch(obs), info
 
     def step(self, action: np.ndarray) -> tuple[Any, float, bool, bool, dict]:
@@ -114,8 +135,33 @@ class _OneOfVector:
         except AttributeError:
             return None
 
+    def attr(self, name: str) -> Any:
+        """The sub-env's attribute ``name`` (None where it has none), without calling it."""
+        try:
+            return self.vec.get_attr(name)[0]
+        except AttributeError:
+            return None
+
     def close(self) -> None:
         self.vec.close()
+
+
+def _task_key(suite: str, tid: Any, name: Any, in_suite: int) -> str:
+    """A task's id: the suite lerobot names when it holds one task (``pusht``,
+    ``assembly-v3``), else ``<suite>/<task name>`` where the env names its task
+    (``easy/assembly-v3``), else ``<suite>/<index>``."""
+    if in_suite == 1:
+        return suite
+    return f"{suite}/{name}" if isinstance(name, str) and name else f"{suite}/{tid}"
+
+
+def _step_budget(env: _OneOfVector, cfg: Any) -> int:
+    """The steps lerobot-eval's rollout gives an episode: the env's ``_max_episode_steps``
+    (what ``rollout`` reads), else the config's ``episode_length``."""
+    steps = env.attr("_max_episode_steps") or getattr(cfg, "episode_length", None)
+    if not steps:
+        raise ValueError("env.params.max_steps: the env names no episode length; set it")
+    return int(steps)
 
 
 def _unbatch(obs: Any) -> Any:
@@ -129,23 +175,33 @@ class LerobotEnvSuite(GymnasiumEnv):
 
     suite = "lerobot"
 
-    def __init__(self, type: str, instruction: str | None = None, **config: Any) -> None:
-        self.cfg = env_config(type, config)
-        try:
-            built = self.cfg.create_envs(n_envs=1, use_async_envs=False)
-        except ModuleNotFoundError:
-            package = cfg_package(self.cfg)
-            need = PACKAGES.get(type, f"the package that provides {package!r}")
+    def __init__(
+        self,
+        type: str,
+        instruction: str | None = None,
+        max_steps: int | None = None,
+        **config: Any,
+    ) -> None:
+        if max_steps is not None and (not isinstance(max_steps, int) or max_steps <= 0):
+            raise ValueError(f"env.params.max_steps={max_steps!r} must be an int > 0")
+        from workers.rendering import configure_rendering
+
+        configure_rendering()  # before a MuJoCo type imports mujoco (no-op if already chosen)
+        if type in LIBERO_TYPES:
             raise ValueError(
-                f"env.params.type={type!r}: {package!r} is not installed; install {need}"
-            ) from None
-        many = len(built) > 1 or any(len(t) > 1 for t in built.values())
+                f"env.params.type={type!r}: its observation is lerobot's LIBERO robot_state, "
+                f"not the pixels + agent_pos this suite reads; {LIBERO_TYPES[type]}"
+            )
+        self.cfg = env_config(type, config)
+        with self._missing_package(type):
+            built = self.cfg.create_envs(n_envs=1, use_async_envs=False)
         self._suite_of: dict[str, str] = {}
         self._vecs: dict[str, _OneOfVector] = {}
         for suite, tasks in built.items():
             for tid, vec in tasks.items():
-                key = f"{suite}/{tid}" if many else str(suite)
-                self._suite_of[key], self._vecs[key] = str(suite), _OneOfVector(vec)
+                one = _OneOfVector(vec)
+                key = _task_key(str(suite), tid, one.attr("task"), len(tasks))
+                self._suite_of[key], self._vecs[key] = str(suite), one
         first = next(iter(self._vecs.values()))
         self._env = first
         space = first.observation_space
@@ -161,17 +217,23 @@ class LerobotEnvSuite(GymnasiumEnv):
             if hasattr(pixels, "spaces")
             else {"image": "pixels"}
         )
-        steps = getattr(self.cfg, "episode_length", None)
+        budgets = {k: max_steps or _step_budget(v, self.cfg) for k, v in self._vecs.items()}
         self.env_type = self.env_id = type
         self._setup(
-            cams, ["agent_pos"], instruction, "is_success", steps, self.cfg.fps, "env.params"
+            cams,
+            ["agent_pos"],
+            instruction,
+            "is_success",
+            next(iter(budgets.values())),
+            self.cfg.fps,
+            "env.params",
         )
         self._fixed_instruction = instruction
         self._specs = {
             tid: TaskSpec(
                 tid,
                 f"{type}:{tid}",
-                int(self._task_spec.max_steps),
+                int(budgets[tid]),
                 suite=self._suite_of[tid],
                 instruction=instruction,
             )
@@ -186,7 +248,8 @@ class LerobotEnvSuite(GymnasiumEnv):
             raise ValueError(f"task_id={task_id!r} unknown; allowed: {sorted(self._specs)}")
         self._task = None
         self._env = self._vecs[task_id]
-        obs, _ = self._env.reset(seed=int(seed) + int(episode_index))
+        with self._missing_package(self.env_type):  # types that import their simulator here
+            obs, _ = self._env.reset(seed=int(seed) + int(episode_index))
         described = self._env.call("task_description")
         self._instruction = str(described or self._fixed_instruction or DEFAULT_INSTRUCTION)
         self._task, self._steps, self._success, self._ended = self._specs[task_id], 0, False, False
@@ -196,12 +259,28 @@ class LerobotEnvSuite(GymnasiumEnv):
         for vec in self._vecs.values():
             vec.close()
 
+    @contextlib.contextmanager
+    def _missing_package(self, type: str) -> Iterator[None]:
+        """A module lerobot's env imports and that is absent: a ValueError naming what to
+        install (some types import it when built, some at their first reset)."""
+        try:
+            yield
+        except ModuleNotFoundError as exc:
+            package = exc.name or cfg_package(self.cfg)
+            need = PACKAGES.get(type, f"the package that provides {package!r}")
+            raise ValueError(
+                f"env.params.type={type!r}: {package!r} is not installed; install {need}"
+            ) from None
+
     @classmethod
     def describe(cls, **params: Any) -> EnvIO:
         """lerobot-eval's protocol: the checkpoint's n_action_steps per inference (``chunk``),
         lerobot's episode length, seed + episode index."""
         env = cls(**params)
         try:
+            # one reset, as check_env does: a type that imports its simulator only then (VLABench,
+            # RoboTwin) is refused here, before any actor, naming what to install
+            env.reset(env.tasks()[0].task_id, 0, 0)
             io = env_io(env)
             protocol = {
                 "name": "lerobot",
