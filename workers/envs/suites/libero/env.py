@@ -38,6 +38,7 @@ import numpy as np
 
 from workers.envs.base import EnvObservation, LazyImages, TaskSpec, checked_action
 from workers.envs.mujoco.stability import mujoco_instability, raise_if_unstable
+from workers.envs.suites.libero import tables as hf_libero_tables
 from workers.envs.suites.libero.assets import LiberoSetupError
 from workers.envs.suites.libero.protocol import (
     CAMERAS,
@@ -49,12 +50,6 @@ from workers.envs.suites.libero.protocol import (
     state_vector,
 )
 from workers.envs.suites.libero.snapshots import Frame, Snapshots, install_snapshot, render_frame
-from workers.envs.suites.libero.tables import (
-    benchmark_suite,
-    check_assets,
-    fixed_init_states,
-    list_tasks,
-)
 from workers.io_spec import ROBOSUITE_CAMERA_ALIASES, EnvIO
 
 __all__ = [
@@ -102,6 +97,16 @@ class LiberoEnv:
     #: camera is ``agentview``; ``table_color`` tints the table (the floor in scenes without,
     #: see ``_table_geoms``)
     perturbation_kinds = ("camera_shift", "camera_pitch", "light_dim", "table_color", "init_jitter")
+    #: where the suites' tables come from: a module with ``list_tasks(protocol)``,
+    #: ``benchmark_suite(name)``, ``fixed_init_states(bench, index)`` and ``check_assets()``
+    #: (hf-libero's here; LIBERO-PRO's for the ``libero_pro`` suite), the suite names it knows
+    #: and the suite whose protocol figures each takes
+    tables: Any = hf_libero_tables
+    known_suites: tuple[str, ...] = SUPPORTED_SUITES
+
+    @staticmethod
+    def base_suite(suite: str) -> str:
+        return suite
 
     def __init__(
         self,
@@ -135,13 +140,22 @@ class LiberoEnv:
         ``close`` (RuntimeError after). ``lazy_render=False``: robosuite renders every camera
         on every step and on reset (its camera observables), as before."""
         self.protocol = LiberoProtocol.from_params(
-            protocol, suites, image_size, cameras, num_noops, max_steps, flip_images, control_hz
+            protocol,
+            suites,
+            image_size,
+            cameras,
+            num_noops,
+            max_steps,
+            flip_images,
+            control_hz,
+            self.known_suites,
+            self.base_suite,
         )
         self.lazy_render = bool(lazy_render)
         self._snapshots = Snapshots()
         self.cameras = self.protocol.cameras
         self.control_hz = self.protocol.control_hz
-        self._specs = {t.task_id: t for t in list_tasks(self.protocol)}
+        self._specs = {t.task_id: t for t in self.tables.list_tasks(self.protocol)}
         self._sim: Any = None  # OffScreenRenderEnv of self._sim_task
         self._sim_task: str | None = None
         self._init_states: np.ndarray | None = None
@@ -170,13 +184,13 @@ class LiberoEnv:
         args = dict(bound.arguments)
         for name in ("self", "lazy_render"):
             args.pop(name)
-        return LiberoProtocol.from_params(**args)
+        return LiberoProtocol.from_params(**args, known=cls.known_suites, base_of=cls.base_suite)
 
     @classmethod
     def suite_tasks(cls, **params: Any) -> list[TaskSpec]:
         """The tasks these constructor params give, from LIBERO's tables: no simulator, no
         MuJoCo import."""
-        return list_tasks(cls._protocol_of(params))
+        return cls.tables.list_tasks(cls._protocol_of(params))
 
     @classmethod
     def describe(cls, **params: Any) -> EnvIO:
@@ -210,8 +224,8 @@ class LiberoEnv:
             return
         self._close_sim()
         suite, index = spec.suite, int(spec.task_id.rsplit("/", 1)[1])
-        bench = benchmark_suite(suite)
-        self._init_states = fixed_init_states(bench, index)
+        bench = self.tables.benchmark_suite(suite)
+        self._init_states = self.tables.fixed_init_states(bench, index)
         self._sim = self._make_sim(bench.get_task_bddl_file_path(index), spec.max_steps)
         self._sim_task = spec.task_id
 
@@ -219,7 +233,7 @@ class LiberoEnv:
         from workers.rendering import configure_rendering
 
         configure_rendering()  # before robosuite/MuJoCo are imported (no-op if already chosen)
-        check_assets()
+        self.tables.check_assets()
         from libero.libero.envs import OffScreenRenderEnv
 
         p = self.protocol

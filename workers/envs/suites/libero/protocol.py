@@ -25,7 +25,8 @@ matches openpi's; later ones differ in the cabinet/stove placement only).
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+import difflib
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -101,8 +102,16 @@ def named_protocol(name: str) -> NamedProtocol:
     return PROTOCOLS[name]
 
 
+def _did_you_mean(names: Sequence[str], known: Sequence[str]) -> str:
+    close = [m for n in names for m in difflib.get_close_matches(n, known, n=2, cutoff=0.75)]
+    return f" (did you mean {', '.join(dict.fromkeys(close))}?)" if close else ""
+
+
 def _checked_names(
-    suites: Sequence[str], cameras: Sequence[str], max_steps: Mapping[str, int] | None
+    suites: Sequence[str],
+    cameras: Sequence[str],
+    max_steps: Mapping[str, int] | None,
+    known: Sequence[str] = SUPPORTED_SUITES,
 ) -> tuple[tuple[str, ...], tuple[str, ...]]:
     """The suites and cameras as tuples (a lone name from a YAML override too), each known and
     distinct, and no unknown suite in ``max_steps``; else ValueError naming the param."""
@@ -110,16 +119,17 @@ def _checked_names(
         suites = (suites,)
     if isinstance(cameras, str):
         cameras = (cameras,)
-    unknown = [s for s in suites if s not in SUPPORTED_SUITES]
+    unknown = [s for s in suites if s not in known]
     if not suites or unknown or len(set(suites)) != len(suites):
         raise ValueError(
-            f"env.params.suites: {unknown or list(suites)} empty, unknown or repeated; "
-            f"valid: {list(SUPPORTED_SUITES)}"
+            f"env.params.suites: {unknown or list(suites)} empty, unknown or repeated"
+            f"{_did_you_mean(unknown, known)}; valid: {list(known)}"
         )
-    stray = [s for s in max_steps or {} if s not in SUPPORTED_SUITES]
+    stray = [s for s in max_steps or {} if s not in known]
     if stray:
         raise ValueError(
-            f"env.params.max_steps: {stray} unknown suites; valid: {list(SUPPORTED_SUITES)}"
+            f"env.params.max_steps: {stray} unknown suites{_did_you_mean(stray, known)}; "
+            f"valid: {list(known)}"
         )
     bad = [c for c in cameras if c not in CAMERAS]
     if bad or len(set(cameras)) != len(cameras):
@@ -162,11 +172,18 @@ class LiberoProtocol:
         max_steps: Mapping[str, int] | None,
         flip_images: bool,
         control_hz: float,
+        known: Sequence[str] = SUPPORTED_SUITES,
+        base_of: Callable[[str], str] = str,
     ) -> LiberoProtocol:
+        """``known``: the suite names the env has; ``base_of(suite)``: the suite whose protocol
+        figures a suite takes where the protocol names none for it (LIBERO-PRO's
+        ``libero_spatial_swap`` takes ``libero_spatial``'s max steps)."""
         named = named_protocol(protocol)
-        suites, cameras = _checked_names(suites, cameras, max_steps)
+        suites, cameras = _checked_names(suites, cameras, max_steps, known)
         steps = {**named.max_steps, **(max_steps or {})}
         for suite in suites:
+            if suite not in steps and base_of(suite) in steps:
+                steps[suite] = steps[base_of(suite)]
             if suite not in steps:
                 raise ValueError(
                     f"env.params.max_steps[{suite!r}] must be set: protocol {named.name!r} "
