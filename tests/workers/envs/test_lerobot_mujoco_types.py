@@ -111,3 +111,38 @@ def test_the_metaworld_preset_runs(tmp_path) -> None:
     assert summary.errors == 0 and len(eps) == summary.stored > 0
     assert (eps.steps == 10).all() and set(eps.perturbation) == {"none", "image_noise"}
     assert eps.instruction.str.len().min() > 10  # the env's task description, not a fixed one
+
+
+@needs_metaworld
+@pytest.mark.slow
+def test_a_diverged_metaworld_episode_is_an_error_row_and_the_next_is_unaffected(tmp_path):
+    """MuJoCo resets a diverged simulation and carries on: the suite reads MuJoCo's own
+    warnings after every step, so the episode ends as an error row, and the next episode on
+    the same env runs as in a clean run."""
+    from workers.actor import EpisodeWorker
+    from workers.envs.suites.lerobot_envs.env import mujoco_data
+
+    params = {"type": "metaworld", "task": "assembly-v3", "max_steps": 8}
+    cfg = _cfg({"kind": "noop", "params": {"action_dim": 4, "chunk_len": 4}}, params)
+    plan = plan_run(cfg.model_copy(update={"episodes_per_task": 2}), tmp_path / "run")
+    worker = EpisodeWorker(plan.worker_spec)
+    try:
+        clean = worker.run_episode(plan.specs[1]).episode
+        env = worker.env
+        step = env.step
+
+        def diverging(action):
+            if env.steps == 3:  # NaN velocities inside the physics, as a blow-up leaves them
+                mujoco_data(env._env).qvel[:] = np.nan
+            return step(action)
+
+        env.step = diverging
+        bad = worker.run_episode(plan.specs[0]).episode
+        env.step = step
+        again = worker.run_episode(plan.specs[1]).episode
+    finally:
+        worker.close()
+    assert bad.error.startswith("SimulationUnstableError: MuJoCo simulation unstable at step 4")
+    assert "velocities (qvel)" in bad.error or "accelerations (qacc)" in bad.error
+    assert clean.error is None and again.error is None and again.steps == clean.steps == 8
+    assert again.success == clean.success

@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import difflib
+import sys
 from collections.abc import Iterator, Mapping
 from typing import Any
 
@@ -30,6 +31,7 @@ import numpy as np
 
 from workers.envs.base import EnvObservation, TaskSpec
 from workers.envs.gym_env import DEFAULT_INSTRUCTION, GymnasiumEnv, env_io
+from workers.envs.mujoco.stability import mujoco_instability, raise_if_unstable
 from workers.io_spec import EnvIO
 
 # the package each env type needs, as lerobot's extras name it (what the refusal says to install)
@@ -164,6 +166,28 @@ def _step_budget(env: _OneOfVector, cfg: Any) -> int:
     return int(steps)
 
 
+def mujoco_data(env: _OneOfVector) -> Any | None:
+    """The ``mujoco.MjData`` under a lerobot env where it is a MuJoCo one (MetaWorld's
+    ``_env.data``, ALOHA's dm_control ``_env.physics.data.ptr``), else None (PushT's pymunk).
+    Only looked for once MuJoCo is imported: a type that does not use it never imports it."""
+    if "mujoco" not in sys.modules:
+        return None
+    import mujoco
+
+    try:
+        sub = env.vec.envs[0].unwrapped
+    except (AttributeError, IndexError):
+        return None
+    for obj in (sub, getattr(sub, "_env", None)):
+        for data in (
+            getattr(obj, "data", None),
+            getattr(getattr(getattr(obj, "physics", None), "data", None), "ptr", None),
+        ):
+            if isinstance(data, mujoco.MjData):
+                return data
+    return None
+
+
 def _unbatch(obs: Any) -> Any:
     if isinstance(obs, Mapping):
         return {k: _unbatch(v) for k, v in obs.items()}
@@ -229,6 +253,7 @@ class LerobotEnvSuite(GymnasiumEnv):
             "env.params",
         )
         self._fixed_instruction = instruction
+        self._data: Any = None  # the current task's MjData, for a MuJoCo type
         self._specs = {
             tid: TaskSpec(
                 tid,
@@ -252,8 +277,19 @@ class LerobotEnvSuite(GymnasiumEnv):
             obs, _ = self._env.reset(seed=int(seed) + int(episode_index))
         described = self._env.call("task_description")
         self._instruction = str(described or self._fixed_instruction or DEFAULT_INSTRUCTION)
+        self._data = mujoco_data(self._env)
+        if self._data is not None:
+            mujoco_instability(self._data)  # what an earlier episode left: cleared
         self._task, self._steps, self._success, self._ended = self._specs[task_id], 0, False, False
         return self._observe(obs)
+
+    def step(self, action: np.ndarray) -> EnvObservation:
+        """One step; a MuJoCo type whose simulation diverged (MuJoCo resets it and carries on)
+        raises SimulationUnstableError: an error row, not a scored episode."""
+        obs = super().step(action)
+        if self._data is not None:
+            raise_if_unstable(self._data, f"at step {self._steps} of {self.task.task_id}")
+        return obs
 
     def close(self) -> None:
         for vec in self._vecs.values():
