@@ -66,7 +66,7 @@ def main() -> None:
     from workers.envs.suites.libero.env import LiberoEnv
 
     server = ServerSpec(str(ROOT / ".venv-liberopro" / "bin" / "python"), timeout_s=600)
-    entry = "workers.envs.suites.libero_pro.env:LiberoProEnv"
+    entry = "workers.envs.suites.libero.pro.env:LiberoProEnv"
     envs = {
         "libero (hf-libero, in-process)": (
             LiberoEnv(suites=["libero_spatial"], cameras=CAMERAS),

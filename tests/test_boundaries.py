@@ -109,7 +109,11 @@ def test_suites_do_not_import_each_other() -> None:
         for f in sorted((suites / suite).rglob("*.py"))
         for name in sorted(_imports(f))
         for other in names
-        if other != suite and name.startswith(f"workers.envs.suites.{other}")
+        if other != suite
+        and (
+            name == f"workers.envs.suites.{other}"
+            or name.startswith(f"workers.envs.suites.{other}.")
+        )
     ]
     assert not crossings, crossings
 

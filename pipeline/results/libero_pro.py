@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.results.aggregate import bootstrap_mean_ci
-from workers.envs.suites.libero_pro.families import FAMILIES, ORIGINAL, split_suite
+from workers.envs.suites.libero.pro.families import FAMILIES, ORIGINAL, split_suite
 
 FAMILY_ORDER = (ORIGINAL, *FAMILIES)
 

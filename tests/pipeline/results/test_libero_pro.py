@@ -12,7 +12,7 @@ import pytest
 
 from pipeline.reporting import libero_pro as report
 from pipeline.results import libero_pro as lp
-from workers.envs.suites.libero_pro import families
+from workers.envs.suites.libero.pro import families
 
 
 def _episodes(rows: list[tuple]) -> pd.DataFrame:

@@ -84,7 +84,7 @@ def test_tasks_and_io_are_known_without_a_simulator():
     assert (task.task_id, task.max_steps, task.subtasks_total) == ("scene_D", 1800, 5)
     io = CalvinEnv.describe()
     assert io.cameras == ("rgb_static", "rgb_gripper")
-    assert (io.size_of("rgb_static"), io.size_of("rgb_gripper")) == (200, 84)
+    assert (io.hw_of("rgb_static"), io.hw_of("rgb_gripper")) == ((200, 200), (84, 84))
     assert (io.state_dim, io.action_dim) == (15, 7)
     assert io.protocol["subtask_steps"] == 360 and io.protocol["renderer"] == "pybullet-egl"
 

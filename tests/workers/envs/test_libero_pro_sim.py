@@ -16,7 +16,7 @@ import pytest
 
 from pipeline.execution.runner import plan_run
 from pipeline.planning.config import ConfigError, config_from_dict
-from workers.envs.suites.libero_pro import families
+from workers.envs.suites.libero.pro import families
 
 ROOT = Path(__file__).resolve().parents[3]
 PYTHON = Path(os.environ.get("IDR_LIBEROPRO_PYTHON", ROOT / ".venv-liberopro" / "bin" / "python"))
@@ -55,6 +55,7 @@ def test_suite_names_split_into_the_original_and_the_family() -> None:
 
 
 def test_without_its_interpreter_it_is_refused_naming_the_make_target(tmp_path) -> None:
+    before = os.environ.get("LIBERO_CONFIG_PATH")
     with pytest.raises(ConfigError, match=r"make setup-liberopro.*env.python=\.venv-liberopro"):
         plan_run(_cfg(None), tmp_path / "a")
     with pytest.raises(
@@ -62,6 +63,8 @@ def test_without_its_interpreter_it_is_refused_naming_the_make_target(tmp_path) 
     ):
         plan_run(_cfg(str(tmp_path / "nope" / "python")), tmp_path / "b")
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    # hf-libero (this interpreter's LIBERO) reads its config from there: left as it was
+    assert os.environ.get("LIBERO_CONFIG_PATH") == before
 
 
 def test_an_unknown_suite_is_refused_with_did_you_mean(tmp_path) -> None:

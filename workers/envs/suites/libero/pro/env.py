@@ -13,7 +13,7 @@ pre-flight. What differs:
   with the same robosuite, MuJoCo and numpy as ours). In the actors' interpreter it is refused
   before any work, naming the make target.
 - **Suites and tasks.** ``env.params.suites`` names LIBERO-PRO suites (``libero_spatial_swap``;
-  ``workers.envs.suites.libero_pro.families``); the default is the four originals (each perturbed
+  ``workers.envs.suites.libero.pro.families``); the default is the four originals (each perturbed
   suite's paired reference, from the same package) and the four families. Task ids are
   ``<suite>/<index>``, and the index is the original's task: ``libero_spatial_swap/3`` pairs with
   ``libero_spatial/3``. Each task's max steps are its original suite's under the protocol.
@@ -29,7 +29,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from workers.envs.suites.libero import env as libero_env
-from workers.envs.suites.libero_pro import families, tables
+from workers.envs.suites.libero.pro import families, tables
 
 DEFAULT_SUITES = families.DEFAULT_SUITES
 
