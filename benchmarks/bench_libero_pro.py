@@ -24,22 +24,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
+from bench_libero_env import _actions  # the same arm motion as the LIBERO benchmark
 
 from workers.rendering import configure_rendering
 
 RESULTS = Path(__file__).parent / "results" / "libero_pro_step.json"
 ROOT = Path(__file__).resolve().parents[1]
 CAMERAS = ["agentview", "wrist"]
-
-
-def _actions(n: int) -> np.ndarray:
-    t = np.arange(n)
-    a = np.zeros((n, 7), dtype=np.float32)
-    a[:, 0] = 0.3 * np.sin(t / 4)
-    a[:, 1] = 0.3 * np.cos(t / 4)
-    a[:, 6] = -1.0
-    return a
 
 
 def run(env: Any, task: str, read_every: int, steps: int) -> dict[str, float]:
