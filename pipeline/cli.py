@@ -163,7 +163,13 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     from pipeline.tracking.ui import mlflow_lines
 
     try:
-        text, _ = compare(args.run_dirs, out=args.out, n_boot=args.bootstrap, links=mlflow_lines)
+        text, _ = compare(
+            args.run_dirs,
+            out=args.out,
+            n_boot=args.bootstrap,
+            links=mlflow_lines,
+            across_suites=args.across_suites,
+        )
     except TablesRefused as e:  # no table, but the UI can still show the runs side by side
         print(e.ui_text)
         raise
@@ -318,6 +324,12 @@ def _add_compare(sub: Subparsers) -> None:
     cmp.add_argument("run_dirs", nargs="+", metavar="RUN_DIR")
     cmp.add_argument("--out", help="folder for compare.md and the R_img heatmap across runs")
     cmp.add_argument("--bootstrap", type=int, default=2000, help="bootstrap resamples for the CI")
+    cmp.add_argument(
+        "--across-suites",
+        action="store_true",
+        help="runs over different suites (one backbone, several envs): success and the diagnose "
+        "cell's R_img per run x suite, unpaired (the paper's observation 1)",
+    )
     cmp.set_defaults(func=_cmd_compare)
 
 

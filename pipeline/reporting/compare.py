@@ -252,17 +252,63 @@ def perturbation_lines(runs: list[RunEpisodes]) -> list[str]:
     return ["", "Success rate (%) by perturbation:", "", *lines]
 
 
+def across_suites_table(runs: list[RunEpisodes]) -> pd.DataFrame:
+    """One row per run x suite, for runs over different suites (the paper's observation 1:
+    the same model's visual reliance across environments): the reference cell's success (no
+    pairing: the tasks differ) and R_img of the run's reference diagnose cell."""
+    from pipeline.reporting.run_data import rimg_matrix, runs_effects
+
+    rows = []
+    for r in runs:
+        eps = r.episodes[r.episodes["error"].isna()]
+        ref = agg.reference_cell(set(eps["cell_id"]))
+        effects = runs_effects([r.run_dir]) if r.run_dir is not None else pd.DataFrame()
+        rimg = rimg_matrix(effects) if not effects.empty else pd.DataFrame()
+        for suite, g in eps[eps["cell_id"] == ref].groupby("suite"):
+            backbone = str(g["backbone"].iloc[0])
+            value = (
+                rimg.loc[backbone, suite]
+                if backbone in rimg.index and suite in rimg.columns
+                else float("nan")
+            )
+            rows.append(
+                {
+                    "run": r.label,
+                    "backbone": backbone,
+                    "suite": str(suite),
+                    "cell": ref,
+                    "success": float(g["success"].mean()),
+                    "n": len(g),
+                    "r_img": float(value),
+                }
+            )
+    return pd.DataFrame(rows)
+
+
+def render_across_suites(table: pd.DataFrame) -> str:
+    head = ["run", "backbone", "suite", "cell", "success (%)", "n", "R_img (diagnose)"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in table.to_dict("records"):
+        rimg = "–" if pd.isna(r["r_img"]) else f"{r['r_img']:.3f}"
+        cells = [r["run"], r["backbone"], r["suite"], r["cell"], _pct(r["success"]), r["n"], rimg]
+        lines.append("| " + " | ".join(str(c) for c in cells) + " |")
+    return "\n".join(lines)
+
+
 def compare(
     run_dirs: list[str | Path],
     out: str | Path | None = None,
     n_boot: int = 2000,
     links: Callable[[list[RunEpisodes]], list[str]] | None = None,
+    across_suites: bool = False,
 ) -> tuple[str, pd.DataFrame]:
     """Validate, build the table (and with ``out`` write OUT/compare.md plus the R_img heatmap
     across runs); returns (markdown, table). ``links``: lines appended that say where else to
     see the runs (the CLI passes pipeline.tracking.ui.mlflow_lines)."""
     runs = load_runs(run_dirs)
     ui_lines = links(runs) if links is not None else []
+    if across_suites:
+        return _compare_across_suites(runs, out, ui_lines)
     try:
         check_same_tasks(runs)  # before any work
     except ConfigError as e:
@@ -280,14 +326,44 @@ def compare(
     parts += perturbation_lines(runs)
     parts += ["", *ui_lines]
     if out is not None:
-        from pipeline.reporting.figures import rimg_heatmap, save
-        from pipeline.reporting.run_data import rimg_matrix, runs_effects
-
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        effects = runs_effects([r.run_dir for r in runs if r.run_dir is not None])
-        if not effects.empty:
-            save(rimg_heatmap(rimg_matrix(effects)), out / FIGURES_DIR / "rimg_heatmap.png")
-            parts += ["", f"![R_img per backbone x suite]({FIGURES_DIR}/rimg_heatmap.png)"]
-        (out / "compare.md").write_text("\n".join(parts) + "\n")
+        parts += _write_heatmap(runs, Path(out))
+        (Path(out) / "compare.md").write_text("\n".join(parts) + "\n")
     return "\n".join(parts) + "\n", table
+
+
+def _compare_across_suites(
+    runs: list[RunEpisodes], out: str | Path | None, ui_lines: list[str]
+) -> tuple[str, pd.DataFrame]:
+    """``compare --across-suites``: runs of one backbone on different suites side by side,
+    unpaired (see :func:`across_suites_table`), with the R_img heatmap across them."""
+    table = across_suites_table(runs)
+    parts = [
+        f"# R_img and success across {len(runs)} runs, by suite",
+        "",
+        "Runs over different suites, unpaired: each run's reference cell (baseline, else "
+        "diagnose), its success per suite, and R_img = mean E_img / (mean E_img + mean E_prop) "
+        "of its diagnose cell (the paper's observation 1: the same model's visual reliance "
+        "across environments). No Δ: the tasks differ.",
+        "",
+        render_across_suites(table),
+        "",
+        *ui_lines,
+    ]
+    if out is not None:
+        parts += _write_heatmap(runs, Path(out))
+        (Path(out) / "compare.md").write_text("\n".join(parts) + "\n")
+    return "\n".join(parts) + "\n", table
+
+
+def _write_heatmap(runs: list[RunEpisodes], out: Path) -> list[str]:
+    """The R_img heatmap (backbone x suite) across the runs' diagnose cells, saved in ``out``;
+    the lines that embed it (none where no run has a diagnose cell)."""
+    from pipeline.reporting.figures import rimg_heatmap, save
+    from pipeline.reporting.run_data import rimg_matrix, runs_effects
+
+    out.mkdir(parents=True, exist_ok=True)
+    effects = runs_effects([r.run_dir for r in runs if r.run_dir is not None])
+    if effects.empty:
+        return []
+    save(rimg_heatmap(rimg_matrix(effects)), out / FIGURES_DIR / "rimg_heatmap.png")
+    return ["", f"![R_img per backbone x suite]({FIGURES_DIR}/rimg_heatmap.png)"]

@@ -14,6 +14,7 @@ from pipeline import cli
 from pipeline.execution.runner import execute, plan_run
 from pipeline.planning.config import ConfigError, load_config
 from pipeline.reporting.compare import RunEpisodes, compare, compare_table, paired_avg_diff, render
+from pipeline.reporting.run_data import EPS
 from pipeline.results.store import RunStore
 from pipeline.tracking.ui import mlflow_lines
 from tests.doubles.rows import result as hand_made
@@ -176,3 +177,35 @@ def test_compare_of_different_tasks_still_prints_the_ui_selection(tmp_path, caps
     client = MlflowClient(uri)
     cells = {client.get_run(i).data.tags["idr.cell"] for i in ids}
     assert cells == {"baseline", "E"}
+
+
+def test_across_suites_sets_runs_of_different_tasks_side_by_side(tmp_path, capsys) -> None:
+    """--across-suites: runs the paired table refuses (other tasks) get one unpaired row per run
+    x suite, with the reference cell's success and the diagnose cell's R_img (its ratio of
+    time averages, recomputed here from the stored steps)."""
+    common = [
+        "executor.kind=inline",
+        "tracking.enabled=false",
+        "episodes_per_task=2",
+        "grid=[{mode: [baseline, diagnose]}]",
+    ]
+    for name, tasks in (("r1", "[reach]"), ("r2", "[reach_chain]")):
+        cfg = load_config(CONF / "smoke.yaml", [*common, f"env.tasks={tasks}"])
+        execute(plan_run(cfg, tmp_path / name))
+    runs = [str(tmp_path / "r1"), str(tmp_path / "r2")]
+    assert cli.main(["compare", *runs]) == 2  # the paired table: refused
+    capsys.readouterr()
+    out = tmp_path / "cmp"
+    assert cli.main(["compare", *runs, "--across-suites", "--out", str(out)]) == 0
+    _, table = compare(runs, across_suites=True)
+    assert list(table["run"]) == ["r1", "r2"] and set(table["cell"]) == {"baseline"}
+    for row in table.to_dict("records"):
+        store = RunStore(tmp_path / row["run"])
+        eps = store.episodes().to_pandas()
+        assert row["success"] == eps[eps.cell_id == "baseline"].success.mean()
+        steps = store.steps().to_pandas()
+        diag = steps[(steps.cell_id == "diagnose")].dropna(subset=["e_img", "e_prop"])
+        want = diag.e_img.mean() / (diag.e_img.mean() + diag.e_prop.mean() + EPS)
+        assert row["r_img"] == pytest.approx(want, rel=1e-6) and 0 < row["r_img"] < 1
+    assert (out / "compare.md").read_text().startswith("# R_img and success across 2 runs")
+    assert (out / "figures" / "rimg_heatmap.png").is_file()
