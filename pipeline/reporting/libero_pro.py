@@ -43,7 +43,7 @@ def section(episodes: pd.DataFrame) -> list[str]:
         "(docs/suites/libero_pro.md).",
     ]
     diagnosed = []
-    for cell in sorted(tagged["cell_id"].unique()):
+    for cell in lp.cells(tagged):
         t = lp.table(tagged, cell)
         rows = [[base, *(_entry(t[base][f]) if f in t[base] else "–" for f in fams)] for base in t]
         value, n = lp.overall(tagged, cell)
@@ -54,7 +54,7 @@ def section(episodes: pd.DataFrame) -> list[str]:
             "",
             _md(["suite", *fams], rows),
         ]
-        if tagged.loc[tagged["cell_id"] == cell, "r_img_mean"].notna().any():
+        if tagged.loc[tagged["cell_id"] == cell, "e_img_mean"].notna().any():
             diagnosed.append(cell)
     for cell in diagnosed:
         r = lp.r_img(tagged, cell)
@@ -68,5 +68,10 @@ def section(episodes: pd.DataFrame) -> list[str]:
             ]
             for base in r
         ]
-        out += ["", f"**R_img by suite and perturbation, {cell}**", "", _md(["suite", *fams], rows)]
+        out += [
+            "",
+            f"**R_img by suite and perturbation, {cell}** (mean E_img / (mean E_img + mean E_prop))",
+            "",
+            _md(["suite", *fams], rows),
+        ]
     return out

@@ -15,10 +15,11 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from pipeline.results.aggregate import bootstrap_mean_ci
+from pipeline.results.aggregate import bootstrap_mean_ci, reference_cell
 from workers.envs.suites.libero.pro.families import FAMILIES, ORIGINAL, split_suite
 
 FAMILY_ORDER = (ORIGINAL, *FAMILIES)
+EPS = 1e-6  # as pipeline.reporting.run_data's R_img
 
 
 def tag(episodes: pd.DataFrame) -> pd.DataFrame:
@@ -117,14 +118,24 @@ def overall(tagged: pd.DataFrame, cell: str) -> tuple[float, int]:
 
 
 def r_img(tagged: pd.DataFrame, cell: str) -> dict[str, dict[str, float]]:
-    """base suite (and ``all``) -> family -> mean R_img over the cell's episodes (steps with
-    diagnostics only; NaN where the cell computes none)."""
-    df = tagged[tagged["cell_id"] == cell]
+    """base suite (and ``all``) -> family -> R_img of the cell's episodes there: mean E_img /
+    (mean E_img + mean E_prop + EPS) over the episodes' means, the paper's ratio of time
+    averages as the heatmap computes it (not the mean of per-step ratios); absent where the
+    cell computes no diagnostics."""
+    df = tagged[tagged["cell_id"] == cell].dropna(subset=["e_img_mean", "e_prop_mean"])
     out: dict[str, dict[str, float]] = {}
     for base in [*sorted(df["base"].unique(), key=_suite_order), "all"]:
         g = df if base == "all" else df[df["base"] == base]
-        out[base] = {str(f): float(v) for f, v in g.groupby("family")["r_img_mean"].mean().items()}
+        m = g.groupby("family")[["e_img_mean", "e_prop_mean"]].mean()
+        ratio = m["e_img_mean"] / (m["e_img_mean"] + m["e_prop_mean"] + EPS)
+        out[base] = {str(f): float(v) for f, v in ratio.items()}
     return out
+
+
+def cells(tagged: pd.DataFrame) -> list[str]:
+    """The run's cells, the reference (baseline, else diagnose) first."""
+    ref = reference_cell(set(tagged["cell_id"]))
+    return sorted(tagged["cell_id"].unique(), key=lambda c: (c != ref, c))
 
 
 def _suite_order(base: str) -> int:

@@ -16,7 +16,7 @@ from workers.envs.suites.libero.pro import families
 
 
 def _episodes(rows: list[tuple]) -> pd.DataFrame:
-    """rows: (cell, suite, index, episode, success, r_img, error)."""
+    """rows: (cell, suite, index, episode, success, e_img, error); e_prop is 1 - e_img."""
     return pd.DataFrame(
         [
             {
@@ -25,7 +25,8 @@ def _episodes(rows: list[tuple]) -> pd.DataFrame:
                 "task_id": f"{suite}/{index}",
                 "episode_index": ep,
                 "success": success,
-                "r_img_mean": r,
+                "e_img_mean": r,
+                "e_prop_mean": 1.0 - r,
                 "error": err,
             }
             for cell, suite, index, ep, success, r, err in rows
@@ -97,10 +98,18 @@ def test_error_rows_and_unpaired_rows_are_not_counted() -> None:
     assert t["libero_spatial"]["original"].n == 6
 
 
-def test_r_img_by_suite_and_family() -> None:
-    r = lp.r_img(lp.tag(_grid()), "baseline")
+def test_r_img_by_suite_and_family_is_the_ratio_of_mean_effects() -> None:
+    df = _grid()
+    r = lp.r_img(lp.tag(df), "baseline")
     assert r["libero_spatial"] == pytest.approx({"original": 0.5, "swap": 0.2, "lan": 0.4})
     assert r["all"]["swap"] == pytest.approx((8 * 0.2 + 4 * 0.1) / 12)
+    # a ratio of means, not a mean of ratios: one episode with 10x the effects weighs 10x
+    df.loc[(df.suite == "libero_goal_swap") & (df.episode_index == 0), "e_img_mean"] = 1.0
+    df.loc[(df.suite == "libero_goal_swap") & (df.episode_index == 0), "e_prop_mean"] = 9.0
+    img, prop = (0.1 * 3 + 1.0) / 4, (0.9 * 3 + 9.0) / 4
+    assert lp.r_img(lp.tag(df), "baseline")["libero_goal"]["swap"] == pytest.approx(
+        img / (img + prop + lp.EPS)
+    )
 
 
 def test_a_run_without_perturbed_suites_has_no_section() -> None:
