@@ -233,6 +233,25 @@ def libero_env(d: Data) -> str:
     return block(by_size, lazy, source("libero_env", d, f"task {d['task']}"))
 
 
+def libero_pro_step(d: Data) -> str:
+    """libero_pro_step.json: LIBERO-PRO in its env server against our LIBERO, same task."""
+    by_env: dict[str, dict[int, Mapping[str, Any]]] = {}
+    for r in d["results"]:
+        by_env.setdefault(r["env"], {})[r["read_every"]] = r
+    rows = [
+        [env, x[1]["ms_per_step"], x[8]["ms_per_step"], x[8]["reset_s"]]
+        for env, x in by_env.items()
+    ]
+    body = table(
+        ["env", "ms per step, images read every step", "every 8th step", "reset (s)"], rows
+    )
+    what = (
+        f"task index {d['task_index']}, {', '.join(d['cameras'])} at {d['image_size']} px, "
+        f"{d['steps']} steps"
+    )
+    return block(body, source("libero_pro_step", d, what))
+
+
 def env_server(d: Data) -> str:
     """env_server.json: the same env in-process vs in an env server."""
     rows = [
@@ -583,6 +602,7 @@ RENDERERS: dict[str, Callable[[Data], str]] = {
         engine,
         tabletop_env,
         libero_env,
+        libero_pro_step,
         env_server,
         calvin_env,
         policy_service,
