@@ -146,3 +146,45 @@ def test_a_diverged_metaworld_episode_is_an_error_row_and_the_next_is_unaffected
     assert "velocities (qvel)" in bad.error or "accelerations (qacc)" in bad.error
     assert clean.error is None and again.error is None and again.steps == clean.steps == 8
     assert again.success == clean.success
+
+
+@needs_aloha
+def test_a_process_that_closed_an_aloha_env_exits(tmp_path) -> None:
+    """dm_control frees ALOHA's rendering contexts when its physics is collected. An env kept
+    alive by a reference cycle is collected at exit, and under pytest that waited forever on a
+    render thread already gone: the process never exited. close() frees them. A child pytest
+    runs such a test, and must exit (without the free: killed at the timeout)."""
+    import subprocess
+    import sys
+    import textwrap
+
+    (tmp_path / "test_child.py").write_text(
+        textwrap.dedent(
+            """
+            import numpy as np
+
+            def test_closed():
+                from workers.rendering import configure_rendering
+                configure_rendering()
+                from workers.envs.factory import make_env
+                env = make_env("lerobot", {"type": "aloha", "max_steps": 3})
+                env.reset("aloha", 0, 0)
+                env.step(np.zeros(14, dtype=np.float32))
+                env.keep = env  # a cycle: collected only at exit
+                env.close()
+            """
+        )
+    )
+    root = Path(__file__).resolve().parents[3]
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "--rootdir", str(root)]
+    try:
+        done = subprocess.run(
+            [*cmd, str(tmp_path / "test_child.py")],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            timeout=90,
+        )
+    except subprocess.TimeoutExpired:
+        pytest.fail("the child pytest did not exit within 90 s of closing its ALOHA env")
+    assert done.returncode == 0 and "1 passed" in done.stdout, done.stdout[-2000:]

@@ -188,6 +188,16 @@ def mujoco_data(env: _OneOfVector) -> Any | None:
     return None
 
 
+def _dm_control_physics(env: _OneOfVector) -> Any | None:
+    """The dm_control ``Physics`` under a lerobot env that has one (ALOHA), else None."""
+    try:
+        sub = env.vec.envs[0].unwrapped
+    except (AttributeError, IndexError):
+        return None
+    physics = getattr(getattr(sub, "_env", None), "physics", None)
+    return physics if hasattr(physics, "free") else None
+
+
 def _unbatch(obs: Any) -> Any:
     if isinstance(obs, Mapping):
         return {k: _unbatch(v) for k, v in obs.items()}
@@ -293,7 +303,14 @@ class LerobotEnvSuite(GymnasiumEnv):
 
     def close(self) -> None:
         for vec in self._vecs.values():
+            physics = _dm_control_physics(vec)
             vec.close()
+            if physics is not None:
+                # dm_control (ALOHA) frees its rendering contexts only when the physics is
+                # collected; left to interpreter exit, that waits on its render thread, which
+                # is gone by then (a process that never exits). Freed here, while it is alive.
+                physics.free()
+        self._data = None
 
     @contextlib.contextmanager
     def _missing_package(self, type: str) -> Iterator[None]:

