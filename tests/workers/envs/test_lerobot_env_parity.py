@@ -26,6 +26,22 @@ EPISODES = 2
 SEED = 5
 
 
+def _needs(module: str, package: str) -> pytest.MarkDecorator:
+    return pytest.mark.skipif(
+        importlib.util.find_spec(module) is None,
+        reason=f"{package} is not installed (make setup installs it)",
+    )
+
+
+def _act(tmp_path: Path, image: int | tuple[int, int], dims: int, cam: str) -> Path:
+    """ACT with the env's keys (``dims``-d state and action), random weights, a chunk of 10
+    of which it executes ``n_action_steps`` = 5 per inference."""
+    return build_act(
+        tmp_path / "act", image=image, state=dims, action=dims, cams=(cam,), chunk=10,
+        n_action_steps=5,
+    )  # fmt: skip
+
+
 def _our_episodes(
     ckpt: Path, tmp_path: Path, env_params: dict[str, Any]
 ) -> tuple[list[list[np.ndarray]], list]:
@@ -84,18 +100,12 @@ def _assert_same_episodes(theirs, info, ours, rows, moves: float = 0.1) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(
-    importlib.util.find_spec("gym_pusht") is None,
-    reason="gym-pusht is not installed (make setup installs it)",
-)
+@_needs("gym_pusht", "gym-pusht")
 def test_the_lerobot_suite_gives_lerobot_evals_pusht_episodes(tmp_path) -> None:
     from lerobot.envs.configs import PushtEnv
 
     size = 96
-    ckpt = build_act(
-        tmp_path / "act", image=size, state=2, action=2, cams=("image!",), chunk=10,
-        n_action_steps=5,
-    )  # fmt: skip
+    ckpt = _act(tmp_path, size, 2, "image!")
     env = {"observation_height": size, "observation_width": size, "episode_length": STEPS}
     ours, rows = _our_episodes(ckpt, tmp_path, {"type": "pusht", **env})
     theirs, info = lerobot_eval_env(PushtEnv(**env), ckpt, episodes=EPISODES, seed=SEED)
@@ -104,10 +114,7 @@ def test_the_lerobot_suite_gives_lerobot_evals_pusht_episodes(tmp_path) -> None:
 
 @pytest.mark.slow
 @pytest.mark.sim
-@pytest.mark.skipif(
-    importlib.util.find_spec("metaworld") is None,
-    reason="metaworld is not installed (make setup installs it)",
-)
+@_needs("metaworld", "metaworld")
 def test_the_lerobot_suite_gives_lerobot_evals_metaworld_episodes(tmp_path) -> None:
     """MetaWorld's episode budget is its env's 500 steps, not the config's episode_length:
     both sides are cut to STEPS here (ours by env.params.max_steps, lerobot-eval's rollout by
@@ -117,10 +124,7 @@ def test_the_lerobot_suite_gives_lerobot_evals_metaworld_episodes(tmp_path) -> N
     from workers.rendering import configure_rendering
 
     configure_rendering()
-    ckpt = build_act(
-        tmp_path / "act", image=480, state=4, action=4, cams=("image!",), chunk=10,
-        n_action_steps=5,
-    )  # fmt: skip
+    ckpt = _act(tmp_path, 480, 4, "image!")
     ours, rows = _our_episodes(
         ckpt, tmp_path, {"type": "metaworld", "task": "assembly-v3", "max_steps": STEPS}
     )
@@ -132,10 +136,7 @@ def test_the_lerobot_suite_gives_lerobot_evals_metaworld_episodes(tmp_path) -> N
 
 @pytest.mark.slow
 @pytest.mark.sim
-@pytest.mark.skipif(
-    importlib.util.find_spec("gym_aloha") is None,
-    reason="gym-aloha is not installed (make setup installs it)",
-)
+@_needs("gym_aloha", "gym-aloha")
 def test_the_lerobot_suite_gives_lerobot_evals_aloha_episodes(tmp_path) -> None:
     """ALOHA (dm_control, 14-d bimanual actions, one 480x640 camera ``top``): the checkpoint
     declares observation.images.top (3, 480, 640), and both sides run the config's
@@ -145,10 +146,7 @@ def test_the_lerobot_suite_gives_lerobot_evals_aloha_episodes(tmp_path) -> None:
     from workers.rendering import configure_rendering
 
     configure_rendering()
-    ckpt = build_act(
-        tmp_path / "act", image=(480, 640), state=14, action=14, cams=("top",), chunk=10,
-        n_action_steps=5,
-    )  # fmt: skip
+    ckpt = _act(tmp_path, (480, 640), 14, "top")
     env = {"task": "AlohaInsertion-v0", "episode_length": STEPS}
     ours, rows = _our_episodes(ckpt, tmp_path, {"type": "aloha", **env})
     theirs, info = lerobot_eval_env(AlohaEnv(**env), ckpt, episodes=EPISODES, seed=SEED)

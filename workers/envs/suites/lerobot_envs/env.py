@@ -44,7 +44,7 @@ PACKAGES = {
 RUN_HERE = {
     "pusht": "parity with lerobot-eval tested; conf/pusht_smoke.yaml",
     "metaworld": "parity with lerobot-eval tested; conf/metaworld_smoke.yaml",
-    "aloha": "runs a checkpoint of its 480x640 size; conf/aloha_smoke.yaml",
+    "aloha": "parity with lerobot-eval tested; conf/aloha_smoke.yaml",
 }
 # types whose observation is lerobot's LIBERO robot_state (read by its LIBERO env processor), not
 # agent_pos; refused before lerobot builds them (hf-libero asks on stdin for a dataset folder)
