@@ -252,18 +252,27 @@ def perturbation_lines(runs: list[RunEpisodes]) -> list[str]:
     return ["", "Success rate (%) by perturbation:", "", *lines]
 
 
-def across_suites_table(runs: list[RunEpisodes]) -> pd.DataFrame:
+def _effects_by_run(runs: list[RunEpisodes]) -> list[pd.DataFrame]:
+    """Each run's reference diagnose cell's effects (empty where it has none), read once."""
+    from pipeline.reporting.run_data import runs_effects
+
+    return [runs_effects([r.run_dir]) if r.run_dir is not None else pd.DataFrame() for r in runs]
+
+
+def across_suites_table(
+    runs: list[RunEpisodes], effects: list[pd.DataFrame] | None = None
+) -> pd.DataFrame:
     """One row per run x suite, for runs over different suites (the paper's observation 1:
     the same model's visual reliance across environments): the reference cell's success (no
-    pairing: the tasks differ) and R_img of the run's reference diagnose cell."""
-    from pipeline.reporting.run_data import rimg_matrix, runs_effects
+    pairing: the tasks differ) and R_img of the run's reference diagnose cell. ``effects``: what
+    :func:`_effects_by_run` read, where the caller has it."""
+    from pipeline.reporting.run_data import rimg_matrix
 
     rows = []
-    for r in runs:
+    for r, run_effects in zip(runs, effects or _effects_by_run(runs), strict=True):
         eps = r.episodes[r.episodes["error"].isna()]
         ref = agg.reference_cell(set(eps["cell_id"]))
-        effects = runs_effects([r.run_dir]) if r.run_dir is not None else pd.DataFrame()
-        rimg = rimg_matrix(effects) if not effects.empty else pd.DataFrame()
+        rimg = rimg_matrix(run_effects) if not run_effects.empty else pd.DataFrame()
         for suite, g in eps[eps["cell_id"] == ref].groupby("suite"):
             backbone = str(g["backbone"].iloc[0])
             value = (
@@ -336,7 +345,8 @@ def _compare_across_suites(
 ) -> tuple[str, pd.DataFrame]:
     """``compare --across-suites``: runs of one backbone on different suites side by side,
     unpaired (see :func:`across_suites_table`), with the R_img heatmap across them."""
-    table = across_suites_table(runs)
+    effects = _effects_by_run(runs)
+    table = across_suites_table(runs, effects)
     parts = [
         f"# R_img and success across {len(runs)} runs, by suite",
         "",
@@ -350,19 +360,23 @@ def _compare_across_suites(
         *ui_lines,
     ]
     if out is not None:
-        parts += _write_heatmap(runs, Path(out))
+        parts += _write_heatmap(runs, Path(out), pd.concat(effects, ignore_index=True))
         (Path(out) / "compare.md").write_text("\n".join(parts) + "\n")
     return "\n".join(parts) + "\n", table
 
 
-def _write_heatmap(runs: list[RunEpisodes], out: Path) -> list[str]:
+def _write_heatmap(
+    runs: list[RunEpisodes], out: Path, effects: pd.DataFrame | None = None
+) -> list[str]:
     """The R_img heatmap (backbone x suite) across the runs' diagnose cells, saved in ``out``;
-    the lines that embed it (none where no run has a diagnose cell)."""
+    the lines that embed it (none where no run has a diagnose cell). ``effects``: the runs'
+    diagnose effects where the caller read them already."""
     from pipeline.reporting.figures import rimg_heatmap, save
     from pipeline.reporting.run_data import rimg_matrix, runs_effects
 
     out.mkdir(parents=True, exist_ok=True)
-    effects = runs_effects([r.run_dir for r in runs if r.run_dir is not None])
+    if effects is None:
+        effects = runs_effects([r.run_dir for r in runs if r.run_dir is not None])
     if effects.empty:
         return []
     save(rimg_heatmap(rimg_matrix(effects)), out / FIGURES_DIR / "rimg_heatmap.png")

@@ -150,7 +150,7 @@ def reference_diagnose(frame: pd.DataFrame) -> str | None:
     return str((zero or sorted(cells.index))[0])
 
 
-EPS = 1e-6
+EPS = agg.RIMG_EPS
 
 
 MAX_EVENTS = 5  # k-th close / open events drawn, k <= this

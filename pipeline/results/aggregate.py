@@ -31,6 +31,10 @@ MULTINOMIAL_MAX_DISTINCT = 64  # bootstrap by counts per distinct value up to th
 RATE_COLUMNS = ("success_rate", "ci_low", "ci_high")
 
 
+# the floor of R_img = mean E_img / (mean E_img + mean E_prop + RIMG_EPS) wherever it is computed
+RIMG_EPS = 1e-6
+
+
 def wilson(successes: int, n: int, confidence: float = Z95) -> tuple[float, float]:
     """Wilson score interval of successes / n (without continuity correction)."""
     if n == 0:

@@ -15,11 +15,11 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from pipeline.results.aggregate import RIMG_EPS as EPS
 from pipeline.results.aggregate import bootstrap_mean_ci, reference_cell
 from workers.envs.suites.libero.pro.families import FAMILIES, ORIGINAL, split_suite
 
 FAMILY_ORDER = (ORIGINAL, *FAMILIES)
-EPS = 1e-6  # as pipeline.reporting.run_data's R_img
 
 
 def tag(episodes: pd.DataFrame) -> pd.DataFrame:

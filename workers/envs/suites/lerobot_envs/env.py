@@ -137,6 +137,14 @@ class _OneOfVector:
         except AttributeError:
             return None
 
+    @property
+    def sub_env(self) -> Any | None:
+        """The one sub-env, unwrapped (None where the vector env does not expose it)."""
+        try:
+            return self.vec.envs[0].unwrapped
+        except (AttributeError, IndexError):
+            return None
+
     def attr(self, name: str) -> Any:
         """The sub-env's attribute ``name`` (None where it has none), without calling it."""
         try:
@@ -174,28 +182,26 @@ def mujoco_data(env: _OneOfVector) -> Any | None:
         return None
     import mujoco
 
-    try:
-        sub = env.vec.envs[0].unwrapped
-    except (AttributeError, IndexError):
-        return None
-    for obj in (sub, getattr(sub, "_env", None)):
-        for data in (
-            getattr(obj, "data", None),
-            getattr(getattr(getattr(obj, "physics", None), "data", None), "ptr", None),
-        ):
-            if isinstance(data, mujoco.MjData):
-                return data
+    sub = env.sub_env
+    physics = _dm_control_physics(env)
+    for data in (
+        getattr(sub, "data", None),
+        getattr(getattr(sub, "_env", None), "data", None),
+        getattr(getattr(physics, "data", None), "ptr", None),
+    ):
+        if isinstance(data, mujoco.MjData):
+            return data
     return None
 
 
 def _dm_control_physics(env: _OneOfVector) -> Any | None:
     """The dm_control ``Physics`` under a lerobot env that has one (ALOHA), else None."""
-    try:
-        sub = env.vec.envs[0].unwrapped
-    except (AttributeError, IndexError):
-        return None
-    physics = getattr(getattr(sub, "_env", None), "physics", None)
-    return physics if hasattr(physics, "free") else None
+    sub = env.sub_env
+    for obj in (sub, getattr(sub, "_env", None)):
+        physics = getattr(obj, "physics", None)
+        if hasattr(physics, "free"):
+            return physics
+    return None
 
 
 def _unbatch(obs: Any) -> Any:
