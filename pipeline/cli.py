@@ -24,11 +24,18 @@ if TYPE_CHECKING:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    from pipeline.execution.claim import misplaced_keys_note
     from pipeline.execution.runner import execute, plan_run
     from pipeline.planning.config import load_config
     from pipeline.reporting.markdown import protocol_line
 
-    cfg = load_config(args.config, args.overrides)
+    try:
+        cfg = load_config(args.config, args.overrides)
+    except ConfigError as e:
+        note = misplaced_keys_note(Path(args.out)) if args.out else None
+        if note is None:
+            raise
+        raise ConfigError(f"{e}\n  {note}") from None
     run_dir = Path(args.out) if args.out else Path(cfg.output_root) / cfg.name
     _import_logging_libraries(cfg)
     plan = plan_run(

@@ -96,6 +96,36 @@ def _adopt(cfg: RunConfig, run_dir: Path, stored: RunStore) -> str:
     return str(run_id)
 
 
+def misplaced_keys_note(run_dir: Path) -> str | None:
+    """What a run dir's episodes ran with, where its config.yaml put intervention keys under
+    ``idr:`` (accepted once and silently overridden by the ``intervention:`` defaults; refused
+    now): its stored episodes' own columns say which settings were used."""
+    from pipeline.planning.config import safe_load_yaml
+    from pipeline.planning.grid import INTERVENTION_KEYS
+
+    saved = run_dir / CONFIG_YAML
+    if not saved.is_file():
+        return None
+    try:
+        data = safe_load_yaml(saved.read_text()) or {}
+    except Exception:  # an unreadable config.yaml: nothing to add to the config's own error
+        return None
+    idr = data.get("idr") if isinstance(data, dict) else None
+    misplaced = [k for k in (idr or {}) if k in INTERVENTION_KEYS]
+    if not misplaced:
+        return None
+    stored = RunStore(run_dir, read_only=True)
+    table = stored.episodes(columns=misplaced)
+    ran = {k: sorted({str(v) for v in table.column(k).to_pylist()}) for k in misplaced}
+    said = ", ".join(f"idr.{k}={idr[k]!r}" for k in misplaced)
+    used = ", ".join(f"{k} {'/'.join(v) or '(none stored)'}" for k, v in ran.items())
+    return (
+        f"{run_dir}/{CONFIG_YAML} says {said}, but its {table.num_rows} stored episodes ran with "
+        f"{used} (their own columns): those keys were ignored under idr:. Resuming would mix "
+        "two settings; rerun into a new --out with the keys under intervention:"
+    )
+
+
 def check_run_dir_intact(run_dir: Path, markers: tuple[str, ...] = MARKERS) -> None:
     """Raise RunDirLostError when the run dir lost ``markers`` (deleted mid-run)."""
     missing = [n for n in markers if not (run_dir / n).exists()]

@@ -165,11 +165,23 @@ class RunConfig(StrictModel):
     @field_validator("idr")
     @classmethod
     def _idr_keys(cls, v: dict[str, Any]) -> dict[str, Any]:
-        from pipeline.planning.grid import CELL_KEYS
+        from pipeline.planning.grid import IDR_KEYS
 
         for key in v:
-            if key not in CELL_KEYS:
-                raise ValueError(f"unknown IDR parameter {key!r}; allowed: {sorted(CELL_KEYS)}")
+            if key in INTERVENTION_KEYS:
+                # idr: holds the refiner's settings only; an intervention key here used to be
+                # overridden by the intervention: defaults without a word
+                raise ValueError(
+                    f"{key!r} is an intervention setting, not a refiner one: write it under "
+                    f"intervention: {{{key}: {v[key]!r}}} (or as a grid axis, e.g. "
+                    f"grid=[{{mode: [diagnose, E]}}, {{{key}: [...]}}])"
+                )
+            if key not in IDR_KEYS:
+                close = difflib.get_close_matches(key, IDR_KEYS, n=1)
+                hint = f"did you mean {close[0]!r}? " if close else ""
+                raise ValueError(
+                    f"unknown IDR parameter {key!r}; {hint}allowed: {sorted(IDR_KEYS)}"
+                )
         if "tau" in v:
             from pipeline.planning.grid import parse_tau
 

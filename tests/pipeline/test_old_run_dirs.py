@@ -61,3 +61,26 @@ def test_an_old_run_dir_reports_compares_and_resumes_like_a_new_one(tmp_path) ->
         "baseline": True,
     }
     assert agg.success_by_perturbation(resumed).equals(agg.success_by_perturbation(new))
+
+
+def test_a_run_dir_whose_config_misplaced_an_intervention_key_is_refused_naming_what_ran(
+    tmp_path, capsys
+) -> None:
+    """``idr: {strategy: mean}`` was accepted and ran with strategy zero; such a run dir is
+    refused on resume, and the refusal reads what its episodes actually ran with."""
+    import yaml
+
+    from pipeline.cli import main
+
+    cfg = load_config(CONF / "smoke.yaml", [*OVERRIDES[:3], "env.tasks=[reach]"])
+    run_dir = tmp_path / "run"
+    execute(plan_run(cfg, run_dir))
+    saved = yaml.safe_load((run_dir / "config.yaml").read_text())
+    saved["idr"] = {**saved.get("idr", {}), "strategy": "mean"}  # as an old driver stored it
+    (run_dir / "config.yaml").write_text(yaml.safe_dump(saved))
+    (tmp_path / "old.yaml").write_text(yaml.safe_dump(saved))
+    assert main(["run", str(tmp_path / "old.yaml"), "--out", str(run_dir)]) == 2
+    err = capsys.readouterr().err
+    assert "'strategy' is an intervention setting" in err
+    stored = RunStore(run_dir, read_only=True).stored_count()
+    assert f"its {stored} stored episodes ran with strategy zero" in err

@@ -75,7 +75,13 @@ def test_unknown_key_suggests_closest() -> None:
             {"intervention": {"strategy": "blur"}},
             r"intervention.strategy: .*'zero', 'mean' or 'gaussian'",
         ),
-        ({"idr": {"alhpa": 0.1}}, r"idr: unknown IDR parameter 'alhpa'"),
+        ({"idr": {"alhpa": 0.1}}, r"idr: unknown IDR parameter 'alhpa'; did you mean 'alpha'"),
+        # an intervention key under idr: was once overridden by the intervention: defaults
+        (
+            {"idr": {"strategy": "mean"}},
+            r"'strategy' is an intervention setting.*intervention: \{strategy: 'mean'\}",
+        ),
+        ({"idr": {"image_space": "raw"}}, r"'image_space' is an intervention setting"),
         ({"idr": {"alpha": -0.1}}, r"alpha=-0.1 must be a number >= 0"),
         ({"grid": [{"mode": ["Q"]}]}, r"mode='Q' is unknown"),
         ({"backbone": {}}, r"backbone.kind: required field is missing"),

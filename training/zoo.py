@@ -1,0 +1,303 @@
+"""The zoo: lerobot architectures trained by lerobot's own trainer on the same demonstrations.
+
+One launcher for every member, so a run is resumable across sessions and every checkpoint is
+made the same way:
+
+    python -m training.zoo train act          # lerobot-train, resumed from its last checkpoint
+    python -m training.zoo export act         # checkpoints/zoo/act: the last checkpoint + card data
+    python -m training.zoo list               # members, their flags and their state
+
+``train`` runs ``lerobot-train`` (offline, CPU unless ``--device``) with the member's flags, and
+``--resume=true`` when the run folder already holds a checkpoint: a session that is stopped
+loses at most ``save_freq`` steps. The member's small widths are plain ``--policy.*`` flags; the
+dataset's features are checked against the member before any work. ``export`` copies the
+``pretrained_model`` folder of the last checkpoint (config, safetensors, processors: what
+lerobot's factory loads) and writes ``train_meta.json`` beside it (steps, seed, wall time, the
+machine's CPU, the dataset's summary).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DATASET = Path("data/zoo/tabletop")
+RUNS = Path("data/zoo/runs")
+SHIPPED = Path("checkpoints/zoo")
+
+# the features every member is trained on: the tabletop suite's two cameras at 96 px, its 8-d
+# state and 7-d end-effector action (training/tabletop_demos.py writes them)
+TABLETOP_FEATURES = {
+    "observation.images.agentview": [96, 96, 3],
+    "observation.images.wrist": [96, 96, 3],
+    "observation.state": [8],
+    "action": [7],
+}
+
+
+@dataclass(frozen=True)
+class Member:
+    """One zoo architecture: its lerobot policy type and the flags that make it small."""
+
+    policy_type: str
+    flags: tuple[str, ...]
+    steps: int  # training steps of the shipped checkpoint (sized to ~60-90 min of 2 cores)
+    batch_size: int
+    language: bool  # whether the class conditions on the instruction
+    save_freq: int = 1000
+    features: dict[str, list[int]] = field(default_factory=lambda: dict(TABLETOP_FEATURES))
+
+
+MEMBERS: dict[str, Member] = {
+    # ACT from scratch (no ImageNet download): a 2+1-layer transformer of width 256 over a
+    # ResNet-18 per camera; chunks of 8, 4 executed (as the tiny VLA). No instruction input.
+    "act": Member(
+        "act",
+        (
+            "--policy.pretrained_backbone_weights=null",
+            "--policy.chunk_size=8",
+            "--policy.n_action_steps=4",
+            "--policy.dim_model=256",
+            "--policy.dim_feedforward=1024",
+            "--policy.n_encoder_layers=2",
+            "--policy.n_decoder_layers=1",
+            "--policy.optimizer_lr=1e-4",
+            "--policy.optimizer_lr_backbone=1e-4",
+        ),
+        steps=6000,
+        batch_size=32,
+        language=False,
+    ),
+    # Diffusion Policy from scratch: a small 1-D UNet (64-128-256) over a ResNet-18 with group
+    # norm (required without pretrained weights); DDIM with 10 steps, so the three IDR passes can
+    # share their noise exactly. No instruction input.
+    "diffusion": Member(
+        "diffusion",
+        (
+            "--policy.pretrained_backbone_weights=null",
+            "--policy.use_group_norm=true",
+            "--policy.horizon=16",
+            "--policy.n_action_steps=8",
+            "--policy.down_dims=[64,128,256]",
+            "--policy.noise_scheduler_type=DDIM",
+            "--policy.num_inference_steps=10",
+        ),
+        steps=6000,
+        batch_size=32,
+        language=False,
+    ),
+}
+
+
+def dataset_features(root: Path) -> dict[str, list[int]]:
+    info = root / "meta" / "info.json"
+    if not info.is_file():
+        raise SystemExit(
+            f"--dataset {root}: no LeRobotDataset there (meta/info.json missing); record it with "
+            "`bash scripts/record_zoo_data.sh` (about 15 minutes on 2 cores)"
+        )
+    feats = json.loads(info.read_text())["features"]
+    return {k: list(v["shape"]) for k, v in feats.items()}
+
+
+def check_features(name: str, member: Member, root: Path) -> None:
+    """Stop before training when the dataset lacks a feature the member is built for."""
+    have = dataset_features(root)
+    wrong = {
+        k: (shape, have.get(k)) for k, shape in member.features.items() if have.get(k) != shape
+    }
+    if wrong:
+        detail = "; ".join(f"{k}: wants {w}, dataset has {h}" for k, (w, h) in wrong.items())
+        raise SystemExit(
+            f"--dataset {root} does not fit zoo member {name!r} ({detail}); record the zoo's "
+            "dataset with `bash scripts/record_zoo_data.sh` or pick a member built for it"
+        )
+
+
+def run_dir(name: str, seed: int) -> Path:
+    return RUNS / f"{name}_seed{seed}"
+
+
+def last_checkpoint(out: Path) -> Path | None:
+    last = out / "checkpoints" / "last"
+    return last if (last / "pretrained_model" / "config.json").is_file() else None
+
+
+def train_command(name: str, member: Member, args: argparse.Namespace) -> list[str]:
+    out = run_dir(name, args.seed)
+    exe = str(Path(sys.executable).with_name("lerobot-train"))
+    last = last_checkpoint(out)
+    if last is not None:
+        # lerobot resumes from the saved train config (policy, optimizer, step, data order)
+        return [
+            exe,
+            f"--config_path={last / 'pretrained_model' / 'train_config.json'}",
+            "--resume=true",
+            f"--steps={args.steps or member.steps}",
+        ]
+    return [
+        exe,
+        "--dataset.repo_id=local/zoo_tabletop",
+        f"--dataset.root={args.dataset}",
+        f"--policy.type={member.policy_type}",
+        f"--policy.device={args.device}",
+        "--policy.push_to_hub=false",
+        *member.flags,
+        f"--output_dir={out}",
+        f"--job_name=zoo_{name}",
+        f"--seed={args.seed}",
+        f"--steps={args.steps or member.steps}",
+        f"--batch_size={member.batch_size}",
+        f"--save_freq={member.save_freq}",
+        "--log_freq=100",
+        f"--num_workers={args.num_workers}",
+        "--wandb.enable=false",
+    ]
+
+
+def offline_env(threads: int) -> dict[str, str]:
+    env = dict(os.environ)
+    env.update(
+        HF_HUB_OFFLINE="1",
+        HF_DATASETS_OFFLINE="1",
+        TRANSFORMERS_OFFLINE="1",
+        OMP_NUM_THREADS=str(threads),
+        MKL_NUM_THREADS=str(threads),
+    )
+    return env
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def cmd_train(args: argparse.Namespace) -> None:
+    member = _member(args.name)
+    check_features(args.name, member, args.dataset)
+    out = run_dir(args.name, args.seed)
+    cmd = train_command(args.name, member, args)
+    print(" ".join(cmd), flush=True)
+    t0 = time.perf_counter()
+    rc = subprocess.call(cmd, cwd=ROOT, env=offline_env(args.threads))
+    # wall time accumulates over resumed sessions (the model card states the total)
+    log = out / "zoo_sessions.jsonl"
+    if out.exists():
+        with log.open("a") as f:
+            f.write(
+                json.dumps(
+                    {
+                        "seconds": round(time.perf_counter() - t0, 1),
+                        "rc": rc,
+                        "cpu": cpu_model(),
+                        "threads": args.threads,
+                        "command": cmd,
+                    }
+                )
+                + "\n"
+            )
+    raise SystemExit(rc)
+
+
+def cmd_export(args: argparse.Namespace) -> None:
+    member = _member(args.name)
+    out = run_dir(args.name, args.seed)
+    last = last_checkpoint(out)
+    if last is None:
+        raise SystemExit(
+            f"no checkpoint of {args.name!r} under {out}; train it first: "
+            f"python -m training.zoo train {args.name}"
+        )
+    dest = args.dest or SHIPPED / args.name
+    if dest.exists():
+        shutil.rmtree(dest)
+    shutil.copytree(last / "pretrained_model", dest)
+    (dest / "train_config.json").unlink(missing_ok=True)  # holds this machine's paths
+    step = json.loads((last / "training_state" / "training_step.json").read_text())["step"]
+    sessions = [
+        json.loads(line) for line in (out / "zoo_sessions.jsonl").read_text().splitlines() if line
+    ]
+    from safetensors.torch import load_file
+
+    params = sum(t.numel() for t in load_file(dest / "model.safetensors").values())
+    parts = DATASET / "meta" / "zoo_parts.json"
+    meta = {
+        "member": args.name,
+        "policy_type": member.policy_type,
+        "language": member.language,
+        "flags": list(member.flags),
+        "batch_size": member.batch_size,
+        "steps": step,
+        "seed": args.seed,
+        "params": params,
+        "train_seconds": round(sum(s["seconds"] for s in sessions), 1),
+        "sessions": len(sessions),
+        "machines": sorted({s["cpu"] for s in sessions}),
+        "threads": sorted({s["threads"] for s in sessions}),
+        "dataset": json.loads(parts.read_text()) if parts.is_file() else str(DATASET),
+        "trainer": "lerobot-train (lerobot 0.6.1) via python -m training.zoo train",
+    }
+    (dest / "train_meta.json").write_text(json.dumps(meta, indent=2) + "\n")
+    print(json.dumps(meta, indent=2))
+
+
+def cmd_list(_args: argparse.Namespace) -> None:
+    for name, m in MEMBERS.items():
+        last = last_checkpoint(run_dir(name, 0))
+        state = "not trained"
+        if last is not None:
+            step = json.loads((last / "training_state" / "training_step.json").read_text())
+            state = f"step {step['step']} of {m.steps}"
+        shipped = "shipped" if (SHIPPED / name / "config.json").is_file() else "not shipped"
+        print(f"{name:10s} {m.policy_type:10s} {state:22s} {shipped}")
+
+
+def _member(name: str) -> Member:
+    if name not in MEMBERS:
+        import difflib
+
+        close = difflib.get_close_matches(name, MEMBERS, n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise SystemExit(f"unknown zoo member {name!r}{hint}; members: {sorted(MEMBERS)}")
+    return MEMBERS[name]
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="verb", required=True)
+    t = sub.add_parser("train", help="train (or resume) one member with lerobot-train")
+    t.add_argument("name")
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--steps", type=int, default=None, help="override the member's steps")
+    t.add_argument("--dataset", type=Path, default=DATASET)
+    t.add_argument("--device", default="cpu")
+    t.add_argument("--threads", type=int, default=2)
+    t.add_argument("--num-workers", type=int, default=0)
+    t.set_defaults(func=cmd_train)
+    e = sub.add_parser("export", help="copy the last checkpoint to checkpoints/zoo/NAME")
+    e.add_argument("name")
+    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--dest", type=Path, default=None)
+    e.set_defaults(func=cmd_export)
+    sub.add_parser("list", help="members and their state").set_defaults(func=cmd_list)
+    args = ap.parse_args(argv)
+    os.chdir(ROOT)
+    args.func(args)
+
+
+if __name__ == "__main__":
+    main()
