@@ -6,7 +6,7 @@ one process, with the real env, backbone and IDR wrapper, timing:
 * ``physics``: ``env.step`` (robosuite/MuJoCo substeps, controller, task progress);
 * ``render_and_convert``: building the policy observation, which is where lazy images render
   (the tiny VLA reads both cameras at every inference, i.e. every ``replan_steps`` steps);
-* ``inference``: ``IDRPolicy.infer`` (the backbone's processors, the batched 3B forward in
+* ``inference``: ``IDRWrapper.infer`` (the backbone's processors, the batched 3B forward in
   diagnose/E cells or one forward in baseline cells, and the refiner);
 * ``reset``: ``env.reset`` (the first reset of a task builds its robosuite scene);
 * ``other``: the rest of the episode loop (row building, action checks);

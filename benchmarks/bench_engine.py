@@ -29,7 +29,7 @@ from pipeline.results import aggregate as agg
 from pipeline.results.store import RunStore
 from workers.envs.base import TaskSpec
 from workers.episode import EpisodeResult, EpisodeRow, EpisodeSpec, StepRow
-from workers.idr import IDRConfig
+from workers.idr import RefinerConfig
 from workers.interventions import InterventionConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -89,7 +89,7 @@ def store_rate(episodes: int, steps_per_episode: int, batch: int) -> dict[str, A
     results = []
     for i in range(episodes):
         spec = EpisodeSpec(
-            "r", f"c{i % 4}", IDRConfig(), InterventionConfig(), task, i, 0, "fake_marker"
+            "r", f"c{i % 4}", RefinerConfig(), InterventionConfig(), task, i, 0, "fake_marker"
         )
         ep = EpisodeRow.from_spec(spec, success=True)
         steps = [

@@ -1,7 +1,7 @@
 """IDR's three passes on a GPU: one backbone call vs one batched 3B forward vs three calls.
 
 The protocol of bench_idr_passes.py (the three variants interleaved round by round, medians),
-on an accelerator: each timed ``IDRPolicy.infer`` starts and ends with
+on an accelerator: each timed ``IDRWrapper.infer`` starts and ends with
 ``torch.cuda.synchronize()``; ``wall`` is perf_counter around it (what an actor waits for),
 ``gpu`` is CUDA events recorded around it on the current stream. Observations start on the
 host (as envs produce them); the backbones copy them to the device. Backbones:
@@ -237,16 +237,16 @@ def measure(
     warmup: int,
     autocast: torch.dtype | None = None,
 ) -> dict[str, Any]:
-    from workers.idr import IDRConfig
-    from workers.idr_policy import IDRPolicy
+    from workers.idr import RefinerConfig
+    from workers.idr_wrapper import IDRWrapper
     from workers.interventions import InterventionConfig
 
     state_space = "normalized" if "normalized" in backbone.native_intervention_spaces else "raw"
     iv = InterventionConfig(state_space=state_space)
     pols = {
-        "single": IDRPolicy(backbone, IDRConfig(mode="baseline"), iv),
-        "batched_3pass": IDRPolicy(backbone, IDRConfig(mode="E"), iv, batched=True),
-        "sequential_3pass": IDRPolicy(backbone, IDRConfig(mode="E"), iv, batched=False),
+        "single": IDRWrapper(backbone, RefinerConfig(mode="baseline"), iv),
+        "batched_3pass": IDRWrapper(backbone, RefinerConfig(mode="E"), iv, batched=True),
+        "sequential_3pass": IDRWrapper(backbone, RefinerConfig(mode="E"), iv, batched=False),
     }
     cuda = device.type == "cuda"
     ctx = (
@@ -422,7 +422,7 @@ def main() -> None:
     results: dict[str, Any] = {
         "machine": {**_machine(device), "hidden_broken_optional": hidden},
         "protocol": (
-            "IDRPolicy.infer timed per call: cuda synchronize, perf_counter + CUDA events, "
+            "IDRWrapper.infer timed per call: cuda synchronize, perf_counter + CUDA events, "
             "sync; variants interleaved (order rotated per round); medians over rounds "
             "after warmup. single = mode baseline (1 pass of B), batched_3pass = one 3B "
             "forward, sequential_3pass = three B forwards; IDR mode E, do(V)/do(S) = zero. "

@@ -84,11 +84,11 @@ def supply(
     backbone: Any, device: torch.device, batches: list[int], rounds: int, warmup: int
 ) -> dict[str, Any]:
     """μ(B) without and with IDR's triple for one built model (eager or compiled)."""
-    from workers.idr import IDRConfig
-    from workers.idr_policy import IDRPolicy
+    from workers.idr import RefinerConfig
+    from workers.idr_wrapper import IDRWrapper
 
-    single = IDRPolicy(backbone, IDRConfig(mode="baseline"))
-    triple = IDRPolicy(backbone, IDRConfig(mode="E", tau=1e9), batched=True)
+    single = IDRWrapper(backbone, RefinerConfig(mode="baseline"))
+    triple = IDRWrapper(backbone, RefinerConfig(mode="E", tau=1e9), batched=True)
     per_b: dict[str, Any] = {}
     first_call_s = None
     warmup_s = 0.0

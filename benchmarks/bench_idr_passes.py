@@ -23,8 +23,8 @@ import torch
 
 from workers.backbones.base import Observation
 from workers.backbones.fakes import FakeMarkerBackbone
-from workers.idr import IDRConfig
-from workers.idr_policy import IDRPolicy
+from workers.idr import RefinerConfig
+from workers.idr_wrapper import IDRWrapper
 
 RESULTS = Path(__file__).parent / "results" / "idr_passes.json"
 
@@ -88,10 +88,10 @@ def _obs(image_size: int, state_dim: int, seed: int = 0) -> Observation:
 
 
 def measure(backbone: Any, obs: Observation, rounds: int, warmup: int = 3) -> dict[str, Any]:
-    cfg = IDRConfig(mode="E")
-    single = IDRPolicy(backbone, IDRConfig(mode="baseline"))
-    batched = IDRPolicy(backbone, cfg, batched=True)
-    sequential = IDRPolicy(backbone, cfg, batched=False)
+    cfg = RefinerConfig(mode="E")
+    single = IDRWrapper(backbone, RefinerConfig(mode="baseline"))
+    batched = IDRWrapper(backbone, cfg, batched=True)
+    sequential = IDRWrapper(backbone, cfg, batched=False)
     variants = {"single": single, "batched_3pass": batched, "sequential_3pass": sequential}
     times: dict[str, list[float]] = {k: [] for k in variants}
     for r in range(warmup + rounds):

@@ -9,7 +9,7 @@
    copy, alternate; a core steps n t_sim / (n t_sim + L) of the time. shared: 2 actors with
    4 envs each (threads) and one policy actor; a core steps while its other envs' requests are
    away. Env steps per second, the same simulators and cores.
-3. Round trip per inference on one node (batch_wait_ms 0): PolicyServiceClient.infer vs IDRPolicy.infer
+3. Round trip per inference on one node (batch_wait_ms 0): PolicyServiceClient.infer vs IDRWrapper.infer
    in this process, the fake backbone (so the difference is the service's cost).
 4. A model of one GPU node from these and the GPU figures already measured.
 
@@ -39,7 +39,7 @@ NS = (1, 2, 4, 8, 16, 32)
 
 def _requests(n: int, cameras: dict[str, int], state_dim: int) -> list[Any]:
     from workers.backbones.base import Observation
-    from workers.idr import IDRConfig
+    from workers.idr import RefinerConfig
     from workers.interventions import InterventionConfig
     from workers.policy_service import InferRequest
 
@@ -52,7 +52,7 @@ def _requests(n: int, cameras: dict[str, int], state_dim: int) -> list[Any]:
                 ["pick up the red cube"],
             ),
             i,
-            IDRConfig(mode="E"),
+            RefinerConfig(mode="E"),
             InterventionConfig(),
         )
         for i in range(n)
@@ -63,7 +63,7 @@ def batching(rounds: int) -> dict[str, Any]:
     from bench_idr_passes import ACTBenchBackbone
 
     from workers.backbones.factory import make_backbone
-    from workers.idr_policy import IDRPolicy
+    from workers.idr_wrapper import IDRWrapper
     from workers.policy_service import infer_many
 
     backbones = {
@@ -76,7 +76,7 @@ def batching(rounds: int) -> dict[str, Any]:
     }
     out: dict[str, Any] = {}
     for name, (backbone, cams, state_dim) in backbones.items():
-        policy = IDRPolicy(backbone)
+        policy = IDRWrapper(backbone)
         rows = []
         for n in NS:
             reqs = _requests(n, cams, state_dim)
@@ -182,8 +182,8 @@ def round_trip(calls: int) -> dict[str, float]:
 
     from workers.backbones.fakes import FakeMarkerBackbone
     from workers.envs.fakes import FakeMarkerEnv
-    from workers.idr import IDRConfig
-    from workers.idr_policy import IDRPolicy
+    from workers.idr import RefinerConfig
+    from workers.idr_wrapper import IDRWrapper
     from workers.observation import to_policy_observation
     from workers.policy_actor import PolicyServiceClient, policy_actor_class
 
@@ -191,12 +191,12 @@ def round_trip(calls: int) -> dict[str, float]:
         ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     actor = policy_actor_class(1, 0).remote("fake_marker", {"chunk_len": 4}, None, 32, 0.0)
     remote = PolicyServiceClient(actor, ray.get(actor.describe.remote()))
-    local = IDRPolicy(FakeMarkerBackbone(chunk_len=4))
+    local = IDRWrapper(FakeMarkerBackbone(chunk_len=4))
     env = FakeMarkerEnv()
     obs = to_policy_observation(env.reset("reach", 0, 0), env.instruction)
     times: dict[str, list[float]] = {"local": [], "remote": []}
     for policy, key in ((local, "local"), (remote, "remote")):
-        policy.set_config(IDRConfig(mode="E"))
+        policy.set_config(RefinerConfig(mode="E"))
         policy.infer(obs, 0)
         for i in range(calls):
             t0 = time.perf_counter()

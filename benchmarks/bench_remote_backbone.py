@@ -59,9 +59,9 @@ def _port() -> int:
 
 
 def measure(policy: Any, obs: Any, calls: int) -> float:
-    from workers.idr import IDRConfig
+    from workers.idr import RefinerConfig
 
-    policy.set_config(IDRConfig(mode="E"))
+    policy.set_config(RefinerConfig(mode="E"))
     policy.infer(obs, 0)
     times = []
     for i in range(calls):
@@ -77,7 +77,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
     from workers.backbones.websocket.client import WebsocketBackbone
-    from workers.idr_policy import IDRPolicy
+    from workers.idr_wrapper import IDRWrapper
     from workers.observation import to_policy_observation
 
     rng = np.random.default_rng(0)
@@ -88,7 +88,7 @@ def main() -> None:
         state=rng.standard_normal(8).astype(np.float32),
     )
     obs = to_policy_observation(raw, "pick up the red cube")
-    rows: dict[str, float] = {"in_process_ms": measure(IDRPolicy(InProcess()), obs, args.calls)}
+    rows: dict[str, float] = {"in_process_ms": measure(IDRWrapper(InProcess()), obs, args.calls)}
     for label, flags in (("three_requests_ms", []), ("one_batched_request_ms", ["--batch"])):
         port = _port()
         server = subprocess.Popen(
@@ -100,7 +100,7 @@ def main() -> None:
         try:
             assert server.stdout is not None and server.stdout.readline().strip() == "ready"
             backbone = WebsocketBackbone(port=port, key_map=KEYS)
-            rows[label] = measure(IDRPolicy(backbone), obs, args.calls)
+            rows[label] = measure(IDRWrapper(backbone), obs, args.calls)
             backbone.close()
         finally:
             server.kill()

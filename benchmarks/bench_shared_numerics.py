@@ -45,7 +45,7 @@ PATHS: dict[str, int | str | None] = {
 
 def _requests(n: int, backbone: Any) -> list[Any]:
     from workers.backbones.base import Observation
-    from workers.idr import IDRConfig
+    from workers.idr import RefinerConfig
     from workers.interventions import InterventionConfig
     from workers.policy_service import InferRequest
 
@@ -59,7 +59,7 @@ def _requests(n: int, backbone: Any) -> list[Any]:
                 ["pick up the red cube"],
             ),
             i,
-            IDRConfig(mode="E", tau=0.5),
+            RefinerConfig(mode="E", tau=0.5),
             InterventionConfig(state_space="normalized"),
         )
         for i in range(n)
@@ -70,7 +70,7 @@ def forward_cost(rounds: int) -> dict[str, Any]:
     from tests.workers.backbones.lerobot_fixtures import build_act
     from workers.backbones.factory import make_backbone
     from workers.forward_shape import fix_forward_shape, set_torch_threads
-    from workers.idr_policy import IDRPolicy
+    from workers.idr_wrapper import IDRWrapper
     from workers.policy_service import infer_many
 
     set_torch_threads(1)
@@ -85,7 +85,7 @@ def forward_cost(rounds: int) -> dict[str, Any]:
     for name, params in models.items():
         policies = {}
         for path, rows in PATHS.items():
-            policy = IDRPolicy(make_backbone("lerobot", params))
+            policy = IDRWrapper(make_backbone("lerobot", params))
             fix_forward_shape(policy, rows if rows != "dynamic" else None, 1)
             policies[path] = policy
         table = []

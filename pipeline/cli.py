@@ -191,7 +191,7 @@ def _cmd_ui(args: argparse.Namespace) -> int:
     printing the Compare URL of their cells (``--open``: opened in a browser)."""
     import subprocess
 
-    from pipeline.tracking.store import check_store, default_uri
+    from pipeline.tracking.backend import check_store, default_uri
     from pipeline.tracking.ui import LOCAL_HOSTS, remote_ui_help, select, ui_base
 
     sel = None

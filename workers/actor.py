@@ -84,7 +84,7 @@ class EpisodeWorker:
         from workers.backbones.factory import make_backbone
         from workers.envs.factory import make_env
         from workers.forward_shape import fix_forward_shape, set_torch_threads
-        from workers.idr_policy import IDRPolicy
+        from workers.idr_wrapper import IDRWrapper
 
         if spec.policy_actor is not None:  # shared: the model lives in a policy actor
             import ray
@@ -99,7 +99,7 @@ class EpisodeWorker:
         else:
             set_torch_threads(spec.torch_threads)
             self.backbone = make_backbone(spec.backbone_kind, spec.backbone_params)
-            self.policy = IDRPolicy(self.backbone, batched=spec.batched)
+            self.policy = IDRWrapper(self.backbone, batched=spec.batched)
             self.numerics = fix_forward_shape(self.policy, spec.forward_rows, spec.torch_threads)
             self.cameras = backbone_member(self.backbone, "cameras")  # None: all the env has
         self.env = make_env(spec.env_suite, spec.env_params, spec.env_server, spec.perturbations)

@@ -17,7 +17,7 @@ from typing import Annotated, Any
 
 from workers.envs.base import TaskSpec
 from workers.envs.server.client import ServerSpec
-from workers.idr import IDRConfig
+from workers.idr import RefinerConfig
 from workers.interventions import InterventionConfig
 
 F32 = Annotated[float, "float32"]  # a float stored as float32 (step tables are large)
@@ -64,7 +64,7 @@ class EpisodeSpec:
 
     run_id: str
     cell_id: str
-    idr: IDRConfig
+    idr: RefinerConfig
     intervention: InterventionConfig
     task: TaskSpec  # its ``suite`` is set (the env's suite name where the task names none)
     episode_index: int

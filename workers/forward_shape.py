@@ -130,7 +130,7 @@ class FixedShapeBackbone:
 
 
 def fix_forward_shape(policy: Any, rows: int | str | None, threads: int | None) -> str:
-    """Give ``policy`` (an IDRPolicy) forwards of ``rows`` rows where that means anything (a
+    """Give ``policy`` (an IDRWrapper) forwards of ``rows`` rows where that means anything (a
     local backbone that batches its passes); the label of the numerical path it then follows."""
     remote = bool(getattr(policy.backbone, "remote", False))
     if isinstance(rows, int) and policy.batched and not remote:

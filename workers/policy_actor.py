@@ -8,7 +8,7 @@ queueing, so the next batch starts at once. Ray restarts a policy
 actor that dies (``max_restarts``) and retries the calls it held (``max_task_retries``): a
 request is a pure function of its content, so a retry gives the same answer.
 
-:class:`PolicyServiceClient` is what an episode worker holds instead of an ``IDRPolicy`` in shared
+:class:`PolicyServiceClient` is what an episode worker holds instead of an ``IDRWrapper`` in shared
 mode: the same ``set_config`` / ``reset`` / ``infer``, one Ray call per inference (never per
 env step), the observation sent once as numpy.
 """
@@ -23,8 +23,8 @@ from typing import Any
 import numpy as np
 
 from workers.backbones.base import Observation
-from workers.idr import IDRConfig
-from workers.idr_policy import IDRStep
+from workers.idr import RefinerConfig
+from workers.idr_wrapper import IDRStep
 from workers.interventions import InterventionConfig
 from workers.policy_service import InferRequest, PolicyWorker
 
@@ -164,16 +164,18 @@ def _image_bytes(image: Any) -> Any:
 
 
 class PolicyServiceClient:
-    """The IDRPolicy interface over a policy actor (see the module docstring)."""
+    """The IDRWrapper interface over a policy actor (see the module docstring)."""
 
     def __init__(self, handle: Any, info: dict[str, Any]) -> None:
         self.handle = handle
         self.info = info
-        self.cfg = IDRConfig()
+        self.cfg = RefinerConfig()
         self.intervention = InterventionConfig()
         self.batched = bool(info.get("batched"))
 
-    def set_config(self, cfg: IDRConfig, intervention: InterventionConfig | None = None) -> None:
+    def set_config(
+        self, cfg: RefinerConfig, intervention: InterventionConfig | None = None
+    ) -> None:
         self.cfg = cfg
         if intervention is not None:
             self.intervention = intervention

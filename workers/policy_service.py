@@ -2,7 +2,7 @@
 
 A request is one episode's inference: its observation (a batch of one), its step seed and its
 IDR cell (config and intervention). :func:`infer_many` builds the rows of all requests (the
-factual one, and for IDR cells the do(V) and do(S) ones, exactly as ``IDRPolicy.infer`` builds
+factual one, and for IDR cells the do(V) and do(S) ones, exactly as ``IDRWrapper.infer`` builds
 them), runs the backbone once over all of them, each row with its own request's noise (drawn
 from its own step seed: common random numbers per episode and inference, as in-actor), splits
 the output and refines each request with its own config. So an episode's actions never depend
@@ -32,8 +32,8 @@ from workers.forward_shape import (
     fix_forward_shape,
     set_torch_threads,
 )
-from workers.idr import Diagnostics, IDRConfig, refine
-from workers.idr_policy import IDRPolicy, IDRStep
+from workers.idr import Diagnostics, RefinerConfig, refine
+from workers.idr_wrapper import IDRStep, IDRWrapper
 from workers.interventions import InterventionConfig
 
 
@@ -43,7 +43,7 @@ class InferRequest:
 
     obs: Observation  # a batch of one, numpy arrays (images float (1, 3, H, W), state (1, S))
     step_seed: int
-    idr: IDRConfig
+    idr: RefinerConfig
     intervention: InterventionConfig
 
 
@@ -73,7 +73,7 @@ def to_numpy_step(step: IDRStep) -> IDRStep:
 
 
 def infer_many(
-    policy: IDRPolicy, requests: list[InferRequest], by_instruction: bool = False
+    policy: IDRWrapper, requests: list[InferRequest], by_instruction: bool = False
 ) -> list[IDRStep]:
     """Every request answered; one backbone forward per group of requests that share how the
     backbone applies interventions (all of them, unless some use normalized-space ones), and
@@ -102,7 +102,7 @@ def infer_many(
     return [answers[i] for i in range(len(requests))]
 
 
-def _one_forward(policy: IDRPolicy, group: list[tuple[int, InferRequest]]) -> dict[int, IDRStep]:
+def _one_forward(policy: IDRWrapper, group: list[tuple[int, InferRequest]]) -> dict[int, IDRStep]:
     backbone = policy.backbone
     t0 = time.perf_counter()
     rows: list[Observation] = []
@@ -184,7 +184,7 @@ class PolicyWorker:
 
         set_torch_threads(threads)
         self.backbone = make_backbone(kind, params)
-        self.policy = IDRPolicy(self.backbone, batched=batched)
+        self.policy = IDRWrapper(self.backbone, batched=batched)
         self.numerics = fix_forward_shape(self.policy, rows, threads)
         self.rows = self.policy.backbone.rows if self.policy.backbone is not self.backbone else None
         self.refusal: NumericsError | None = None  # the backbone failed the row check

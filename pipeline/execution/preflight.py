@@ -147,10 +147,10 @@ def check_cell_budget(cfg: RunConfig, n_tasks: int | None = None, yes: bool = Fa
 
 
 def check_tracking(cfg: RunConfig, run_dir: Path) -> None:
-    """The MLflow store, before anything of the run is created (pipeline.tracking.store.check_uri)."""
+    """The MLflow store, before anything of the run is created (pipeline.tracking.backend.check_uri)."""
     if not cfg.tracking.enabled:
         return
-    from pipeline.tracking.store import check_uri, resolve_uri
+    from pipeline.tracking.backend import check_uri, resolve_uri
 
     try:
         check_uri(resolve_uri(cfg.tracking.uri, run_dir))

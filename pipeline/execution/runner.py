@@ -254,7 +254,7 @@ def _read_once(run_dir: Path) -> RunData | None:
 
 def _open_tracker(plan: RunPlan) -> Tracker | None:
     """The run's MLflow runs, opened (and on resume reopened) before any actor starts."""
-    from pipeline.tracking.store import resolve_uri
+    from pipeline.tracking.backend import resolve_uri
     from pipeline.tracking.tracker import Tracker
 
     cfg = plan.cfg

@@ -23,10 +23,10 @@ import re
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
-from workers.idr import IDRConfig
+from workers.idr import RefinerConfig
 from workers.interventions import InterventionConfig
 
-IDR_KEYS = tuple(f.name for f in fields(IDRConfig))
+IDR_KEYS = tuple(f.name for f in fields(RefinerConfig))
 INTERVENTION_KEYS = tuple(f.name for f in fields(InterventionConfig) if f.name != "seed")
 CELL_KEYS = frozenset(IDR_KEYS + INTERVENTION_KEYS)
 
@@ -126,7 +126,7 @@ class Cell:
     """One IDR configuration of a grid."""
 
     cell_id: str
-    idr: IDRConfig
+    idr: RefinerConfig
     intervention: InterventionConfig
     varied: tuple[tuple[str, Any], ...]  # the grid parameters that made this cell, in order
     # tau: calibrated[...] -> tau is set, after the diagnose cell ran, from the effect it
@@ -248,7 +248,7 @@ def expand_grid(groups: list[dict[str, Any]], base: dict[str, Any] | None = None
         if tau_spec is not None:
             params["tau"] = 0.0  # placeholder until calibration
         try:
-            idr = IDRConfig(**{k: params[k] for k in IDR_KEYS if k in params})
+            idr = RefinerConfig(**{k: params[k] for k in IDR_KEYS if k in params})
             iv = InterventionConfig(**{k: params[k] for k in INTERVENTION_KEYS if k in params})
         except (TypeError, ValueError) as e:
             raise ValueError(f"grid cell {dict(varied)}: {e}") from None

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, overload
 
 from workers.envs.base import TaskSpec
 from workers.episode import EpisodeSpec, WorkerSpec
-from workers.idr import IDRConfig
+from workers.idr import RefinerConfig
 from workers.interventions import InterventionConfig
 
 if TYPE_CHECKING:
@@ -27,7 +27,7 @@ if TYPE_CHECKING:
 @dataclass(frozen=True)
 class CellPlan:
     cell_id: str
-    idr: IDRConfig
+    idr: RefinerConfig
     intervention: InterventionConfig
     # after calibration: tau per suite, set on each task's specs (None: idr.tau as it is)
     tau_by_suite: Mapping[str, float] | None = None

@@ -48,7 +48,7 @@ def tag(episodes: pd.DataFrame) -> pd.DataFrame:
 
 
 @dataclass(frozen=True)
-class Cell:
+class FamilyEntry:
     """One suite x family entry of one cell."""
 
     n: int
@@ -68,16 +68,16 @@ def _paired(df: pd.DataFrame, family: str) -> tuple[np.ndarray, int]:
     return d, len(d)
 
 
-def _entry(df: pd.DataFrame, family: str) -> Cell:
+def _entry(df: pd.DataFrame, family: str) -> FamilyEntry:
     rows = df[df["family"] == family]
     success = float(rows["success"].mean()) if len(rows) else float("nan")
     if family == ORIGINAL:
-        return Cell(len(rows), success)
+        return FamilyEntry(len(rows), success)
     d, n = _paired(df, family)
     if not n:
-        return Cell(len(rows), success)
+        return FamilyEntry(len(rows), success)
     lo, hi = bootstrap_mean_ci(d)
-    return Cell(len(rows), success, float(d.mean()), lo, hi, n)
+    return FamilyEntry(len(rows), success, float(d.mean()), lo, hi, n)
 
 
 def families_present(tagged: pd.DataFrame) -> list[str]:
@@ -86,11 +86,11 @@ def families_present(tagged: pd.DataFrame) -> list[str]:
     return ordered + sorted(present - set(ordered))
 
 
-def table(tagged: pd.DataFrame, cell: str) -> dict[str, dict[str, Cell]]:
-    """base suite (and ``all``) -> family -> Cell, for one cell of the run."""
+def table(tagged: pd.DataFrame, cell: str) -> dict[str, dict[str, FamilyEntry]]:
+    """base suite (and ``all``) -> family -> FamilyEntry, for one cell of the run."""
     df = tagged[tagged["cell_id"] == cell]
     fams = families_present(tagged)
-    out: dict[str, dict[str, Cell]] = {}
+    out: dict[str, dict[str, FamilyEntry]] = {}
     for base in sorted(df["base"].unique(), key=_suite_order):
         g = df[df["base"] == base]
         out[base] = {f: _entry(g, f) for f in fams if (g["family"] == f).any()}

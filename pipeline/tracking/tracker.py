@@ -40,6 +40,7 @@ import pandas as pd
 
 from pipeline.results import aggregate as agg
 from pipeline.rundir import FIGURES_DIR, TRACKING_FILE, VIDEOS_DIR, write_text_atomic
+from pipeline.tracking.backend import answers, bounded_client, probe, sqlite_path, store_lock
 from pipeline.tracking.metrics import (
     cell_metrics,
     cells_table,
@@ -49,7 +50,6 @@ from pipeline.tracking.metrics import (
     rounded,
     task_tables,
 )
-from pipeline.tracking.store import answers, bounded_client, probe, sqlite_path, store_lock
 
 if TYPE_CHECKING:
     from pipeline.reporting.run_data import RunData

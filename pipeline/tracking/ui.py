@@ -90,7 +90,7 @@ def select(run_dirs: list[Path], cells: dict[Path, set[str]] | None = None) -> S
 def _experiments_of(uri: str, run_ids: list[str]) -> list[str]:
     if not run_ids:
         return []
-    from pipeline.tracking.store import answers, bounded_client
+    from pipeline.tracking.backend import answers, bounded_client
 
     if uri.startswith(("http://", "https://")) and not answers(uri):
         return []  # a server out of reach: the URL without its experiments still opens

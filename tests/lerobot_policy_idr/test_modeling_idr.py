@@ -27,16 +27,16 @@ def _base(path):
 
 
 def _harness(base, tau: float):
-    """idr-eval's IDRPolicy around its lerobot backbone of ``base``, mode E, do(S) in
+    """idr-eval's IDRWrapper around its lerobot backbone of ``base``, mode E, do(S) in
     normalized space (the plugin's default)."""
     from workers.backbones.lerobot import LerobotBackbone
-    from workers.idr import IDRConfig
-    from workers.idr_policy import IDRPolicy
+    from workers.idr import RefinerConfig
+    from workers.idr_wrapper import IDRWrapper
     from workers.interventions import InterventionConfig
 
     backbone = LerobotBackbone(str(base))
-    policy = IDRPolicy(
-        backbone, IDRConfig(mode="E", tau=tau), InterventionConfig(state_space="normalized")
+    policy = IDRWrapper(
+        backbone, RefinerConfig(mode="E", tau=tau), InterventionConfig(state_space="normalized")
     )
     return backbone, policy
 
@@ -100,7 +100,7 @@ def test_diagnose_executes_the_base_row_of_the_three_pass_forward(bases, tmp_pat
 @pytest.mark.parametrize("kind", ["act", "diffusion"])
 def test_mode_E_equals_the_harness_exactly(bases, tmp_path, kind) -> None:
     """The same checkpoint, observation and noise: the plugin's refined chunk and diagnostics
-    equal idr-eval's IDRPolicy around its lerobot backbone, bit for bit."""
+    equal idr-eval's IDRWrapper around its lerobot backbone, bit for bit."""
     from workers.backbones.base import Observation
 
     tau = "1e9"  # the gate on for every row: the refinement is exercised

@@ -50,12 +50,12 @@ def _worker(replan_steps: int = 3, **backbone: object):
 def _spec(task_id: str, episode: int, mode: str = "E"):
     from workers.envs.factory import suite_tasks
     from workers.episode import EpisodeSpec
-    from workers.idr import IDRConfig
+    from workers.idr import RefinerConfig
     from workers.interventions import InterventionConfig
 
     (task,) = [t for t in suite_tasks("fake_marker", {}) if t.task_id == task_id]
     return EpisodeSpec(
-        "r", mode, IDRConfig(mode=mode), InterventionConfig(), task, episode, 0, "fake"
+        "r", mode, RefinerConfig(mode=mode), InterventionConfig(), task, episode, 0, "fake"
     )
 
 

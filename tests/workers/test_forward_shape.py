@@ -1,6 +1,6 @@
 """Forwards of one fixed shape on real networks (the tiny VLA, ACT built offline): a row's actions
 are bit-identical whatever its position and batch mates, through the policy service whatever the
-batch it arrives in, and equal to an in-actor IDRPolicy's on the same shape; a backbone whose
+batch it arrives in, and equal to an in-actor IDRWrapper's on the same shape; a backbone whose
 rows interact is refused."""
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ from workers.forward_shape import (
     set_torch_threads,
     take_rows,
 )
-from workers.idr import IDRConfig
-from workers.idr_policy import IDRPolicy
+from workers.idr import RefinerConfig
+from workers.idr_wrapper import IDRWrapper
 from workers.interventions import InterventionConfig
 from workers.policy_service import InferRequest, PolicyWorker
 
@@ -93,7 +93,7 @@ def test_a_backbone_whose_rows_interact_is_refused_naming_why() -> None:
 INSTRUCTIONS = ("pick up the red block", "put all the blocks in the bin one by one")
 
 
-def _request(backbone, seed: int, idr: IDRConfig) -> InferRequest:
+def _request(backbone, seed: int, idr: RefinerConfig) -> InferRequest:
     o = _obs(backbone, 1, seed)
     text = [INSTRUCTIONS[seed % 3 == 0]]  # two lengths: the tiny VLA packs its RNN by length
     plain = Observation({k: v.numpy() for k, v in o.images.items()}, o.state.numpy(), text)
@@ -102,10 +102,10 @@ def _request(backbone, seed: int, idr: IDRConfig) -> InferRequest:
 
 def test_the_service_answers_a_request_the_same_in_any_batch_and_as_in_actor(real) -> None:
     """Fixed shape: the same step for a request alone, first or last among others (with other
-    instructions, of other lengths), in another order; and the same as an in-actor IDRPolicy
+    instructions, of other lengths), in another order; and the same as an in-actor IDRWrapper
     given forwards of the same rows."""
     worker = PolicyWorker(*real, rows=12, threads=1)
-    e, base = IDRConfig(mode="E", tau=0.5), IDRConfig(mode="baseline")
+    e, base = RefinerConfig(mode="E", tau=0.5), RefinerConfig(mode="baseline")
     reqs = [_request(worker.backbone, s, e) for s in range(1, 7)]
     first = worker.infer_many(reqs)
     again = worker.infer_many(reqs[::-1])[::-1]
@@ -118,7 +118,7 @@ def test_the_service_answers_a_request_the_same_in_any_batch_and_as_in_actor(rea
         assert np.array_equal(a.action, b.action) and np.array_equal(a.action, c.action)
         assert np.array_equal(a.a_base, c.a_base)
     assert worker.refusal is None and worker.numerics == "rows=12 threads=1"
-    policy = IDRPolicy(make_backbone(*real))
+    policy = IDRWrapper(make_backbone(*real))
     assert fix_forward_shape(policy, 12, 1) == "rows=12 threads=1"
     policy.set_config(e, InterventionConfig(state_space="normalized"))
     req = reqs[0]
@@ -140,7 +140,10 @@ def test_a_fixed_shape_service_refuses_every_request_of_a_backbone_whose_rows_in
     monkeypatch.setattr(factory, "make_backbone", lambda kind, params: FakeMixingBackbone())
     worker = PolicyWorker("fake", {}, rows=6)
     req = InferRequest(
-        Observation({}, np.ones((1, 4), np.float32), ["x"]), 0, IDRConfig(), InterventionConfig()
+        Observation({}, np.ones((1, 4), np.float32), ["x"]),
+        0,
+        RefinerConfig(),
+        InterventionConfig(),
     )
     answers = worker.infer_each([req, req])
     assert all(isinstance(a, NumericsError) for a in answers)

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from workers.idr import MODES, IDRConfig, refine
+from workers.idr import MODES, RefinerConfig, refine
 
 
 def test_hand_computed_case_full_method() -> None:
@@ -19,7 +19,7 @@ def test_hand_computed_case_full_method() -> None:
     a_base = np.array([[1.0, 1.0]])
     a_no_img = np.array([[-2.0, -3.0]])
     a_no_prop = np.array([[0.7, 1.4]])
-    cfg = IDRConfig(alpha=0.1, beta=0.2, lam=0.1, tau=6.0, eps=0.0 + 1e-6)
+    cfg = RefinerConfig(alpha=0.1, beta=0.2, lam=0.1, tau=6.0, eps=0.0 + 1e-6)
     a_final, diag = refine(a_base, a_no_img, a_no_prop, cfg)
     # gate: 5 < 6 -> 1; w = 0.2 * min(1, 0.5 / 5) = 0.02; u = clip((0.3, -0.4), -.1, .1) = (.1, -.1)
     expected = np.array([[1.0 + 0.1 * 3 + 0.02 * 0.1, 1.0 + 0.1 * 4 - 0.02 * 0.1]])
@@ -36,7 +36,7 @@ def test_hand_computed_case_chunk_norm_over_all_trailing_dims() -> None:
     a_base = np.zeros((2, 2, 2))
     a_no_img = np.stack([-np.ones((2, 2)), -3 * np.ones((2, 2))])
     a_no_prop = np.zeros((2, 2, 2))
-    cfg = IDRConfig(alpha=0.5, tau=3.0)
+    cfg = RefinerConfig(alpha=0.5, tau=3.0)
     a_final, diag = refine(a_base, a_no_img, a_no_prop, cfg)
     np.testing.assert_allclose(diag.e_img, [2.0, 6.0])
     np.testing.assert_array_equal(diag.gate, [1.0, 0.0])
@@ -49,7 +49,7 @@ def test_stabilizer_weight_saturates_at_beta() -> None:
     a_base = np.array([[0.0, 0.0]])
     a_no_img = np.array([[-0.1, 0.0]])  # e_img 0.1
     a_no_prop = np.array([[-2.0, 0.0]])  # e_prop 2, clipped to 0.1
-    cfg = IDRConfig(alpha=0.0, beta=0.05, lam=0.1, tau=1.0)
+    cfg = RefinerConfig(alpha=0.0, beta=0.05, lam=0.1, tau=1.0)
     a_final, diag = refine(a_base, a_no_img, a_no_prop, cfg)
     assert diag.w_prop[0] == pytest.approx(0.05)
     np.testing.assert_allclose(a_final, [[0.05 * 0.1, 0.0]])
@@ -66,9 +66,9 @@ def _triples(shape: tuple[int, ...]):
 @given(_triples((3, 4, 2)), st.sampled_from(["A", "B", "C", "E", "F"]))
 def test_gate_closed_means_base_action_exactly(triple, mode) -> None:
     a_base, a_no_img, a_no_prop = triple
-    _, probe = refine(a_base, a_no_img, a_no_prop, IDRConfig())
+    _, probe = refine(a_base, a_no_img, a_no_prop, RefinerConfig())
     tau = float(probe.e_img.min())  # every e_img >= tau -> gate closed everywhere
-    a_final, diag = refine(a_base, a_no_img, a_no_prop, IDRConfig(tau=tau, mode=mode))
+    a_final, diag = refine(a_base, a_no_img, a_no_prop, RefinerConfig(tau=tau, mode=mode))
     assert (diag.gate == 0).all()
     np.testing.assert_array_equal(a_final, a_base)
 
@@ -81,7 +81,7 @@ def test_gate_closed_means_base_action_exactly(triple, mode) -> None:
 )
 def test_zero_strengths_give_base_action(triple, mode, guidance) -> None:
     a_base, a_no_img, a_no_prop = triple
-    cfg = IDRConfig(alpha=0.0, beta=0.0, tau=math.inf, mode=mode, guidance=guidance)
+    cfg = RefinerConfig(alpha=0.0, beta=0.0, tau=math.inf, mode=mode, guidance=guidance)
     a_final, _ = refine(a_base, a_no_img, a_no_prop, cfg)
     np.testing.assert_array_equal(a_final, a_base)
 
@@ -91,10 +91,16 @@ def test_zero_strengths_give_base_action(triple, mode, guidance) -> None:
 def test_mode_f_is_mode_e_with_negated_strengths(triple, alpha, beta, guidance) -> None:
     a_base, a_no_img, a_no_prop = (x.astype(np.float64) for x in triple)
     f, _ = refine(
-        a_base, a_no_img, a_no_prop, IDRConfig(alpha=alpha, beta=beta, mode="F", guidance=guidance)
+        a_base,
+        a_no_img,
+        a_no_prop,
+        RefinerConfig(alpha=alpha, beta=beta, mode="F", guidance=guidance),
     )
     e, _ = refine(
-        a_base, a_no_img, a_no_prop, IDRConfig(alpha=alpha, beta=beta, mode="E", guidance=guidance)
+        a_base,
+        a_no_img,
+        a_no_prop,
+        RefinerConfig(alpha=alpha, beta=beta, mode="E", guidance=guidance),
     )
     # F's correction is exactly the negative of E's.
     np.testing.assert_allclose(f - a_base, -(e - a_base), atol=1e-12)
@@ -104,7 +110,7 @@ def test_mode_f_is_mode_e_with_negated_strengths(triple, alpha, beta, guidance) 
 @given(_triples((3, 2, 2)), st.sampled_from(["A", "B", "C", "D", "E", "F"]))
 def test_proprio_guidance_swaps_roles(triple, mode) -> None:
     a_base, a_no_img, a_no_prop = (x.astype(np.float64) for x in triple)
-    cfg = IDRConfig(alpha=0.3, beta=0.2, tau=4.0, mode=mode)
+    cfg = RefinerConfig(alpha=0.3, beta=0.2, tau=4.0, mode=mode)
     visual_swapped, d1 = refine(a_base, a_no_prop, a_no_img, cfg)  # inputs swapped
     proprio, d2 = refine(a_base, a_no_img, a_no_prop, cfg.with_(guidance="proprio"))
     np.testing.assert_allclose(proprio, visual_swapped, atol=1e-12)
@@ -137,7 +143,10 @@ def test_modes_against_the_equations() -> None:
     assert set(expected) == set(MODES)
     for mode, want in expected.items():
         got, _ = refine(
-            a_base, a_no_img, a_no_prop, IDRConfig(alpha=al, beta=be, lam=lam, tau=tau, mode=mode)
+            a_base,
+            a_no_img,
+            a_no_prop,
+            RefinerConfig(alpha=al, beta=be, lam=lam, tau=tau, mode=mode),
         )
         np.testing.assert_allclose(got, want, atol=1e-12, err_msg=mode)
 
@@ -145,13 +154,13 @@ def test_modes_against_the_equations() -> None:
 def test_diagnose_mode_reports_the_gate_it_would_apply() -> None:
     a_base = np.array([[0.0], [0.0]])
     a_no_img = np.array([[-1.0], [-10.0]])
-    _, diag = refine(a_base, a_no_img, a_base.copy(), IDRConfig(mode="diagnose", tau=7.0))
+    _, diag = refine(a_base, a_no_img, a_base.copy(), RefinerConfig(mode="diagnose", tau=7.0))
     np.testing.assert_array_equal(diag.gate, [1.0, 0.0])
 
 
 def test_eps_keeps_zero_effect_finite() -> None:
     a = np.ones((2, 3), dtype=np.float32)
-    a_final, diag = refine(a, a.copy(), a - 0.5, IDRConfig(mode="E"))
+    a_final, diag = refine(a, a.copy(), a - 0.5, RefinerConfig(mode="E"))
     assert np.isfinite(a_final).all()
     for v in diag.to_numpy().values():
         assert np.isfinite(v).all()
@@ -170,7 +179,7 @@ def test_torch_dtype_device_shape_preserved(shape, dtype) -> None:
         a_base, a_no_img, a_no_prop = (
             torch.randn(shape, generator=gen).to(device=device, dtype=dtype) for _ in range(3)
         )
-        a_final, diag = refine(a_base, a_no_img, a_no_prop, IDRConfig(tau=100.0))
+        a_final, diag = refine(a_base, a_no_img, a_no_prop, RefinerConfig(tau=100.0))
         assert (
             a_final.shape == a_base.shape
             and a_final.dtype == dtype
@@ -185,7 +194,7 @@ def test_torch_dtype_device_shape_preserved(shape, dtype) -> None:
 def test_numpy_dtype_shape_preserved_and_matches_torch(shape, dtype) -> None:
     rng = np.random.default_rng(1)
     triple = [rng.normal(size=shape).astype(dtype) for _ in range(3)]
-    cfg = IDRConfig(tau=float(np.sqrt(np.prod(shape[1:]))) * 1.4)
+    cfg = RefinerConfig(tau=float(np.sqrt(np.prod(shape[1:]))) * 1.4)
     a_np, d_np = refine(*triple, cfg)
     a_t, d_t = refine(*(torch.from_numpy(x) for x in triple), cfg)
     assert a_np.shape == shape and a_np.dtype == dtype
@@ -200,12 +209,12 @@ def test_numpy_dtype_shape_preserved_and_matches_torch(shape, dtype) -> None:
 
 def test_shape_mismatch_names_the_shapes() -> None:
     with pytest.raises(ValueError, match=r"shapes differ.*a_no_prop"):
-        refine(np.zeros((2, 3)), np.zeros((2, 3)), np.zeros((2, 4)), IDRConfig())
+        refine(np.zeros((2, 3)), np.zeros((2, 3)), np.zeros((2, 4)), RefinerConfig())
 
 
 def test_unbatched_action_is_refused() -> None:
     with pytest.raises(ValueError, match=r"a_base.*batch first"):
-        refine(np.zeros(3), np.zeros(3), np.zeros(3), IDRConfig())
+        refine(np.zeros(3), np.zeros(3), np.zeros(3), RefinerConfig())
 
 
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
@@ -214,17 +223,17 @@ def test_non_finite_action_names_the_field(bad, which) -> None:
     arrays_ = {k: np.zeros((2, 3)) for k in ("a_base", "a_no_img", "a_no_prop")}
     arrays_[which][1, 2] = bad
     with pytest.raises(ValueError, match=rf"{which} contains NaN or inf"):
-        refine(arrays_["a_base"], arrays_["a_no_img"], arrays_["a_no_prop"], IDRConfig())
+        refine(arrays_["a_base"], arrays_["a_no_img"], arrays_["a_no_prop"], RefinerConfig())
 
 
 def test_mixed_numpy_and_torch_refused() -> None:
     with pytest.raises(ValueError, match="all be numpy arrays or all torch"):
-        refine(np.zeros((1, 2)), torch.zeros(1, 2), np.zeros((1, 2)), IDRConfig())
+        refine(np.zeros((1, 2)), torch.zeros(1, 2), np.zeros((1, 2)), RefinerConfig())
 
 
 def test_integer_actions_refused() -> None:
     with pytest.raises(ValueError, match="floating point"):
-        refine(*(np.zeros((1, 2), dtype=np.int64) for _ in range(3)), IDRConfig())
+        refine(*(np.zeros((1, 2), dtype=np.int64) for _ in range(3)), RefinerConfig())
 
 
 @pytest.mark.parametrize(
@@ -246,14 +255,23 @@ def test_integer_actions_refused() -> None:
 )
 def test_bad_config_names_field_and_allowed_values(field, value, pattern) -> None:
     with pytest.raises(ValueError, match=pattern):
-        IDRConfig(**{field: value})
+        RefinerConfig(**{field: value})
 
 
 def test_config_defaults_are_the_papers() -> None:
-    cfg = IDRConfig()
+    cfg = RefinerConfig()
     assert (cfg.alpha, cfg.beta, cfg.lam, cfg.tau, cfg.eps) == (0.08, 0.05, 0.1, 7.0, 1e-6)
     assert (cfg.mode, cfg.guidance) == ("E", "visual")
-    assert not IDRConfig(mode="baseline").needs_counterfactuals
+    assert not RefinerConfig(mode="baseline").needs_counterfactuals
     assert (
-        IDRConfig(mode="diagnose").needs_counterfactuals and not IDRConfig(mode="diagnose").refines
+        RefinerConfig(mode="diagnose").needs_counterfactuals
+        and not RefinerConfig(mode="diagnose").refines
     )
+
+
+def test_the_old_name_of_the_refiner_settings_still_imports_with_a_warning() -> None:
+    import workers.idr as idr
+
+    with pytest.warns(FutureWarning, match=r"now workers.idr.RefinerConfig"):
+        old = idr.IDRConfig
+    assert old is RefinerConfig

@@ -9,8 +9,8 @@ import torch
 
 from workers.backbones.fakes import FakeMarkerBackbone
 from workers.envs.fakes import FakeMarkerEnv
-from workers.idr import IDRConfig
-from workers.idr_policy import IDRPolicy
+from workers.idr import RefinerConfig
+from workers.idr_wrapper import IDRWrapper
 from workers.observation import image_to_tensor, to_policy_observation
 from workers.policy_actor import PolicyServiceClient, _image_bytes, policy_actor_class
 
@@ -34,7 +34,7 @@ def test_concurrent_requests_share_forwards_and_get_their_own_answers(ray_local)
     observations = [
         to_policy_observation(env.reset("reach", e, 0), env.instruction) for e in range(12)
     ]
-    remote.set_config(IDRConfig(mode="E"))
+    remote.set_config(RefinerConfig(mode="E"))
     from workers.policy_service import InferRequest
 
     refs = [
@@ -46,7 +46,7 @@ def test_concurrent_requests_share_forwards_and_get_their_own_answers(ray_local)
                     o.instruction,
                 ),
                 100 + i,
-                IDRConfig(mode="E"),
+                RefinerConfig(mode="E"),
                 remote.intervention,
             )
         )
@@ -55,8 +55,8 @@ def test_concurrent_requests_share_forwards_and_get_their_own_answers(ray_local)
     answers = ray_local.get(refs)
     stats = ray_local.get(actor.stats.remote())
     assert stats["requests"] == 12 and stats["forwards"] < 12  # batched while the first computed
-    local = IDRPolicy(FakeMarkerBackbone(**params))
-    local.set_config(IDRConfig(mode="E"))
+    local = IDRWrapper(FakeMarkerBackbone(**params))
+    local.set_config(RefinerConfig(mode="E"))
     for i, (o, got) in enumerate(zip(observations, answers, strict=True)):
         want = local.infer(o, 100 + i)
         assert np.array_equal(got.action, want.action.numpy())

@@ -1,5 +1,5 @@
 """The policy service's batched forward: many episodes' requests in one backbone call give each
-episode exactly what its own IDRPolicy.infer gives (same actions, same diagnostics)."""
+episode exactly what its own IDRWrapper.infer gives (same actions, same diagnostics)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import torch
 from workers.backbones.base import Observation
 from workers.backbones.fakes import FakeMarkerBackbone
 from workers.envs.fakes import FakeMarkerEnv
-from workers.idr import IDRConfig
-from workers.idr_policy import IDRPolicy
+from workers.idr import RefinerConfig
+from workers.idr_wrapper import IDRWrapper
 from workers.interventions import InterventionConfig
 from workers.observation import to_policy_observation
 from workers.policy_service import InferRequest, PolicyWorker, infer_many, to_numpy_step
@@ -20,10 +20,10 @@ from workers.policy_service import InferRequest, PolicyWorker, infer_many, to_nu
 def _requests(n: int) -> list[InferRequest]:
     env = FakeMarkerEnv()
     cells = [
-        (IDRConfig(mode="baseline"), InterventionConfig()),
-        (IDRConfig(mode="E"), InterventionConfig()),
-        (IDRConfig(mode="diagnose", alpha=0.2), InterventionConfig(strategy="gaussian")),
-        (IDRConfig(mode="A", tau=0.5), InterventionConfig(strategy="mean")),
+        (RefinerConfig(mode="baseline"), InterventionConfig()),
+        (RefinerConfig(mode="E"), InterventionConfig()),
+        (RefinerConfig(mode="diagnose", alpha=0.2), InterventionConfig(strategy="gaussian")),
+        (RefinerConfig(mode="A", tau=0.5), InterventionConfig(strategy="mean")),
     ]
     out = []
     for i in range(n):
@@ -47,10 +47,10 @@ def _same(a, b) -> bool:
 def test_one_forward_for_many_episodes_gives_each_its_own_answer(noise_std):
     backbone = FakeMarkerBackbone(chunk_len=4, gain=5.0, noise_std=noise_std)
     requests = _requests(12)
-    batched = infer_many(IDRPolicy(backbone), requests)
+    batched = infer_many(IDRWrapper(backbone), requests)
     assert backbone.calls == [3 * 9 + 3]  # one forward: 9 IDR cells x 3 rows + 3 baselines
     for req, got in zip(requests, batched, strict=True):
-        alone = IDRPolicy(FakeMarkerBackbone(chunk_len=4, gain=5.0, noise_std=noise_std))
+        alone = IDRWrapper(FakeMarkerBackbone(chunk_len=4, gain=5.0, noise_std=noise_std))
         alone.set_config(req.idr, req.intervention)
         assert _same(got, alone.infer(req.obs, req.step_seed))
         assert got.crn == (noise_std > 0)
@@ -59,9 +59,9 @@ def test_one_forward_for_many_episodes_gives_each_its_own_answer(noise_std):
 def test_an_answer_does_not_depend_on_its_batch_mates():
     requests = _requests(8)
     backbone = FakeMarkerBackbone(chunk_len=4, gain=5.0, noise_std=0.3)
-    together = infer_many(IDRPolicy(backbone), requests)
-    reordered = infer_many(IDRPolicy(backbone), requests[::-1])[::-1]
-    apart = [infer_many(IDRPolicy(backbone), [r])[0] for r in requests]
+    together = infer_many(IDRWrapper(backbone), requests)
+    reordered = infer_many(IDRWrapper(backbone), requests[::-1])[::-1]
+    apart = [infer_many(IDRWrapper(backbone), [r])[0] for r in requests]
     assert all(
         _same(a, b) and _same(a, c) for a, b, c in zip(together, reordered, apart, strict=True)
     )
@@ -71,7 +71,7 @@ def test_a_backbone_that_cannot_batch_answers_request_by_request():
     backbone = FakeMarkerBackbone(chunk_len=4, gain=5.0)
     backbone.can_batch = False
     requests = _requests(4)
-    infer_many(IDRPolicy(backbone), requests)
+    infer_many(IDRWrapper(backbone), requests)
     assert backbone.calls == [1] + [1] * 9  # the baseline: 1 pass; each IDR cell: 3 passes
 
 
@@ -93,7 +93,7 @@ def test_the_worker_answers_numpy_to_numpy_requests():
     ]
     got = worker.infer_many(plain)
     assert all(isinstance(s.action, np.ndarray) for s in got)
-    expected = infer_many(IDRPolicy(worker.backbone), requests)
+    expected = infer_many(IDRWrapper(worker.backbone), requests)
     assert all(_same(a, b) for a, b in zip(got, expected, strict=True))
     assert worker.describe()["batched"] is True and worker.forwards == 1
     assert torch.is_tensor(requests[0].obs.state)  # the caller's requests are left as they were

@@ -63,20 +63,22 @@ class RefinerConfig:
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
-            raise ValueError(f"IDRConfig.mode={self.mode!r} is unknown; allowed values: {MODES}")
+            raise ValueError(
+                f"RefinerConfig.mode={self.mode!r} is unknown; allowed values: {MODES}"
+            )
         if self.guidance not in GUIDANCES:
             raise ValueError(
-                f"IDRConfig.guidance={self.guidance!r} is unknown; allowed values: {GUIDANCES}"
+                f"RefinerConfig.guidance={self.guidance!r} is unknown; allowed values: {GUIDANCES}"
             )
         for name in ("alpha", "beta", "lam", "tau"):
             value = getattr(self, name)
             if not isinstance(value, int | float) or math.isnan(value) or value < 0:
                 raise ValueError(
-                    f"IDRConfig.{name}={value!r} must be a number >= 0 "
+                    f"RefinerConfig.{name}={value!r} must be a number >= 0 "
                     "(mode 'F' negates alpha and beta itself; tau may be inf for 'always on')"
                 )
         if not isinstance(self.eps, int | float) or not (0 < self.eps < math.inf):
-            raise ValueError(f"IDRConfig.eps={self.eps!r} must be a finite number > 0")
+            raise ValueError(f"RefinerConfig.eps={self.eps!r} must be a finite number > 0")
 
     @property
     def needs_counterfactuals(self) -> bool:

@@ -55,7 +55,7 @@ def test_infinite_tau_name() -> None:
     [
         ([{"alpha": [0.1, 0.2], "tau": [1]}], r"grid\[0\]: lists in one group .* equal lengths"),
         ([{"alhpa": [0.1]}], r"grid\[0\]: unknown parameter 'alhpa'"),
-        ([{"mode": ["Z"]}], r"grid cell \{'mode': 'Z'\}: IDRConfig.mode='Z' is unknown"),
+        ([{"mode": ["Z"]}], r"grid cell \{'mode': 'Z'\}: RefinerConfig.mode='Z' is unknown"),
         ([{"alpha": [-1.0]}], r"alpha=-1.0 must be a number >= 0"),
         ([{"strategy": ["blur"]}], r"intervention.strategy='blur' is unknown"),
         ([{"alpha": []}], r"empty value list"),

@@ -14,7 +14,7 @@ import pytest
 from pipeline import cli
 from pipeline.execution.runner import execute, plan_run
 from pipeline.planning.config import ConfigError, load_config
-from pipeline.tracking.store import check_store
+from pipeline.tracking.backend import check_store
 from pipeline.tracking.ui import Selection, select
 
 CONF = Path(__file__).resolve().parents[3] / "conf"
@@ -80,7 +80,7 @@ def _with_revision(tracked: Path, tmp_path: Path, revision: str) -> str:
 
 
 def test_a_store_of_another_mlflow_version_is_named(tracked, tmp_path) -> None:
-    from pipeline.tracking.store import _schema_revisions
+    from pipeline.tracking.backend import _schema_revisions
 
     check_store(f"sqlite:///{tracked.parent / 'mlflow.db'}")  # this MLflow's: fine
     known, head = _schema_revisions()

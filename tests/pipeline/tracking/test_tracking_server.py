@@ -23,7 +23,7 @@ from pipeline.planning.config import load_config
 from pipeline.results.store import RunStore
 from pipeline.rundir import TRACKING_FILE
 from pipeline.tracking import tracker as tracking
-from pipeline.tracking.store import default_uri
+from pipeline.tracking.backend import default_uri
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from localcluster import MlflowServer, Postgres, postgres_bin

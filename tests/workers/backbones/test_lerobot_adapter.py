@@ -16,8 +16,8 @@ from lerobot_fixtures import build_act, build_diffusion
 
 from pipeline.planning.config import ConfigError
 from workers.backbones.base import Observation
-from workers.idr import IDRConfig
-from workers.idr_policy import IDRPolicy
+from workers.idr import RefinerConfig
+from workers.idr_wrapper import IDRWrapper
 from workers.interventions import InterventionConfig
 
 pytestmark = pytest.mark.slow
@@ -57,9 +57,9 @@ def test_act_loads_with_processors_and_predicts_chunks(ckpts) -> None:
 @pytest.mark.parametrize("name", ["act", "diffusion"])
 def test_batched_equals_sequential(ckpts, name) -> None:
     bb = _backbone(ckpts[name])
-    cfg = IDRConfig(mode="E", tau=1e9)
-    a = IDRPolicy(bb, cfg, batched=True).infer(_obs(2), step_seed=3)
-    b = IDRPolicy(bb, cfg, batched=False).infer(_obs(2), step_seed=3)
+    cfg = RefinerConfig(mode="E", tau=1e9)
+    a = IDRWrapper(bb, cfg, batched=True).infer(_obs(2), step_seed=3)
+    b = IDRWrapper(bb, cfg, batched=False).infer(_obs(2), step_seed=3)
     for k in ("a_base", "a_no_img", "a_no_prop", "action"):
         torch.testing.assert_close(getattr(a, k), getattr(b, k), rtol=1e-4, atol=1e-4)
     assert a.diag.e_img.min() > 0 and a.diag.e_prop.min() > 0  # both modalities matter
@@ -81,7 +81,7 @@ def test_crn_with_diffusion(ckpts) -> None:
     bb.policy.predict_action_chunk = lambda batch, noise=None: (
         seen.append(noise) or orig(batch, noise=noise)
     )
-    IDRPolicy(bb, IDRConfig(), batched=True).infer(obs, step_seed=5)
+    IDRWrapper(bb, RefinerConfig(), batched=True).infer(obs, step_seed=5)
     (n,) = seen
     assert torch.equal(n[:2], n[2:4]) and torch.equal(n[:2], n[4:])
 
@@ -104,8 +104,11 @@ def test_state_zeroed_after_the_normalizer_by_default(ckpts) -> None:
     bb = _backbone(ckpts["act"])
     norm = bb._normalizer_index
     seen = _record_step(bb.pre, norm)
-    pol = IDRPolicy(
-        bb, IDRConfig(mode="diagnose"), InterventionConfig(state_space="normalized"), batched=True
+    pol = IDRWrapper(
+        bb,
+        RefinerConfig(mode="diagnose"),
+        InterventionConfig(state_space="normalized"),
+        batched=True,
     )
     obs = _obs(2)
     pol.infer(obs)
@@ -124,8 +127,8 @@ def test_state_zeroed_after_the_normalizer_by_default(ckpts) -> None:
 def test_raw_state_space_zeroes_before_the_pipeline(ckpts) -> None:
     bb = _backbone(ckpts["act"])
     seen = _record_step(bb.pre, bb._normalizer_index)
-    pol = IDRPolicy(
-        bb, IDRConfig(mode="diagnose"), InterventionConfig(state_space="raw"), batched=True
+    pol = IDRWrapper(
+        bb, RefinerConfig(mode="diagnose"), InterventionConfig(state_space="raw"), batched=True
     )
     pol.infer(_obs(2))
     stats = json.loads((Path(ckpts["act"]) / "policy_preprocessor.json").read_text())
@@ -145,7 +148,7 @@ def test_chunk_and_replan_bookkeeping(tmp_path) -> None:
     w = EpisodeWorker(WorkerSpec("lerobot", {"path": str(ckpt)}, "fake_marker", {}, replan_steps=3))
     (reach,) = [t for t in suite_tasks("fake_marker", {}) if t.task_id == "reach"]
     res = w.run_episode(
-        EpisodeSpec("r", "E", IDRConfig(tau=1e9), InterventionConfig(), reach, 0, 0, "lerobot")
+        EpisodeSpec("r", "E", RefinerConfig(tau=1e9), InterventionConfig(), reach, 0, 0, "lerobot")
     )
     assert res.episode.error is None
     steps = [s.step for s in res.steps]

@@ -20,8 +20,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 from lerobot_fixtures import build_local_tokenizer, build_pi, tiny_pi_gemma
 
 from workers.backbones.base import Observation
-from workers.idr import IDRConfig
-from workers.idr_policy import IDRPolicy
+from workers.idr import RefinerConfig
+from workers.idr_wrapper import IDRWrapper
 from workers.interventions import InterventionConfig
 
 pytestmark = pytest.mark.slow
@@ -140,9 +140,9 @@ def test_batched_3b_equals_three_calls_with_shared_noise(backbones, kind) -> Non
         seen.append(noise) or orig(batch, noise=noise)
     )
     try:
-        cfg = IDRConfig(mode="E", tau=1e9)
-        a = IDRPolicy(bb, cfg, batched=True).infer(obs, step_seed=3)
-        b = IDRPolicy(bb, cfg, batched=False).infer(obs, step_seed=3)
+        cfg = RefinerConfig(mode="E", tau=1e9)
+        a = IDRWrapper(bb, cfg, batched=True).infer(obs, step_seed=3)
+        b = IDRWrapper(bb, cfg, batched=False).infer(obs, step_seed=3)
     finally:
         del bb.policy.predict_action_chunk
     assert a.batched and a.crn and b.crn and not b.batched
@@ -180,9 +180,9 @@ def test_image_zeroed_raw_and_state_zeroed_after_normalizer(backbones, kind) -> 
             lambda m, args: state_in.append(args[0].clone())
         )
     try:
-        IDRPolicy(
+        IDRWrapper(
             bb,
-            IDRConfig(mode="diagnose"),
+            RefinerConfig(mode="diagnose"),
             InterventionConfig(state_space="normalized"),
             batched=True,
         ).infer(_obs(2))

@@ -4,13 +4,13 @@ import torch
 
 from workers.backbones.base import Observation
 from workers.backbones.noop import NoopBackbone
-from workers.idr import IDRConfig
-from workers.idr_policy import IDRPolicy
+from workers.idr import RefinerConfig
+from workers.idr_wrapper import IDRWrapper
 
 
 def test_noop_chunk_is_zero_motion_gripper_held_and_has_no_effects() -> None:
     obs = Observation({"cam": torch.rand(2, 3, 8, 8)}, torch.rand(2, 8), ["a", "b"])
-    step = IDRPolicy(NoopBackbone(action_dim=7, chunk_len=3), IDRConfig(mode="E")).infer(obs)
+    step = IDRWrapper(NoopBackbone(action_dim=7, chunk_len=3), RefinerConfig(mode="E")).infer(obs)
     assert step.action.shape == (2, 3, 7)
     assert torch.equal(step.action[..., :6], torch.zeros(2, 3, 6))
     assert torch.equal(step.action[..., 6], -torch.ones(2, 3))

@@ -9,8 +9,8 @@ import torch
 from workers.backbones.base import Observation
 from workers.backbones.fakes import FakeMarkerBackbone
 from workers.envs.fakes import FakeMarkerEnv
-from workers.idr import IDRConfig, refine
-from workers.idr_policy import IDRPolicy
+from workers.idr import RefinerConfig, refine
+from workers.idr_wrapper import IDRWrapper
 from workers.interventions import InterventionConfig
 from workers.observation import to_policy_observation
 
@@ -28,10 +28,10 @@ def _batch(n: int = 3, seed: int = 0) -> Observation:
 def test_batched_is_one_call_of_3b_and_equals_sequential() -> None:
     obs = _batch(3)
     bb = FakeMarkerBackbone(noise_std=0.3)
-    batched = IDRPolicy(bb, IDRConfig(tau=100.0), batched=True).infer(obs, step_seed=5)
+    batched = IDRWrapper(bb, RefinerConfig(tau=100.0), batched=True).infer(obs, step_seed=5)
     assert bb.calls == [9]
     bb.calls.clear()
-    sequential = IDRPolicy(bb, IDRConfig(tau=100.0), batched=False).infer(obs, step_seed=5)
+    sequential = IDRWrapper(bb, RefinerConfig(tau=100.0), batched=False).infer(obs, step_seed=5)
     assert bb.calls == [3, 3, 3]
     assert batched.batched and not sequential.batched and batched.crn
     for name in ("action", "a_base", "a_no_img", "a_no_prop"):
@@ -43,7 +43,7 @@ def test_batched_is_one_call_of_3b_and_equals_sequential() -> None:
 def test_fake_backbone_deltas_match_closed_form() -> None:
     obs = _batch(3)
     bb = FakeMarkerBackbone(chunk_len=4, gain=5.0, noise_std=0.2)
-    step = IDRPolicy(bb, IDRConfig(mode="diagnose")).infer(obs, step_seed=1)
+    step = IDRWrapper(bb, RefinerConfig(mode="diagnose")).infer(obs, step_seed=1)
     m = np.stack([_marker(obs, i) for i in range(3)])
     p = obs.state.numpy()
     np.testing.assert_allclose(
@@ -69,11 +69,11 @@ def test_shared_noise_identical_inputs_gives_exactly_zero_delta() -> None:
     a1 = bb.predict_chunk(obs, noise=noise)
     a2 = bb.predict_chunk(obs, noise=noise)
     a3 = bb.predict_chunk(obs, noise=noise)
-    _, diag = refine(a1, a2, a3, IDRConfig())
+    _, diag = refine(a1, a2, a3, RefinerConfig())
     assert torch.equal(diag.e_img, torch.zeros(2)) and torch.equal(diag.e_prop, torch.zeros(2))
     # with independent noise (none passed: fresh draws per call) the same inputs give delta != 0
     b1, b2, b3 = (bb.predict_chunk(obs) for _ in range(3))
-    _, diag = refine(b1, b2, b3, IDRConfig())
+    _, diag = refine(b1, b2, b3, RefinerConfig())
     assert (diag.e_img > 0.1).all() and (diag.e_prop > 0.1).all()
 
 
@@ -85,18 +85,18 @@ def test_wrapper_passes_the_same_noise_to_all_three_thirds() -> None:
             seen.append(noise)
             return super().predict_chunk(obs, noise=noise, intervention=intervention)
 
-    IDRPolicy(Spy(noise_std=1.0), batched=True).infer(_batch(2), step_seed=3)
+    IDRWrapper(Spy(noise_std=1.0), batched=True).infer(_batch(2), step_seed=3)
     (n,) = seen
     assert n.shape[0] == 6
     assert torch.equal(n[:2], n[2:4]) and torch.equal(n[:2], n[4:])
     seen.clear()
-    IDRPolicy(Spy(noise_std=1.0), batched=False).infer(_batch(2), step_seed=3)
+    IDRWrapper(Spy(noise_std=1.0), batched=False).infer(_batch(2), step_seed=3)
     assert len(seen) == 3 and all(torch.equal(seen[0], s) for s in seen)
 
 
 def test_counterfactual_inputs_are_the_interventions() -> None:
     obs = _batch(2)
-    pol = IDRPolicy(FakeMarkerBackbone())
+    pol = IDRWrapper(FakeMarkerBackbone())
     no_img, no_prop = pol.counterfactuals(obs)
     assert float(no_img.images["agentview"].abs().sum()) == 0.0
     torch.testing.assert_close(no_img.state, obs.state)
@@ -108,7 +108,7 @@ def test_counterfactual_inputs_are_the_interventions() -> None:
 
 def test_baseline_mode_runs_no_counterfactual_pass() -> None:
     bb = FakeMarkerBackbone()
-    step = IDRPolicy(bb, IDRConfig(mode="baseline")).infer(_batch(2))
+    step = IDRWrapper(bb, RefinerConfig(mode="baseline")).infer(_batch(2))
     assert bb.calls == [2]
     assert step.diag is None and step.a_no_img is None
     torch.testing.assert_close(step.action, step.a_base)
@@ -116,8 +116,8 @@ def test_baseline_mode_runs_no_counterfactual_pass() -> None:
 
 def test_set_config_switches_cell_without_new_backbone() -> None:
     bb = FakeMarkerBackbone()
-    pol = IDRPolicy(bb, IDRConfig(mode="baseline"))
-    pol.set_config(IDRConfig(mode="E", tau=1e9))
+    pol = IDRWrapper(bb, RefinerConfig(mode="baseline"))
+    pol.set_config(RefinerConfig(mode="E", tau=1e9))
     step = pol.infer(_batch(1))
     assert pol.backbone is bb and step.diag is not None
     assert not torch.equal(step.action, step.a_base)
@@ -128,10 +128,10 @@ def test_normalized_space_refused_for_raw_only_backbone() -> None:
         ValueError,
         match=r"intervention.state_space='normalized' is not supported by backbone 'fake_marker'",
     ):
-        IDRPolicy(FakeMarkerBackbone(), intervention=InterventionConfig(state_space="normalized"))
+        IDRWrapper(FakeMarkerBackbone(), intervention=InterventionConfig(state_space="normalized"))
 
 
 def test_batched_refused_when_backbone_cannot_batch() -> None:
     with pytest.raises(ValueError, match="cannot batch"):
-        IDRPolicy(FakeMarkerBackbone(can_batch=False), batched=True)
-    assert IDRPolicy(FakeMarkerBackbone(can_batch=False)).batched is False
+        IDRWrapper(FakeMarkerBackbone(can_batch=False), batched=True)
+    assert IDRWrapper(FakeMarkerBackbone(can_batch=False)).batched is False

@@ -17,7 +17,7 @@ import numpy as np
 from idr_core.three_pass import three_passes
 
 from workers.backbones.base import Backbone, Observation, concat_observations
-from workers.idr import Diagnostics, IDRConfig, refine
+from workers.idr import Diagnostics, RefinerConfig, refine
 from workers.interventions import InterventionConfig, intervene
 
 
@@ -48,18 +48,18 @@ def check_intervention_spaces(backbone: Any, name: str, intervention: Interventi
             )
 
 
-class IDRPolicy:
+class IDRWrapper:
     """A backbone wrapped by the IDR refiner; ``infer`` returns an :class:`IDRStep`."""
 
     def __init__(
         self,
         backbone: Backbone,
-        cfg: IDRConfig | None = None,
+        cfg: RefinerConfig | None = None,
         intervention: InterventionConfig | None = None,
         batched: bool | None = None,
     ) -> None:
         self.backbone = backbone
-        self.cfg = cfg or IDRConfig()
+        self.cfg = cfg or RefinerConfig()
         self.intervention = intervention or InterventionConfig()
         self._check_spaces(self.intervention)
         can_batch = bool(getattr(backbone, "can_batch", False))
@@ -70,7 +70,9 @@ class IDRPolicy:
     def _check_spaces(self, intervention: InterventionConfig) -> None:
         check_intervention_spaces(self.backbone, self.backbone.name, intervention)
 
-    def set_config(self, cfg: IDRConfig, intervention: InterventionConfig | None = None) -> None:
+    def set_config(
+        self, cfg: RefinerConfig, intervention: InterventionConfig | None = None
+    ) -> None:
         """Switch the IDR cell without reloading the backbone."""
         if intervention is not None:
             self._check_spaces(intervention)
