@@ -229,10 +229,6 @@ class StepRow:
     inference_ms: F32 | None = None
 
 
-def row_columns(row_type: type) -> tuple[str, ...]:
-    return tuple(f.name for f in dataclasses.fields(row_type))
-
-
 @dataclass
 class EpisodeResult:
     episode: EpisodeRow  # one row of the episodes table

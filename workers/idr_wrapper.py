@@ -14,10 +14,11 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from idr_core.three_pass import three_passes
+from idr_core.three_pass import PassRequest, PassResult, infer_requests
 
 from workers.backbones.base import Backbone, Observation, concat_observations
-from workers.idr import Diagnostics, RefinerConfig, refine
+from workers.forward_shape import cat_rows
+from workers.idr import Diagnostics, RefinerConfig
 from workers.interventions import InterventionConfig, intervene
 
 
@@ -84,11 +85,11 @@ class IDRWrapper:
 
     # -- infer -------------------------------------------------------------------------
     def counterfactuals(
-        self, obs: Observation, step_seed: int = 0
+        self, obs: Observation, step_seed: int = 0, intervention: InterventionConfig | None = None
     ) -> tuple[Observation, Observation]:
         """The do(V) and do(S) versions of ``obs``: raw-space ones applied here, normalized-space
         ones marked for the backbone."""
-        iv = self.intervention
+        iv = intervention or self.intervention
         b = obs.batch_size
         flag = np.ones(b, dtype=bool)
         kw = {"noise_scale": iv.noise_scale}
@@ -115,42 +116,72 @@ class IDRWrapper:
             )
         return no_img, no_prop
 
-    def _call(self, obs: Observation, noise: Any | None) -> Any:
-        native = obs.do_image is not None or obs.do_state is not None
-        return self.backbone.predict_chunk(
-            obs, noise=noise, intervention=self.intervention if native else None
+    def request(
+        self,
+        obs: Observation,
+        step_seed: int = 0,
+        cfg: RefinerConfig | None = None,
+        intervention: InterventionConfig | None = None,
+    ) -> PassRequest:
+        """One inference's inputs (rows, noise, settings); ``cfg`` / ``intervention`` default to
+        the wrapper's own."""
+        obs.validate()
+        cfg = cfg or self.cfg
+        intervention = intervention or self.intervention
+        if intervention is not self.intervention:
+            self._check_spaces(intervention)
+        b = obs.batch_size
+        cf = (
+            self.counterfactuals(obs, step_seed, intervention)
+            if cfg.needs_counterfactuals
+            else None
+        )
+        return PassRequest(obs, cf, self.backbone.make_noise(b, step_seed), cfg, b)
+
+    def forward(self, intervention: InterventionConfig) -> Any:
+        """The backbone call for rows of ``intervention``'s cells: (rows, noise) -> actions."""
+
+        def call(obs: Observation, noise: Any) -> Any:
+            native = obs.do_image is not None or obs.do_state is not None
+            return self.backbone.predict_chunk(
+                obs, noise=noise, intervention=intervention if native else None
+            )
+
+        return call
+
+    def infer_requests(
+        self, requests: list[PassRequest], intervention: InterventionConfig | None = None
+    ) -> list[PassResult]:
+        """Several requests of one intervention through ``idr_core``'s one IDR inference (one
+        forward when the backbone batches)."""
+        needs = any(r.counterfactuals is not None for r in requests)
+        return infer_requests(
+            self.forward(intervention or self.intervention),
+            requests,
+            concat=concat_observations,
+            concat_noise=cat_rows,
+            # one request of the factual pass alone is one call either way
+            batched=self.batched and (needs or len(requests) > 1),
         )
 
-    def infer(self, obs: Observation, step_seed: int = 0) -> IDRStep:
+    def infer(
+        self,
+        obs: Observation,
+        step_seed: int = 0,
+        cfg: RefinerConfig | None = None,
+        intervention: InterventionConfig | None = None,
+    ) -> IDRStep:
         """One inference: the factual pass (+ the two counterfactual passes) and refinement.
 
         ``step_seed`` makes the noise (and gaussian interventions) reproducible per step; the
-        three passes always share one noise draw.
-        """
-        obs.validate()
-        b = obs.batch_size
+        three passes always share one noise draw."""
         t0 = time.perf_counter()
-        noise = self.backbone.make_noise(b, step_seed)
-        if not self.cfg.needs_counterfactuals:
-            a_base = self._call(obs, noise)
-            ms = (time.perf_counter() - t0) * 1e3
-            return IDRStep(
-                a_base, a_base, None, None, None, ms, batched=False, crn=noise is not None
-            )
-
-        no_img, no_prop = self.counterfactuals(obs, step_seed)
-        a_base, a_no_img, a_no_prop = three_passes(
-            self._call,
-            obs,
-            no_img,
-            no_prop,
-            noise,
-            b=b,
-            batched=self.batched,
-            concat=concat_observations,
-        )
-        action, diag = refine(a_base, a_no_img, a_no_prop, self.cfg)
+        req = self.request(obs, step_seed, cfg, intervention)
+        (res,) = self.infer_requests([req], intervention)
         ms = (time.perf_counter() - t0) * 1e3
-        return IDRStep(
-            action, a_base, a_no_img, a_no_prop, diag, ms, self.batched, noise is not None
-        )
+        three = req.counterfactuals is not None
+        return step_of(res, ms, batched=self.batched and three, crn=req.noise is not None)
+
+
+def step_of(res: PassResult, ms: float, batched: bool, crn: bool) -> IDRStep:
+    return IDRStep(res.action, res.a_base, res.a_no_img, res.a_no_prop, res.diag, ms, batched, crn)

@@ -23,17 +23,16 @@ from typing import Any
 
 import numpy as np
 
-from workers.backbones.base import Observation, backbone_member, concat_observations
+from workers.backbones.base import Observation, backbone_member
 from workers.forward_shape import (
     NumericsError,
     as_numpy,
-    cat_rows,
     check_row_independence,
     fix_forward_shape,
     set_torch_threads,
 )
-from workers.idr import Diagnostics, RefinerConfig, refine
-from workers.idr_wrapper import IDRStep, IDRWrapper
+from workers.idr import Diagnostics, RefinerConfig
+from workers.idr_wrapper import IDRStep, IDRWrapper, step_of
 from workers.interventions import InterventionConfig
 
 
@@ -84,11 +83,7 @@ def infer_many(
     float order depends on its mates' instruction lengths), and an in-actor forward holds one
     instruction; forwards of one instruction each give every row the same float order."""
     if not policy.batched:  # a backbone that cannot batch: each request's passes in turn
-        out = []
-        for req in requests:
-            policy.set_config(req.idr, req.intervention)
-            out.append(policy.infer(req.obs, req.step_seed))
-        return out
+        return [policy.infer(r.obs, r.step_seed, r.idr, r.intervention) for r in requests]
 
     def forward_group(pair: tuple[int, InferRequest]) -> tuple[str, str]:  # "": all together
         iv = pair[1].intervention
@@ -103,42 +98,17 @@ def infer_many(
 
 
 def _one_forward(policy: IDRWrapper, group: list[tuple[int, InferRequest]]) -> dict[int, IDRStep]:
-    backbone = policy.backbone
+    """One forward for ``group`` (requests of one native intervention, or of raw ones only),
+    through the wrapper's one IDR inference with each request's own settings."""
     t0 = time.perf_counter()
-    rows: list[Observation] = []
-    noises: list[Any] = []
-    spans: list[tuple[int, int, int]] = []  # request index, first row, rows (1 or 3)
-    for i, req in group:
-        req.obs.validate()
-        b = req.obs.batch_size
-        policy.set_config(req.idr, req.intervention)
-        noise = backbone.make_noise(b, req.step_seed)
-        parts = [req.obs]
-        if req.idr.needs_counterfactuals:
-            parts += list(policy.counterfactuals(req.obs, req.step_seed))
-        spans.append((i, sum(r.batch_size for r in rows), len(parts) * b))
-        rows += parts
-        if noise is not None:
-            noises += [noise] * len(parts)
+    reqs = [policy.request(r.obs, r.step_seed, r.idr, r.intervention) for _, r in group]
     native = _native(group[0][1].intervention)
-    out = backbone.predict_chunk(
-        concat_observations(rows),
-        noise=cat_rows(noises) if noises else None,
-        intervention=group[0][1].intervention if native else None,
-    )
+    results = policy.infer_requests(reqs, group[0][1].intervention if native else None)
     ms = (time.perf_counter() - t0) * 1e3
-    answers = {}
-    for (i, req), (_, first, n) in zip(group, spans, strict=True):
-        a = out[first : first + n]
-        crn = bool(noises)
-        if n == req.obs.batch_size:  # baseline / no counterfactuals
-            answers[i] = IDRStep(a, a, None, None, None, ms, batched=False, crn=crn)
-            continue
-        b = req.obs.batch_size
-        a_base, a_no_img, a_no_prop = a[:b], a[b : 2 * b], a[2 * b :]
-        action, diag = refine(a_base, a_no_img, a_no_prop, req.idr)
-        answers[i] = IDRStep(action, a_base, a_no_img, a_no_prop, diag, ms, True, crn)
-    return answers
+    return {
+        i: step_of(res, ms, batched=req.counterfactuals is not None, crn=req.noise is not None)
+        for (i, _), req, res in zip(group, reqs, results, strict=True)
+    }
 
 
 def is_out_of_memory(exc: BaseException) -> bool:

@@ -20,7 +20,7 @@ from __future__ import annotations
 import itertools
 import math
 import re
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 from workers.idr import RefinerConfig
@@ -132,9 +132,6 @@ class Cell:
     # tau: calibrated[...] -> tau is set, after the diagnose cell ran, from the effect it
     # measured, per suite (the paper's rule); idr.tau holds a placeholder until then
     calibrated_tau: TauSpec | None = None
-
-    def with_tau(self, tau: float) -> Cell:
-        return replace(self, idr=replace(self.idr, tau=tau))
 
     def params(self) -> dict[str, Any]:
         """Flat parameters, for tables and MLflow (a calibrated tau as its spelling)."""

@@ -51,14 +51,6 @@ def progress_table(steps: pa.Table, episodes: pa.Table) -> pa.Table:
     return df.append_column("progress", progress)
 
 
-def progress_frame(steps: pd.DataFrame, episodes: pd.DataFrame) -> pd.DataFrame:
-    """``progress_table`` for pandas frames."""
-    as_table = pa.Table.from_pandas
-    return progress_table(
-        as_table(steps, preserve_index=False), as_table(episodes, preserve_index=False)
-    ).to_pandas()
-
-
 def _last_elements(lists: pa.ChunkedArray) -> np.ndarray:
     """The last element of each list (NaN for a null or empty one), without a Python loop:
     the gripper dim of the executed action, read off the list column's flat values chunk by

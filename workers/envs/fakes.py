@@ -27,10 +27,6 @@ def plane_to_pixel(xy: np.ndarray, size: int = IMAGE_SIZE) -> tuple[int, int]:
     return row, col
 
 
-def pixel_to_plane(row: float, col: float, size: int = IMAGE_SIZE) -> tuple[float, float]:
-    return col / (size - 1) * 2 - 1, 1 - row / (size - 1) * 2
-
-
 class FakeMarkerEnv:
     """Reach the red marker(s) seen in the image; deterministic init per (task, episode, seed)."""
 

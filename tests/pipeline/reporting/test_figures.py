@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
 import pytest
 from matplotlib.image import imread
 
@@ -201,7 +202,7 @@ def test_a_grid_without_diagnose_or_sweeps_says_what_is_not_drawn(tmp_path) -> N
             "grip": [np.nan, np.nan],
         }
     )
-    figs = F.build_figures(D.RunData(eps, D.progress_frame(steps, eps), {}))
+    figs = F.build_figures(D.RunData(eps, _progress(steps, eps), {}))
     assert set(figs.built) == {"gate_progress"}
     assert "needs a diagnose cell" in figs.skipped["rimg_heatmap"]
     assert "differ only in alpha" in figs.skipped["success_alpha"]
@@ -266,3 +267,11 @@ def test_a_sweep_with_a_cell_at_100_percent_is_drawn() -> None:
     fig = F.success_sweep(table, "tau")
     (line,) = [c for c in fig.axes[0].containers]
     assert list(line.lines[0].get_ydata()) == [100.0, 90.0]
+
+
+def _progress(steps: pd.DataFrame, episodes: pd.DataFrame) -> pd.DataFrame:
+    """``progress_table`` for pandas frames."""
+    as_table = pa.Table.from_pandas
+    return D.progress_table(
+        as_table(steps, preserve_index=False), as_table(episodes, preserve_index=False)
+    ).to_pandas()
