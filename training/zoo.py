@@ -54,6 +54,7 @@ class Member:
     batch_size: int
     language: bool  # whether the class conditions on the instruction
     save_freq: int = 1000
+    vocab: bool = False  # the class takes its instruction vocabulary from the dataset's tasks
     features: dict[str, list[int]] = field(default_factory=lambda: dict(TABLETOP_FEATURES))
 
 
@@ -95,7 +96,33 @@ MEMBERS: dict[str, Member] = {
         batch_size=32,
         language=False,
     ),
+    # the tiny VLA (our plugin's type), by lerobot's trainer on the zoo's dataset: the net, the
+    # masked orientation dims and the chunking of the shipped one (docs/tiny-vla.md)
+    "tiny_vla": Member(
+        "tiny_vla",
+        (
+            "--policy.ignored_state_dims=[3,4,5]",
+            "--policy.chunk_size=8",
+            "--policy.n_action_steps=4",
+        ),
+        steps=8000,
+        batch_size=64,
+        language=True,
+        vocab=True,
+    ),
 }
+
+
+def dataset_tasks(root: Path) -> list[str]:
+    import pandas as pd
+
+    return sorted(pd.read_parquet(root / "meta" / "tasks.parquet").index.astype(str))
+
+
+def vocab_flag(root: Path) -> str:
+    from training.train_tiny_vla import vocabulary
+
+    return "--policy.vocab=[" + ",".join(vocabulary(dataset_tasks(root))) + "]"
 
 
 def dataset_features(root: Path) -> dict[str, list[int]]:
@@ -123,8 +150,8 @@ def check_features(name: str, member: Member, root: Path) -> None:
         )
 
 
-def run_dir(name: str, seed: int) -> Path:
-    return RUNS / f"{name}_seed{seed}"
+def run_dir(name: str, seed: int, runs: Path = RUNS) -> Path:
+    return runs / f"{name}_seed{seed}"
 
 
 def last_checkpoint(out: Path) -> Path | None:
@@ -133,7 +160,7 @@ def last_checkpoint(out: Path) -> Path | None:
 
 
 def train_command(name: str, member: Member, args: argparse.Namespace) -> list[str]:
-    out = run_dir(name, args.seed)
+    out = run_dir(name, args.seed, args.runs)
     exe = str(Path(sys.executable).with_name("lerobot-train"))
     last = last_checkpoint(out)
     if last is not None:
@@ -152,6 +179,7 @@ def train_command(name: str, member: Member, args: argparse.Namespace) -> list[s
         f"--policy.device={args.device}",
         "--policy.push_to_hub=false",
         *member.flags,
+        *([vocab_flag(args.dataset)] if member.vocab else []),
         f"--output_dir={out}",
         f"--job_name=zoo_{name}",
         f"--seed={args.seed}",
@@ -189,7 +217,7 @@ def cpu_model() -> str:
 def cmd_train(args: argparse.Namespace) -> None:
     member = _member(args.name)
     check_features(args.name, member, args.dataset)
-    out = run_dir(args.name, args.seed)
+    out = run_dir(args.name, args.seed, args.runs)
     cmd = train_command(args.name, member, args)
     print(" ".join(cmd), flush=True)
     t0 = time.perf_counter()
@@ -215,7 +243,7 @@ def cmd_train(args: argparse.Namespace) -> None:
 
 def cmd_export(args: argparse.Namespace) -> None:
     member = _member(args.name)
-    out = run_dir(args.name, args.seed)
+    out = run_dir(args.name, args.seed, args.runs)
     last = last_checkpoint(out)
     if last is None:
         raise SystemExit(
@@ -234,7 +262,7 @@ def cmd_export(args: argparse.Namespace) -> None:
     from safetensors.torch import load_file
 
     params = sum(t.numel() for t in load_file(dest / "model.safetensors").values())
-    parts = DATASET / "meta" / "zoo_parts.json"
+    parts = args.dataset / "meta" / "zoo_parts.json"
     meta = {
         "member": args.name,
         "policy_type": member.policy_type,
@@ -248,7 +276,7 @@ def cmd_export(args: argparse.Namespace) -> None:
         "sessions": len(sessions),
         "machines": sorted({s["cpu"] for s in sessions}),
         "threads": sorted({s["threads"] for s in sessions}),
-        "dataset": json.loads(parts.read_text()) if parts.is_file() else str(DATASET),
+        "dataset": json.loads(parts.read_text()) if parts.is_file() else str(args.dataset),
         "trainer": "lerobot-train (lerobot 0.6.1) via python -m training.zoo train",
     }
     (dest / "train_meta.json").write_text(json.dumps(meta, indent=2) + "\n")
@@ -287,11 +315,14 @@ def main(argv: list[str] | None = None) -> None:
     t.add_argument("--device", default="cpu")
     t.add_argument("--threads", type=int, default=2)
     t.add_argument("--num-workers", type=int, default=0)
+    t.add_argument("--runs", type=Path, default=RUNS, help="where lerobot-train's runs go")
     t.set_defaults(func=cmd_train)
     e = sub.add_parser("export", help="copy the last checkpoint to checkpoints/zoo/NAME")
     e.add_argument("name")
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--dest", type=Path, default=None)
+    e.add_argument("--runs", type=Path, default=RUNS)
+    e.add_argument("--dataset", type=Path, default=DATASET)
     e.set_defaults(func=cmd_export)
     sub.add_parser("list", help="members and their state").set_defaults(func=cmd_list)
     args = ap.parse_args(argv)

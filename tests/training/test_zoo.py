@@ -1,0 +1,91 @@
+"""The zoo's path end to end at toy size: recorded parts merged by lerobot's own tool, a member
+trained by ``lerobot-train`` through the launcher, stopped and resumed, exported, and loaded by
+lerobot's factory with the plugin registered and nothing patched; a dataset that does not fit
+the member is refused before training."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from training import zoo
+
+pytestmark = [pytest.mark.sim, pytest.mark.slow]
+
+
+def _zoo(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "training.zoo", *args],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=zoo.ROOT,
+    )
+
+
+def test_parts_merge_train_resume_export_and_load_through_lerobots_factory(tmp_path) -> None:
+    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+    from training.tabletop_demos import record
+    from training.zoo_data import merge
+
+    record(tmp_path / "p1", ["pick_color"], episodes=1, first_episode=100_000)
+    record(tmp_path / "p2", ["stack_color"], episodes=1, first_episode=100_000)
+    summary = merge([tmp_path / "p1", tmp_path / "p2"], tmp_path / "ds")
+    assert summary["episodes"] == 2 and summary["parts"] == {"p1": 1, "p2": 1}
+    assert len(summary["tasks"]) == 2
+
+    common = ["--dataset", str(tmp_path / "ds"), "--runs", str(tmp_path / "runs")]
+    first = _zoo("train", "tiny_vla", "--steps", "2", *common)
+    assert first.returncode == 0, first.stderr[-3000:]
+    second = _zoo("train", "tiny_vla", "--steps", "3", *common)  # resumes from step 2
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert "--resume=true" in second.stdout
+    dest = tmp_path / "ckpt"
+    out = _zoo("export", "tiny_vla", "--dest", str(dest), *common)
+    assert out.returncode == 0, out.stderr[-3000:]
+    meta = json.loads((dest / "train_meta.json").read_text())
+    assert meta["steps"] == 3 and meta["sessions"] == 2 and meta["seed"] == 0
+    assert meta["params"] > 200_000 and meta["dataset"]["episodes"] == 2
+    assert not (dest / "train_config.json").exists()  # it held this machine's paths
+
+    from lerobot.configs.policies import PreTrainedConfig
+
+    import lerobot_policy_idr  # noqa: F401  (registers tiny_vla, as register_third_party_plugins does)
+
+    cfg = PreTrainedConfig.from_pretrained(dest)
+    policy = get_policy_class(cfg.type).from_pretrained(dest, config=cfg)
+    pre, post = make_pre_post_processors(cfg, pretrained_path=str(dest))
+    assert (
+        cfg.type == "tiny_vla" and "pick" in cfg.vocab and list(cfg.ignored_state_dims) == [3, 4, 5]
+    )
+    assert [type(s).__name__ for s in pre.steps][-1] == "NormalizerProcessorStep"
+    assert sum(p.numel() for p in policy.parameters()) == meta["params"]
+
+
+def test_a_dataset_that_does_not_fit_the_member_is_refused_before_training(tmp_path) -> None:
+    info = {
+        "features": {
+            "observation.images.agentview": {"shape": [64, 64, 3]},
+            "observation.state": {"shape": [8]},
+            "action": {"shape": [7]},
+        }
+    }
+    (tmp_path / "ds" / "meta").mkdir(parents=True)
+    (tmp_path / "ds" / "meta" / "info.json").write_text(json.dumps(info))
+    out = _zoo("train", "act", "--dataset", str(tmp_path / "ds"), "--runs", str(tmp_path / "r"))
+    assert out.returncode != 0
+    assert "does not fit zoo member 'act'" in out.stderr
+    assert "observation.images.agentview: wants [96, 96, 3], dataset has [64, 64, 3]" in out.stderr
+    assert "observation.images.wrist: wants [96, 96, 3], dataset has None" in out.stderr
+    assert not (tmp_path / "r").exists()  # nothing started
+
+
+def test_an_unknown_member_or_a_missing_dataset_is_named_with_the_fix(tmp_path) -> None:
+    out = _zoo("train", "actt", "--dataset", str(tmp_path))
+    assert out.returncode != 0 and "unknown zoo member 'actt' (did you mean 'act'?)" in out.stderr
+    out = _zoo("train", "act", "--dataset", str(tmp_path / "none"))
+    assert "scripts/record_zoo_data.sh" in out.stderr
