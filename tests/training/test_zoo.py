@@ -63,6 +63,7 @@ def test_parts_merge_train_resume_export_and_load_through_lerobots_factory(tmp_p
         cfg.type == "tiny_vla" and "pick" in cfg.vocab and list(cfg.ignored_state_dims) == [3, 4, 5]
     )
     assert [type(s).__name__ for s in pre.steps][-1] == "NormalizerProcessorStep"
+    assert type(post.steps[0]).__name__ == "UnnormalizerProcessorStep"
     assert sum(p.numel() for p in policy.parameters()) == meta["params"]
 
 
