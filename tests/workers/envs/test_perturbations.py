@@ -47,6 +47,9 @@ def test_sensor_kinds_are_seeded_and_do_what_they_say() -> None:
         np.abs(np.diff(blurred.astype(float), axis=0)).mean()
         < 0.5 * np.abs(np.diff(image.astype(float), axis=0)).mean()
     )
+    assert not perturb_image(image, Perturbation("image_blackout", 1.0), rng).any()  # black
+    half = perturb_image(image, Perturbation("image_blackout", 0.5), rng)
+    assert np.abs(half.astype(float) - image / 2).max() <= 0.5
     seen = []
 
     def rng_for(camera: str) -> np.random.Generator:

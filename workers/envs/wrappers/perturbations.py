@@ -8,7 +8,7 @@ its plain id, so ``none`` is today's episode to the bit. Paired comparisons ther
 cell with its reference on the same perturbed task, episode and seed, and every table of the
 report breaks results down by perturbation for free.
 
-Image kinds (``image_noise``, ``image_blur``) act at the sensor, on every camera's rendered
+Image kinds (``image_noise``, ``image_blur``, ``image_blackout``) act at the sensor, on every camera's rendered
 image, for any suite (:class:`PerturbedEnv` applies them). Scene kinds act on the simulator
 after its reset and before the first observation, in suites that say they can
 (``perturbation_kinds``: the tabletop and LIBERO, both MuJoCo; distractors: the tabletop). Every random draw is seeded by
@@ -49,6 +49,11 @@ KINDS: dict[str, Kind] = {
     "distractors": Kind(0.0, 4.0, "objects", True, "SEVERITY extra grey cubes on the table"),
     "image_noise": Kind(0.0, 1.0, "fraction of 255", False, "Gaussian pixel noise, std SEVERITY"),
     "image_blur": Kind(0.0, 5.0, "px", False, "Gaussian blur of std SEVERITY px"),
+    # the image-zeroed control: the policy sees black (1) or darkened (< 1) images at every step,
+    # executed, not only in the diagnosis's counterfactual pass
+    "image_blackout": Kind(
+        0.0, 1.0, "fraction", False, "pixels scaled by 1 - SEVERITY (1: a black image)"
+    ),
 }
 SCENE_KINDS = tuple(k for k, v in KINDS.items() if v.scene)
 IMAGE_KINDS = tuple(k for k, v in KINDS.items() if not v.scene)
@@ -139,6 +144,9 @@ def perturb_image(image: np.ndarray, p: Perturbation, rng: np.random.Generator) 
 
         sigma = (p.severity, p.severity, 0)[: image.ndim]
         out = gaussian_filter(image.astype(np.float32), sigma=sigma, mode="nearest")
+        return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+    if p.kind == "image_blackout":
+        out = image.astype(np.float32) * (1.0 - p.severity)
         return np.clip(np.rint(out), 0, 255).astype(np.uint8)
     raise ValueError(f"{p.kind} is not an image perturbation")
 
