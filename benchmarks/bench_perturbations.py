@@ -84,7 +84,8 @@ def main() -> None:
 
     configure_rendering()
     from workers.envs.suites.tabletop.env import TabletopEnv
-    from workers.envs.wrappers.perturbations import PerturbedEnv, parse
+    from workers.envs.wrappers.perturbation_grammar import parse
+    from workers.envs.wrappers.perturbations import PerturbedEnv
 
     env = PerturbedEnv(TabletopEnv(image_size=96), [parse(c) for c in CASES])
     result: dict = {

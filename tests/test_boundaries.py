@@ -142,3 +142,11 @@ def test_no_import_circle_between_pipeline_modules() -> None:
         if mod not in seen:
             visit(mod, [mod])
     assert not circles, circles
+
+
+def test_the_driver_actor_contract_imports_no_process_or_socket_code() -> None:
+    """``workers.episode`` (specs and rows both sides share) names an env server by its
+    ``ServerSpec`` and imports nothing that starts or talks to one."""
+    imported = _imports(ROOT / "workers" / "episode.py")
+    assert "workers.envs.server.spec" in imported
+    assert not imported & {"workers.envs.server.client", "socket", "subprocess"}

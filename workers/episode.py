@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import Annotated, Any
 
 from workers.envs.base import TaskSpec
-from workers.envs.server.client import ServerSpec
+from workers.envs.server.spec import ServerSpec
 from workers.idr import RefinerConfig
 from workers.interventions import InterventionConfig
 

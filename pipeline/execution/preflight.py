@@ -12,7 +12,7 @@ from pipeline.planning.config import ConfigError, RunConfig
 from workers.backbones.factory import check_backbone
 from workers.envs.base import TaskSpec, suite_hooks, suite_info
 from workers.envs.factory import check_suite, env_class
-from workers.envs.server.client import ServerSpec
+from workers.envs.server.spec import ServerSpec
 
 
 def check_names(cfg: RunConfig) -> None:
@@ -27,13 +27,8 @@ def select_tasks(cfg: RunConfig, server: ServerSpec | None = None) -> list[TaskS
     """The run's tasks: env.tasks (all of the suite's by default), each crossed with
     env.perturbations unless it names its own (``pick_color@light_dim:0.4``); a perturbation
     the suite cannot apply is refused here, before any work."""
-    from workers.envs.wrappers.perturbations import (
-        IMAGE_KINDS,
-        SEP,
-        parse,
-        perturbed_task,
-        split_task,
-    )
+    from workers.envs.wrappers.perturbation_grammar import IMAGE_KINDS, SEP, parse, split_task
+    from workers.envs.wrappers.perturbations import perturbed_task
 
     tasks = suite_task_specs(cfg.env.suite, cfg.env.params, server)
     by_id = {t.task_id: t for t in tasks}
@@ -83,7 +78,7 @@ def select_tasks(cfg: RunConfig, server: ServerSpec | None = None) -> list[TaskS
 def perturbations_of(tasks: list[TaskSpec]) -> tuple[str, ...]:
     """The perturbations the tasks name (``none`` for plain ones); () when none is named, so
     that an unperturbed run's env is not wrapped at all."""
-    from workers.envs.wrappers.perturbations import SEP, perturbation_of
+    from workers.envs.wrappers.perturbation_grammar import SEP, perturbation_of
 
     if not any(SEP in t.task_id for t in tasks):
         return ()

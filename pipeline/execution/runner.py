@@ -68,7 +68,7 @@ if TYPE_CHECKING:
     from pipeline.reporting.run_data import RunData
     from pipeline.tracking.tracker import Tracker
     from workers.envs.base import TaskSpec
-    from workers.envs.server.client import ServerSpec
+    from workers.envs.server.spec import ServerSpec
 
 log = logging.getLogger("idr_eval.runner")
 

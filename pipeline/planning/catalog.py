@@ -72,7 +72,7 @@ def perturbation_kinds() -> list[tuple[str, str, str]]:
     """(kind, what, where) of every perturbation kind."""
     from workers.envs.base import suite_info
     from workers.envs.factory import ENVS, env_class
-    from workers.envs.wrappers.perturbations import KINDS
+    from workers.envs.wrappers.perturbation_grammar import KINDS
 
     by_kind: dict[str, list[str]] = {}
     for name in ENVS:

@@ -74,7 +74,7 @@ class EnvConfig(StrictModel):
     @field_validator("perturbations")
     @classmethod
     def _perturbations(cls, values: list[Any]) -> list[str]:
-        from workers.envs.wrappers.perturbations import parse
+        from workers.envs.wrappers.perturbation_grammar import parse
 
         if not values:
             raise ValueError("give at least one (none: the tasks as they are)")

@@ -118,7 +118,7 @@ def perturbation_labels(df: pd.DataFrame) -> pd.Series:
     """Each row's perturbation as ``kind:severity`` (``none`` for none), from the
     ``perturbation`` and ``severity`` columns; rows without them (run dirs written before the
     columns existed) are read off their task ids (``task@kind:severity``)."""
-    from workers.envs.wrappers.perturbations import Perturbation, perturbation_of
+    from workers.envs.wrappers.perturbation_grammar import Perturbation, perturbation_of
 
     from_ids = df["task_id"].astype(str).map(perturbation_of)
     if "perturbation" not in df:

@@ -8,7 +8,7 @@ import pytest
 
 from pipeline.cli import main
 from workers.envs.factory import ENVS
-from workers.envs.wrappers.perturbations import KINDS
+from workers.envs.wrappers.perturbation_grammar import KINDS
 
 
 def test_list_names_every_suite_env_type_kind_and_backbone(capsys) -> None:

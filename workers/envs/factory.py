@@ -81,7 +81,8 @@ def make_env(
     else:
         env = env_class(suite)(**params)
     if perturbations:
-        from workers.envs.wrappers.perturbations import PerturbedEnv, parse
+        from workers.envs.wrappers.perturbation_grammar import parse
+        from workers.envs.wrappers.perturbations import PerturbedEnv
 
         return PerturbedEnv(env, [parse(p) for p in perturbations])  # type: ignore[return-value]
     return env

@@ -315,7 +315,8 @@ def test_scene_perturbations_and_bit_identical_none(env) -> None:
     """Scene kinds on LIBERO: the table (libero_10/0: the living room's unnamed table mesh) recoloured
     through its material, the objects jittered; ``none`` right after them is the unperturbed
     episode to the bit. Reuses the module's simulator (the last task above)."""
-    from workers.envs.wrappers.perturbations import PerturbedEnv, parse
+    from workers.envs.wrappers.perturbation_grammar import parse
+    from workers.envs.wrappers.perturbations import PerturbedEnv
 
     task = "libero_10/0"
     kinds = ["table_color:0.8", "init_jitter:0.02"]

@@ -6,14 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from workers.envs.wrappers.perturbations import (
-    KINDS,
-    Perturbation,
-    PerturbedImages,
-    parse,
-    perturb_image,
-    split_task,
-)
+from workers.envs.wrappers.image_ops import PerturbedImages, perturb_image
+from workers.envs.wrappers.perturbation_grammar import KINDS, Perturbation, parse, split_task
 
 
 def test_parse_spellings_and_refusals() -> None:

@@ -25,7 +25,6 @@ import subprocess
 import tempfile
 import threading
 from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +32,7 @@ import numpy as np
 
 from workers.envs.base import EnvObservation, LazyImages, LazyState, TaskSpec
 from workers.envs.server import wire
+from workers.envs.server.spec import ServerSpec
 
 log = logging.getLogger(__name__)
 
@@ -63,14 +63,6 @@ class EnvServerStartError(EnvServerError):
 
 class RemoteEnvError(RuntimeError):
     """An exception the env raised inside the server, of a type not kept (its name is said)."""
-
-
-@dataclass(frozen=True)
-class ServerSpec:
-    """Where and how an env server runs (``env.python`` / ``env.server_timeout_s``)."""
-
-    python: str  # the interpreter (absolute path once the driver resolved it)
-    timeout_s: float = 120.0  # a request (or the start and build) longer than this: killed
 
 
 class ServerProcess:

@@ -103,7 +103,7 @@ class EnvServer:
     def op_reset(self, req: dict[str, Any]) -> dict[str, Any]:
         env = self._env()
         if "perturbation" in req:  # a scene perturbation (only sent where one applies)
-            from workers.envs.wrappers.perturbations import parse
+            from workers.envs.wrappers.perturbation_grammar import parse
 
             env.set_perturbation(parse(req["perturbation"]))
         self.obs = env.reset(req["task_id"], int(req["episode_index"]), int(req["seed"]))

@@ -315,7 +315,7 @@ class LiberoEnv:
         if p is None or p.kind == "init_jitter":
             return
         if self._perturber is None or self._perturber.model is not model:
-            from workers.envs.wrappers.perturbations import MujocoScenePerturber
+            from workers.envs.mujoco.scene_edits import MujocoScenePerturber
 
             self._perturber = MujocoScenePerturber(
                 model, CAMERAS["agentview"][0], _table_geoms(model)
@@ -327,7 +327,7 @@ class LiberoEnv:
         y from its fixed init state, seeded; the no-ops that follow let it settle."""
         import mujoco
 
-        from workers.envs.wrappers.perturbations import join_task
+        from workers.envs.wrappers.perturbation_grammar import join_task
 
         sim = self._sim.env.sim
         model, qpos = sim.model._model, sim.data._data.qpos

@@ -158,7 +158,7 @@ class TabletopEnv:
 
     def _perturber(self, task_id: str, scene: Any) -> Any:
         if task_id not in self._perturbers:
-            from workers.envs.wrappers.perturbations import MujocoScenePerturber
+            from workers.envs.mujoco.scene_edits import MujocoScenePerturber
 
             self._perturbers[task_id] = MujocoScenePerturber(
                 scene.sim.model._model, CAMERAS["agentview"], ["table_visual"]
@@ -186,7 +186,7 @@ class TabletopEnv:
             self._perturber(ep.scene_key, scene).restore()
         distractor_xy = None
         if p is not None and p.kind in ("init_jitter", "distractors"):  # the layout changes
-            from workers.envs.wrappers.perturbations import join_task
+            from workers.envs.wrappers.perturbation_grammar import join_task
 
             rng = p.rng(seed, join_task(task_id, p), episode_index)
             if p.kind == "init_jitter":  # each cube moved by up to severity
