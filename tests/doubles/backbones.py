@@ -13,6 +13,25 @@ from workers.backbones.base import Observation
 from workers.backbones.fakes import FakeMarkerBackbone
 
 
+class CountingMarkerBackbone(FakeMarkerBackbone):
+    """FakeMarkerBackbone that records the batch size of every ``predict_chunk`` call (how many
+    forwards, of how many rows), cleared by ``reset``."""
+
+    def __init__(self, **params: Any) -> None:
+        super().__init__(**params)
+        self.calls: list[int] = []
+
+    def reset(self) -> None:
+        super().reset()
+        self.calls.clear()
+
+    def predict_chunk(
+        self, obs: Observation, noise: Any | None = None, intervention: Any | None = None
+    ) -> torch.Tensor:
+        self.calls.append(obs.batch_size)
+        return super().predict_chunk(obs, noise, intervention)
+
+
 class FaultyMarkerBackbone(FakeMarkerBackbone):
     """FakeMarkerBackbone whose calls fail on purpose, by call number (0-based, counted over
     this object's life, not cleared by reset): ``nonfinite_calls`` return ``nonfinite_value``

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from tests.doubles.backbones import CountingMarkerBackbone
 from workers.backbones.base import Observation
 from workers.backbones.fakes import FakeMarkerBackbone
 from workers.envs.fakes import FakeMarkerEnv
@@ -27,7 +28,7 @@ def _batch(n: int = 3, seed: int = 0) -> Observation:
 
 def test_batched_is_one_call_of_3b_and_equals_sequential() -> None:
     obs = _batch(3)
-    bb = FakeMarkerBackbone(noise_std=0.3)
+    bb = CountingMarkerBackbone(noise_std=0.3)
     batched = IDRWrapper(bb, RefinerConfig(tau=100.0), batched=True).infer(obs, step_seed=5)
     assert bb.calls == [9]
     bb.calls.clear()
@@ -107,7 +108,7 @@ def test_counterfactual_inputs_are_the_interventions() -> None:
 
 
 def test_baseline_mode_runs_no_counterfactual_pass() -> None:
-    bb = FakeMarkerBackbone()
+    bb = CountingMarkerBackbone()
     step = IDRWrapper(bb, RefinerConfig(mode="baseline")).infer(_batch(2))
     assert bb.calls == [2]
     assert step.diag is None and step.a_no_img is None

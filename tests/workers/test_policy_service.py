@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from tests.doubles.backbones import CountingMarkerBackbone
 from workers.backbones.base import Observation
 from workers.backbones.fakes import FakeMarkerBackbone
 from workers.envs.fakes import FakeMarkerEnv
@@ -45,7 +46,7 @@ def _same(a, b) -> bool:
 
 @pytest.mark.parametrize("noise_std", [0.0, 0.3], ids=["deterministic", "flow-like noise"])
 def test_one_forward_for_many_episodes_gives_each_its_own_answer(noise_std):
-    backbone = FakeMarkerBackbone(chunk_len=4, gain=5.0, noise_std=noise_std)
+    backbone = CountingMarkerBackbone(chunk_len=4, gain=5.0, noise_std=noise_std)
     requests = _requests(12)
     batched = infer_many(IDRWrapper(backbone), requests)
     assert backbone.calls == [3 * 9 + 3]  # one forward: 9 IDR cells x 3 rows + 3 baselines
@@ -68,8 +69,7 @@ def test_an_answer_does_not_depend_on_its_batch_mates():
 
 
 def test_a_backbone_that_cannot_batch_answers_request_by_request():
-    backbone = FakeMarkerBackbone(chunk_len=4, gain=5.0)
-    backbone.can_batch = False
+    backbone = CountingMarkerBackbone(chunk_len=4, gain=5.0, can_batch=False)
     requests = _requests(4)
     infer_many(IDRWrapper(backbone), requests)
     assert backbone.calls == [1] + [1] * 9  # the baseline: 1 pass; each IDR cell: 3 passes

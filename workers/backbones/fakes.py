@@ -67,12 +67,11 @@ class FakeMarkerBackbone:
         self.can_batch = can_batch
         self.delay_s = delay_s  # simulated inference time, sleeping (tests of scheduling, faults)
         self.busy_s = busy_s  # simulated inference time, burning CPU (throughput benchmarks)
-        self.calls: list[int] = []  # batch size of every predict_chunk call, for tests
         # Used when the caller passes no noise: independent draws per call.
         self._fresh = torch.Generator().manual_seed(fresh_noise_seed)
 
     def reset(self) -> None:
-        self.calls.clear()
+        pass
 
     def make_noise(self, batch_size: int, seed: int) -> torch.Tensor | None:
         if self.noise_std == 0:
@@ -85,7 +84,6 @@ class FakeMarkerBackbone:
     ) -> torch.Tensor:
         if intervention is not None:
             raise ValueError(f"{self.name} applies no interventions itself (raw space only)")
-        self.calls.append(obs.batch_size)
         if self.delay_s:
             time.sleep(self.delay_s)
         if self.busy_s:
