@@ -80,7 +80,15 @@ def check_params_bind(where: str, cls: Any, params: dict[str, Any]) -> None:
         bound = sig.bind(**params)
     except TypeError as e:
         accepted = [n for n in sig.parameters if n != "self"]
-        raise ValueError(f"{where}: {e}; accepted parameters: {accepted}") from None
+        named = set(accepted) | {n for n, p in sig.parameters.items() if p.kind is p.VAR_KEYWORD}
+        unknown = [k for k in params if k not in named]
+        hints = []
+        for k in unknown:
+            close = difflib.get_close_matches(k, accepted, n=1)
+            if close:
+                hints.append(f"{k!r}: did you mean {close[0]!r}?")
+        hint = f" ({'; '.join(hints)})" if hints else ""
+        raise ValueError(f"{where}: {e}{hint}; accepted parameters: {accepted}") from None
     _check_types(where, cls, bound.arguments)
 
 

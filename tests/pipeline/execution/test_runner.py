@@ -84,7 +84,8 @@ def test_run_dir_of_another_config_is_refused(tmp_path) -> None:
         (["backbone.kind=fake"], r"backbone.kind='fake' is unknown"),
         (
             ["backbone.params.gian=3"],
-            r"backbone.params \(backbone 'fake_marker'\): .*'gian'.*accepted parameters: \['chunk_len', 'gain'",
+            r"backbone.params \(backbone 'fake_marker'\): .*'gian' \('gian': did you mean 'gain'\?\); "
+            r"accepted parameters: \['chunk_len', 'gain'",
         ),
         (["env.params.size=3"], r"env.params \(suite 'fake_marker'\): .*'size'"),
         (["executor.workers=64"], r"needs 64 CPUs but this machine has \d+; .*oversubscribe=true"),
