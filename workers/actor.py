@@ -96,12 +96,17 @@ class EpisodeWorker:
             self.policy: Any = PolicyServiceClient(spec.policy_actor, info)
             self.cameras = info["cameras"]
             self.numerics = info["numerics"]
+            self.hardware = info.get("hardware")
         else:
             set_torch_threads(spec.torch_threads)
             self.backbone = make_backbone(spec.backbone_kind, spec.backbone_params)
             self.policy = IDRWrapper(self.backbone, batched=spec.batched)
             self.numerics = fix_forward_shape(self.policy, spec.forward_rows, spec.torch_threads)
             self.cameras = backbone_member(self.backbone, "cameras")  # None: all the env has
+            from workers.hardware import hardware_class, hardware_record
+
+            device = (spec.backbone_params or {}).get("device")
+            self.hardware = hardware_class(hardware_record(device))
         self.env = make_env(spec.env_suite, spec.env_params, spec.env_server, spec.perturbations)
         # shared policy: more envs, each episode on one of them in its own thread (Ray runs up
         # to envs_per_worker calls at once), so one env steps while another's request is away
@@ -129,6 +134,7 @@ class EpisodeWorker:
             "node": self.node,
             "render_backend": self.render_backend,
             "numerics": self.numerics,
+            "hardware": self.hardware,
         }
         env = self._envs.get()
         try:

@@ -136,6 +136,10 @@ class EpisodeRow:
     # the numerical path that produced the episode (workers.forward_shape.numerics_label):
     # episodes with one label, config and seed have the same actions bit for bit
     numerics: str | None = None
+    # the hardware class that produced it (workers.hardware): the CPU model and the instruction
+    # set torch dispatches to, and the GPU where the model computes on one. Numerics are equal
+    # across episodes with one (numerics, hardware) pair; null in run dirs made before it existed
+    hardware: str | None = None
     crn: bool | None = None
     started_at: str | None = None
     finished_at: str | None = None

@@ -31,6 +31,7 @@ from workers.forward_shape import (
     fix_forward_shape,
     set_torch_threads,
 )
+from workers.hardware import hardware_class, hardware_record
 from workers.idr import Diagnostics, RefinerConfig
 from workers.idr_wrapper import IDRStep, IDRWrapper, step_of
 from workers.interventions import InterventionConfig
@@ -154,6 +155,7 @@ class PolicyWorker:
 
         set_torch_threads(threads)
         self.backbone = make_backbone(kind, params)
+        self.device = params.get("device")
         self.policy = IDRWrapper(self.backbone, batched=batched)
         self.numerics = fix_forward_shape(self.policy, rows, threads)
         self.rows = self.policy.backbone.rows if self.policy.backbone is not self.backbone else None
@@ -170,6 +172,7 @@ class PolicyWorker:
             "cameras": backbone_member(self.backbone, "cameras"),
             "batched": self.policy.batched,
             "numerics": self.numerics,
+            "hardware": hardware_class(hardware_record(self.device)),
         }
 
     def infer_many(self, requests: list[InferRequest]) -> list[IDRStep]:

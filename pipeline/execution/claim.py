@@ -164,6 +164,17 @@ def write_meta(plan: RunPlan) -> None:
     }
     if plan.numerics:
         meta["numerics"] = plan.numerics
+    old = read_run_json(plan.run_dir) or {}
+    hardware = dict(old.get("hardware") or {})  # every class the run ran on, with its record
+    if plan.hardware is not None:
+        from workers.hardware import hardware_class
+
+        meta["hardware_class"] = hardware_class(plan.hardware)
+        hardware[meta["hardware_class"]] = plan.hardware
+    elif old.get("hardware_class"):
+        meta["hardware_class"] = old["hardware_class"]
+    if hardware:
+        meta["hardware"] = hardware
     if plan.numerics == "remote":
         meta["numerics_note"] = REMOTE_NUMERICS
     if plan.checkpoint is not None:
@@ -174,9 +185,7 @@ def write_meta(plan: RunPlan) -> None:
         meta["fit"] = plan.fit.record()
         if plan.fit.protocol:
             meta["protocol"] = dict(plan.fit.protocol)
-    old = read_run_json(plan.run_dir)
-    if old is not None:  # what earlier drivers recorded (quarantined files) is kept
-        kept = old.get("quarantined")
-        if kept:
-            meta["quarantined"] = kept
+    kept = old.get("quarantined")  # what earlier drivers recorded (quarantined files) is kept
+    if kept:
+        meta["quarantined"] = kept
     write_run_json(plan.run_dir, meta)

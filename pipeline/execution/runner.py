@@ -43,7 +43,7 @@ from pipeline.planning.checkpoint_fit import fit_config
 from pipeline.planning.config import ConfigError, RunConfig
 from pipeline.planning.env_runtime import check_env_runtime
 from pipeline.planning.plan import CellPlan, RunPlan, SpecGrid, planned_numerics
-from pipeline.planning.provenance import check_numerics, check_resume
+from pipeline.planning.provenance import check_hardware, check_numerics, check_resume
 from pipeline.reporting.run_data import load_run
 from pipeline.reporting.write import write_report
 from pipeline.results.calibration import calibrate
@@ -62,6 +62,7 @@ from pipeline.rundir import (
     update_run_json,
 )
 from workers.episode import EpisodeResult, WorkerSpec
+from workers.hardware import hardware_class
 
 if TYPE_CHECKING:
     from pipeline.planning.checkpoint_fit import Fit
@@ -99,15 +100,34 @@ def plan_run(
     checkpoint = checkpoint_digest(cfg, run_dir)
     meta = read_run_json(run_dir)
     numerics = planned_numerics(cfg)
+    hardware = host_hardware(cfg)
     if meta is not None:
         check_resume(meta, checkpoint, version, run_dir, allow_code_change)
         check_numerics(meta, numerics, run_dir, allow_numerics_change)
+        warning = check_hardware(
+            meta, hardware and hardware_class(hardware), run_dir, allow_numerics_change
+        )
+        if warning:
+            log.warning(warning)
     specs, deferred = _stages(cfg, run_id, tasks, version)
     worker_spec = _worker_spec(cfg, fit, server, run_dir, tasks)
     return RunPlan(
         cfg, run_dir, run_id, tasks, specs, worker_spec, deferred, version, checkpoint, fit,
-        server_hello, numerics,
+        server_hello, numerics, hardware,
     )  # fmt: skip
+
+
+def host_hardware(cfg: RunConfig) -> dict[str, object] | None:
+    """This host's hardware record where this host's actors run the episodes (a local Ray or
+    inline); None where a cluster's nodes do (executor.address)."""
+    if cfg.executor.kind == "ray" and cfg.executor.address:
+        return None
+    device = cfg.backbone.params.get("device") if cfg.backbone.kind != "remote" else None
+    from workers.hardware import hardware_record, renderer_in_child
+
+    record = hardware_record(device)
+    record["renderer"] = renderer_in_child()
+    return record
 
 
 def _stages(

@@ -140,6 +140,9 @@ class RunPlan:
     fit: Fit | None = None  # what the pre-flight settled (pipeline.planning.checkpoint_fit)
     env_server: dict[str, object] | None = None  # the env server's hello (python, version)
     numerics: str = ""  # the numerical path the config asks for (workers.forward_shape)
+    # this host's hardware record (workers.hardware.hardware_record), for run.json; None on a
+    # cluster, where the actors' rows say what ran
+    hardware: dict[str, object] | None = None
 
     def all_specs(self) -> Chain:
         return Chain((self.specs, self.calibrated))

@@ -80,6 +80,32 @@ def check_resume(
         )
 
 
+def check_hardware(
+    meta: dict[str, Any], hardware: str | None, run_dir: Path, allow_numerics_change: bool = False
+) -> str | None:
+    """Refuse resuming ``run_dir`` on another hardware class (workers.hardware) unless
+    ``allow_numerics_change``: the same numerical path gives other floats on another CPU model
+    or instruction set. A run dir made before the class was recorded: a warning (returned), and
+    the resume goes on. ``hardware`` None (a cluster's actors, not this driver, compute): not
+    checked here; the episodes' ``hardware`` column and the report name what ran."""
+    was = meta.get("hardware_class")
+    if hardware is None:
+        return None
+    if not was:
+        return (
+            f"{run_dir} was made before the hardware was recorded: its episodes' hardware is "
+            f"unknown; resuming on {hardware!r} (the report lists the classes by episode)"
+        )
+    if was != hardware and not allow_numerics_change:
+        raise ConfigError(
+            f"{run_dir} was run on {was!r}, this machine is {hardware!r}: the same numerical "
+            "path gives other floats on another CPU model or instruction set, so its remaining "
+            "episodes would not match the first ones. Resume it on the same hardware, use a "
+            "new --out, or pass --allow-numerics-change (the report then says mixed)"
+        )
+    return None
+
+
 def check_numerics(
     meta: dict[str, Any], numerics: str, run_dir: Path, allow_numerics_change: bool = False
 ) -> None:

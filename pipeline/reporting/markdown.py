@@ -269,22 +269,31 @@ def _protocol(run_dir: Path) -> list[str]:
 
 
 def numerics_lines(episodes: pd.DataFrame) -> list[str]:
-    """The numerical path the episodes ran on (workers.forward_shape), and a warning when a
-    resumed run mixes paths (--allow-numerics-change): those episodes differ in float rounding."""
+    """Each (numerical path, hardware class) the episodes ran on, with its episode count, and a
+    warning when a resumed run mixes them (--allow-numerics-change): those episodes differ in
+    float rounding. Episodes of run dirs made before the hardware was recorded: "unknown"."""
     if "numerics" not in episodes:
         return []
-    counts = episodes["numerics"].dropna().value_counts()
+    rows = episodes[episodes["numerics"].notna()]
+    if rows.empty:
+        return []
+    hardware = (
+        rows["hardware"].fillna("unknown hardware")
+        if "hardware" in rows
+        else pd.Series("unknown hardware", index=rows.index)
+    )
+    counts = pd.DataFrame({"path": rows["numerics"], "hw": hardware}).value_counts()
     if len(counts) == 1:
-        return [f"Numerical path: `{counts.index[0]}`."]
-    if len(counts) > 1:
-        paths = ", ".join(
-            f"`{p}` ({n} episode{'' if n == 1 else 's'})" for p, n in sorted(counts.items())
-        )
-        return [
-            f"**Mixed numerical paths**: {paths}. Episodes of different paths differ in float "
-            "rounding (see docs/reproducibility.md)."
-        ]
-    return []
+        (path, hw), n = next(iter(counts.items()))
+        return [f"Numerical path: `{path}` on `{hw}` ({n} episode{'' if n == 1 else 's'})."]
+    combos = ", ".join(
+        f"`{p}` on `{h}` ({n} episode{'' if n == 1 else 's'})"
+        for (p, h), n in sorted(counts.items())
+    )
+    return [
+        f"**Mixed numerics**: {combos}. Episodes of different paths or hardware differ in float "
+        "rounding (see docs/reproducibility.md)."
+    ]
 
 
 def build_report(

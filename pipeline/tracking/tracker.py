@@ -64,6 +64,22 @@ EXPERIMENT_KIND = ("mlflow.experimentKind", "custom_model_development")
 PERCENT_METRICS = ("success", "delta_")
 
 
+def numerics_tags(episodes: pd.DataFrame) -> dict[str, dict[str, str]]:
+    """Per cell, the numerical paths and hardware classes its episodes ran on, as MLflow tags
+    (``idr.numerics``, ``idr.hardware``; several joined by " | ": a mixed cell). Cells of run dirs
+    made before a column existed get no tag for it."""
+    out: dict[str, dict[str, str]] = {}
+    for cell_id, rows in episodes.groupby("cell_id"):
+        tags = {}
+        for column in ("numerics", "hardware"):
+            if column in rows:
+                values = sorted(str(v) for v in rows[column].dropna().unique())
+                if values:
+                    tags[f"idr.{column}"] = " | ".join(values)[:5000]
+        out[str(cell_id)] = tags
+    return out
+
+
 class Tracker:
     """Parent + child MLflow runs of one RUN_DIR, created or resumed.
 
@@ -356,6 +372,10 @@ class Tracker:
             for cell_id, metrics in per_cell.items():
                 if cell_id in self.children:
                     self._log_metrics(self.children[cell_id], metrics)
+            for cell_id, tags in numerics_tags(episodes).items():
+                for key, value in tags.items():
+                    if cell_id in self.children:
+                        self.client.set_tag(self.children[cell_id], key, value)
             self._log_metrics(
                 self.parent_id,
                 {

@@ -122,3 +122,38 @@ def test_preflight_does_not_import_a_simulator(preset, tmp_path) -> None:
     )
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_rows_name_their_hardware_and_a_resume_on_other_hardware_is_refused(tmp_path, caplog):
+    """Every episode row carries this host's hardware class, run.json its record; a resume on
+    another class is refused naming both unless --allow-numerics-change; a run dir made before
+    the class was recorded resumes with a warning."""
+    import json
+
+    from workers.hardware import hardware_class, hardware_record
+
+    here = hardware_class(hardware_record("cpu"))
+    cfg = load_config(
+        CONF / "smoke.yaml",
+        ["executor.kind=inline", "tracking.enabled=false", "env.tasks=[reach]"],
+    )
+    run = tmp_path / "run"
+    execute(plan_run(cfg, run))
+    rows = RunStore(run).episodes().to_pandas()
+    assert set(rows["hardware"]) == {here}
+    meta_path = run / "run.json"
+    meta = json.loads(meta_path.read_text())
+    assert meta["hardware_class"] == here and meta["hardware"][here]["cpu_model"]
+    meta["hardware_class"] = "Other CPU / AVX512"
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(ConfigError, match=r"was run on 'Other CPU / AVX512', this machine is"):
+        plan_run(cfg, run)
+    plan = plan_run(cfg, run, allow_numerics_change=True)
+    execute(plan)
+    meta = json.loads(meta_path.read_text())
+    assert set(meta["hardware"]) == {here} and meta["hardware_class"] == here
+    del meta["hardware_class"], meta["hardware"]  # as a run dir made before the record
+    meta_path.write_text(json.dumps(meta))
+    with caplog.at_level("WARNING"):
+        execute(plan_run(cfg, run))
+    assert "made before the hardware was recorded" in caplog.text

@@ -158,13 +158,29 @@ def test_every_table_equals_the_aggregation_it_is_built_from(report) -> None:
 def test_the_report_names_the_numerical_path_and_warns_when_a_run_mixes_them() -> None:
     from pipeline.reporting.markdown import numerics_lines
 
-    one = pd.DataFrame({"numerics": ["rows=96 threads=1"] * 3})
-    assert numerics_lines(one) == ["Numerical path: `rows=96 threads=1`."]
+    one = pd.DataFrame({"numerics": ["rows=96 threads=1"] * 3, "hardware": ["EPYC / AVX2"] * 3})
+    assert numerics_lines(one) == [
+        "Numerical path: `rows=96 threads=1` on `EPYC / AVX2` (3 episodes)."
+    ]
     mixed = pd.DataFrame(
         {"numerics": ["request threads=1", "rows=96 threads=1", None, "request threads=1"]}
     )
-    (line,) = numerics_lines(mixed)
-    assert "Mixed numerical paths" in line
-    assert "`request threads=1` (2 episodes), `rows=96 threads=1` (1 episode)" in line
+    (line,) = numerics_lines(mixed)  # rows from before the hardware column: unknown hardware
+    assert "Mixed numerics" in line
+    assert (
+        "`request threads=1` on `unknown hardware` (2 episodes), "
+        "`rows=96 threads=1` on `unknown hardware` (1 episode)"
+    ) in line
+    # one path on two machines (a resume on other hardware, --allow-numerics-change)
+    hw = pd.DataFrame(
+        {
+            "numerics": ["request threads=1"] * 3,
+            "hardware": ["EPYC / AVX2", "Xeon / AVX512", None],
+        }
+    )
+    (line,) = numerics_lines(hw)
+    assert "`request threads=1` on `EPYC / AVX2` (1 episode)" in line
+    assert "`request threads=1` on `Xeon / AVX512` (1 episode)" in line
+    assert "`request threads=1` on `unknown hardware` (1 episode)" in line
     assert numerics_lines(pd.DataFrame({"numerics": [None]})) == []  # rows from before the column
     assert numerics_lines(pd.DataFrame({"x": [1]})) == []
