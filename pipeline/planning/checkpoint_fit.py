@@ -11,7 +11,7 @@ actions executed per inference. A mismatch is one ConfigError naming both sides 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from pipeline.planning.config import DEFAULT_REPLAN_STEPS, ConfigError, RunConfig
@@ -207,6 +207,36 @@ def _check_intervention_spaces(cfg: RunConfig) -> None:
         raise ConfigError(str(e)) from None
 
 
+def lerobot_eval_threads() -> int:
+    """The torch thread count lerobot-eval runs with here: torch's default, the CPUs this
+    process may use unless OMP_NUM_THREADS says otherwise."""
+    import os
+
+    env = os.environ.get("OMP_NUM_THREADS", "")
+    if env.isdigit() and int(env) > 0:
+        return int(env)
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def with_thread_note(fit: Fit, cfg: RunConfig) -> Fit:
+    """Under lerobot-eval's protocol, the torch thread count the run uses, in the protocol record
+    and in a pre-flight line: a float reduction splits by thread, so an episode equals
+    lerobot-eval's bit for bit only with equal threads (lerobot-eval runs torch's default)."""
+    if fit.protocol.get("name") != "lerobot" or cfg.backbone.kind == "remote":
+        return fit
+    threads, theirs = cfg.executor.threads(), lerobot_eval_threads()
+    if threads == theirs:
+        note = f"torch threads {threads}, as lerobot-eval runs here: its episodes bit for bit"
+    else:
+        note = (
+            f"torch threads {threads} per actor, lerobot-eval runs {theirs} here: episodes equal "
+            f"lerobot-eval's in protocol, not bit for bit (executor.torch_threads={theirs} for "
+            "that)"
+        )
+    protocol = {**fit.protocol, "torch_threads": threads}
+    return replace(fit, protocol=protocol, notes=(*fit.notes, note))
+
+
 def fit_config(cfg: RunConfig) -> tuple[RunConfig, Fit]:
     """The config with what the pre-flight settled filled in (replan steps; camera map and
     image size where the checkpoint decides them), and the fit itself."""
@@ -231,7 +261,9 @@ def fit_config(cfg: RunConfig) -> tuple[RunConfig, Fit]:
                 f"action: the env takes {dim}-d actions, but {policy.source} declares action "
                 f"({policy.action_dim},); use a policy trained on this env's action space"
             )
-    fit = fit_backbone_to_env(env, policy, cfg.backbone.replan_steps, camera_map)
+    fit = with_thread_note(
+        fit_backbone_to_env(env, policy, cfg.backbone.replan_steps, camera_map), cfg
+    )
     if env is not None:  # a served model: one trial answer on an observation shaped like the env's
         from workers.backbones.base import backbone_member
         from workers.backbones.factory import backbone_class

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from pipeline.planning.checkpoint_fit import fit_backbone_to_env, resolve_replan
@@ -163,3 +165,22 @@ def test_a_space_the_backbone_cannot_intervene_in_is_refused_before_work(tmp_pat
     ):
         plan_run(cfg, tmp_path / "run")
     assert not (tmp_path / "run").exists()
+
+
+def test_under_lerobots_protocol_the_run_says_its_torch_threads(monkeypatch) -> None:
+    """lerobot-eval runs torch's default threads; an episode equals its episodes bit for bit
+    only with as many (a float reduction splits by thread): the pre-flight says which."""
+    from pipeline.planning.checkpoint_fit import Fit, with_thread_note
+    from pipeline.planning.config import load_config
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "4")
+    conf = Path(__file__).resolve().parents[3] / "conf" / "smoke.yaml"
+    fit = Fit(4, protocol={"name": "lerobot"})
+    one = with_thread_note(fit, load_config(conf, ["executor.torch_threads=1"]))
+    assert one.protocol["torch_threads"] == 1
+    assert "torch threads 1 per actor, lerobot-eval runs 4 here" in one.notes[-1]
+    assert "executor.torch_threads=4" in one.notes[-1]
+    four = with_thread_note(fit, load_config(conf, ["executor.torch_threads=4"]))
+    assert four.notes[-1].startswith("torch threads 4, as lerobot-eval runs here")
+    other = with_thread_note(Fit(4, protocol={"name": "openpi"}), load_config(conf))
+    assert other.notes == () and "torch_threads" not in other.protocol
