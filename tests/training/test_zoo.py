@@ -13,8 +13,6 @@ import pytest
 
 from training import zoo
 
-pytestmark = [pytest.mark.sim, pytest.mark.slow]
-
 
 def _zoo(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run(
@@ -26,6 +24,8 @@ def _zoo(*args: str) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.sim
+@pytest.mark.slow
 def test_parts_merge_train_resume_export_and_load_through_lerobots_factory(tmp_path) -> None:
     from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
@@ -67,6 +67,7 @@ def test_parts_merge_train_resume_export_and_load_through_lerobots_factory(tmp_p
     assert sum(p.numel() for p in policy.parameters()) == meta["params"]
 
 
+@pytest.mark.slow
 def test_a_dataset_that_does_not_fit_the_member_is_refused_before_training(tmp_path) -> None:
     info = {
         "features": {
@@ -85,8 +86,34 @@ def test_a_dataset_that_does_not_fit_the_member_is_refused_before_training(tmp_p
     assert not (tmp_path / "r").exists()  # nothing started
 
 
+@pytest.mark.slow
 def test_an_unknown_member_or_a_missing_dataset_is_named_with_the_fix(tmp_path) -> None:
     out = _zoo("train", "actt", "--dataset", str(tmp_path))
     assert out.returncode != 0 and "unknown zoo member 'actt' (did you mean 'act'?)" in out.stderr
     out = _zoo("train", "act", "--dataset", str(tmp_path / "none"))
     assert "scripts/record_zoo_data.sh" in out.stderr
+
+
+def test_every_member_says_how_it_is_rebuilt_and_a_missing_one_is_refused_naming_that() -> None:
+    from workers.backbones.lerobot.adapter import REBUILD_FILE, check_checkpoint
+
+    commands = json.loads((zoo.ROOT / zoo.SHIPPED / REBUILD_FILE).read_text())
+    assert set(commands) == set(zoo.MEMBERS)
+    for name, command in commands.items():
+        assert f"python -m training.zoo train {name}" in command
+        assert "scripts/record_zoo_data.sh" in command
+    absent = zoo.ROOT / zoo.SHIPPED / "no_such_member"
+    with pytest.raises(ValueError, match=r"does not exist"):
+        check_checkpoint(str(absent))  # no entry: the plain refusal
+    missing = [n for n in zoo.MEMBERS if not (zoo.ROOT / zoo.SHIPPED / n).is_dir()]
+    for name in missing:  # in a fresh clone: the members not shipped in git
+        with pytest.raises(ValueError, match=rf"rebuild it with: .*training.zoo train {name}"):
+            check_checkpoint(str(zoo.ROOT / zoo.SHIPPED / name))
+
+
+def test_the_zoo_preset_validates() -> None:
+    from pipeline.planning.config import load_config
+
+    cfg = load_config(zoo.ROOT / "conf" / "zoo" / "tabletop.yaml")
+    assert "pick_color@image_blackout:1" in cfg.env.tasks
+    assert [c.idr.mode for c in cfg.cells()] == ["diagnose", "E"]

@@ -65,6 +65,24 @@ def _is_local(path: str) -> bool:
     return path.startswith((".", "/", "~")) or os.path.exists(path) or path.count("/") != 1
 
 
+REBUILD_FILE = "REBUILD.json"
+
+
+def rebuild_hint(missing: Path) -> str:
+    """How to rebuild a missing checkpoint, where the folder meant to hold it says so: a
+    ``REBUILD.json`` beside it mapping folder names to commands (checkpoints/zoo has one: its
+    members are not all shipped in git)."""
+    import json
+
+    index = missing.parent / REBUILD_FILE
+    try:
+        commands = json.loads(index.read_text())
+    except (OSError, ValueError):
+        return ""
+    command = commands.get(missing.name) if isinstance(commands, dict) else None
+    return f"; rebuild it with: {command}" if isinstance(command, str) else ""
+
+
 def check_checkpoint(path: str, allow_download: bool = False) -> Path | None:
     """Refuse, on the driver and before any actor starts, a checkpoint that does not exist, is
     not a lerobot policy of a known type, or whose weights are not a complete safetensors file
@@ -83,6 +101,7 @@ def check_checkpoint(path: str, allow_download: bool = False) -> Path | None:
     if not p.is_dir():
         raise ValueError(
             f"backbone.params.path={path!r} does not exist (a checkpoint folder or a hub id)"
+            + rebuild_hint(p)
         )
     check_checkpoint_dir(p, "backbone.params.path", known_policy_types())
     return p
