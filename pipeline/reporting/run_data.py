@@ -153,7 +153,8 @@ def rimg_matrix(effects: pd.DataFrame) -> pd.DataFrame:
     paper's ratio of time averages, not the average of per-step ratios)."""
     effects = effects.dropna(subset=["e_img", "e_prop"])
     if "task_id" in effects and agg.any_perturbed(effects):
-        # perturbed tasks: a column per suite x perturbation (the paper's observation 2)
+        # perturbed tasks: a column per suite x perturbation (the paper's observation 1: a
+        # perturbed scene is another environment for the same policy)
         tagged = agg.with_perturbation(effects)
         effects = tagged.assign(suite=tagged["suite"].astype(str) + "\n" + tagged["perturbation"])
     g = effects.groupby(["backbone", "suite"])
