@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from typing import Any
 
 from pipeline.errors import RunError
@@ -18,14 +19,23 @@ from workers.episode import EpisodeSpec, WorkerSpec
 log = logging.getLogger("idr_eval.executors.inline")
 
 
-def _new_worker(spec: WorkerSpec) -> Any:
-    from workers import actor  # looked up at call time: tests substitute the class
+def episode_worker(spec: WorkerSpec) -> Any:
+    """The episode worker of ``spec`` (workers.actor, imported when the first one starts: it
+    loads the simulators' and models' modules)."""
+    from workers.actor import EpisodeWorker
 
-    return actor.EpisodeWorker(spec)
+    return EpisodeWorker(spec)
 
 
 class InlineExecutor:
-    def __init__(self, worker_spec: WorkerSpec, episode_timeout_s: float | None = None) -> None:
+    def __init__(
+        self,
+        worker_spec: WorkerSpec,
+        episode_timeout_s: float | None = None,
+        new_worker: Callable[[WorkerSpec], Any] = episode_worker,
+    ) -> None:
+        """``new_worker``: builds a worker from its spec (and a fresh one after a fault)."""
+        self.new_worker = new_worker
         self.worker_spec = worker_spec
         self.limit = episode_timeout_s
         self.stats = ExecutorStats()
@@ -37,7 +47,7 @@ class InlineExecutor:
             return
         t0 = time.monotonic()
         try:
-            self.worker = _new_worker(self.worker_spec)
+            self.worker = self.new_worker(self.worker_spec)
         except Exception as exc:
             raise RunError(
                 f"the worker cannot load: {type(exc).__name__}: {exc} (fix it and run the same "
@@ -87,7 +97,7 @@ class InlineExecutor:
         except Exception as exc:  # a broken worker may fail to close; it is dropped anyway
             log.warning("closing the old worker failed: %s", exc)
         self.stats.replaced += 1
-        self.worker = _new_worker(self.worker_spec)
+        self.worker = self.new_worker(self.worker_spec)
 
     def close(self) -> None:
         worker, self.worker = self.worker, None

@@ -169,17 +169,13 @@ class LiberoEnv:
 
     @classmethod
     def _protocol_of(cls, params: dict[str, Any]) -> LiberoProtocol:
-        """The validated protocol of constructor params (``lazy_render`` changes nothing; a
-        subclass's own params are left to its constructor)."""
+        """The validated protocol of constructor params (``lazy_render`` changes nothing).
+        Only LiberoEnv's own parameters decide it; every name was already checked against the
+        class's constructor (``workers.envs.factory.check_suite``)."""
         import inspect
 
         sig = inspect.signature(LiberoEnv.__init__)
-        own = {  # a subclass's own named params (a test double's fault settings)
-            name
-            for name, p in inspect.signature(cls.__init__).parameters.items()
-            if p.kind is not p.VAR_KEYWORD and name not in sig.parameters
-        }
-        bound = sig.bind(None, **{k: v for k, v in params.items() if k not in own})
+        bound = sig.bind(None, **{k: v for k, v in params.items() if k in sig.parameters})
         bound.apply_defaults()
         args = dict(bound.arguments)
         for name in ("self", "lazy_render"):
