@@ -78,6 +78,9 @@ class EpisodeWorker:
         from workers.worker_log import log_to_file
 
         log_to_file(spec.log_dir, "worker")  # its output in the run dir, not on the terminal
+        from workers.hardware import apply_numerics_env
+
+        apply_numerics_env(spec.numerics_env)  # before anything computes or renders
         self.spec = spec
         self.render_backend = configure_rendering()
         # Imported after the rendering backend is set: env modules may import MuJoCo.

@@ -47,6 +47,9 @@ class WorkerSpec:
     # inference's own; shared: rows, or "dynamic") and torch's CPU threads (None: unchanged)
     forward_rows: int | str | None = None
     torch_threads: int | None = None
+    # set in the actor's process before anything computes (workers.hardware.numerics_env:
+    # executor.numerics_mode portable pins the instruction sets); empty: the host's own
+    numerics_env: dict[str, str] = field(default_factory=dict)
     # episode videos (workers.videos): the first N episodes of each task and cell, into
     # video_dir; 0: none
     video_episodes: int = 0

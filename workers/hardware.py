@@ -20,6 +20,8 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
+PINS = ("ATEN_CPU_CAPABILITY", "MKL_CBWR", "ONEDNN_MAX_CPU_ISA", "LP_NATIVE_VECTOR_WIDTH")
+
 
 @cache
 def cpu_model() -> str:
@@ -136,10 +138,69 @@ def hardware_record(device: str | None = None, render_backend: str | None = None
     return rec
 
 
+#: ``executor.numerics_mode: portable``: what decides CPU float order, pinned in every process
+#: that holds a model or renders, before its first kernel runs. torch's kernels, MKL and oneDNN
+#: to AVX2 (the widest set common to the x86 CPUs of a mixed cluster: AVX-512 machines would
+#: otherwise take other kernels), MKL's conditional numerical reproducibility in strict mode,
+#: and llvmpipe's vector width to 256 bits (it compiles shaders for the host otherwise).
+PORTABLE_ISA = "AVX2"
+PORTABLE_ENV = {
+    "ATEN_CPU_CAPABILITY": "avx2",
+    "MKL_CBWR": "AVX2,STRICT",
+    "ONEDNN_MAX_CPU_ISA": "AVX2",
+    "LP_NATIVE_VECTOR_WIDTH": "256",
+}
+
+
+def numerics_env(mode: str) -> dict[str, str]:
+    """The environment a process of ``executor.numerics_mode`` sets before its first kernel."""
+    return dict(PORTABLE_ENV) if mode == "portable" else {}
+
+
+def apply_numerics_env(env: dict[str, str]) -> None:
+    """Set ``env`` in this process. torch reads its capability, MKL its CBWR and oneDNN its ISA
+    at their first kernel, llvmpipe its vector width at its first context: call this before the
+    process computes or renders anything (an actor's first act)."""
+    os.environ.update(env)
+
+
+def cpu_flags() -> set[str]:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("flags"):
+                return set(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    return set()
+
+
+def check_portable_cpu() -> str | None:
+    """Why this CPU cannot run the portable mode (None: it can): AVX2 and FMA are needed."""
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        return f"{platform.machine()} is not x86-64"
+    missing = {"avx2", "fma"} - cpu_flags()
+    return f"{cpu_model()} lacks {', '.join(sorted(missing))}" if missing else None
+
+
+def is_portable(rec: dict[str, Any]) -> bool:
+    """Whether ``rec`` was taken under the portable pins, and torch honoured them."""
+    pins = rec.get("isa_pins") or {}
+    return all(pins.get(k) == v for k, v in PORTABLE_ENV.items()) and (
+        str(rec.get("cpu_capability")) == PORTABLE_ISA
+    )
+
+
 def hardware_class(rec: dict[str, Any]) -> str:
     """What decides an episode's float order, in one label: the CPU model and the instruction
-    set torch dispatches to, and the GPU where the model computes on one."""
-    parts = [str(rec.get("cpu_model") or "unknown"), str(rec.get("cpu_capability") or "unknown")]
+    set torch dispatches to, and the GPU where the model computes on one. Under the portable
+    pins the CPU reduces to the pinned instruction set (``portable AVX2``)."""
+    if is_portable(rec):
+        parts = [f"portable {PORTABLE_ISA}"]
+    else:
+        parts = [
+            str(rec.get("cpu_model") or "unknown"),
+            str(rec.get("cpu_capability") or "unknown"),
+        ]
     if rec.get("gpu"):
         parts.append(f"{rec['gpu']} (sm {rec.get('gpu_capability', '?')})")
     return " / ".join(parts)

@@ -44,10 +44,13 @@ class BatchingPolicyActor:
         log_dir: str | None = None,
         rows: int | str | None = None,
         threads: int | None = None,
+        env: dict[str, str] | None = None,
     ) -> None:
+        from workers.hardware import apply_numerics_env
         from workers.worker_log import log_to_file
 
         log_to_file(log_dir, "policy")  # its output in the run dir, not on the terminal
+        apply_numerics_env(env or {})  # before the backbone loads (executor.numerics_mode)
         self.worker = PolicyWorker(kind, params, batched, rows, threads)
         self.max_batch = max_batch
         self.wait_s = batch_wait_ms / 1e3

@@ -4,6 +4,7 @@ naming the field and the fix."""
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 
@@ -13,6 +14,8 @@ from workers.backbones.factory import check_backbone
 from workers.envs.base import TaskSpec, suite_hooks, suite_info
 from workers.envs.factory import check_suite, env_class
 from workers.envs.server.spec import ServerSpec
+
+log = logging.getLogger("idr_eval.preflight")
 
 
 def check_names(cfg: RunConfig) -> None:
@@ -96,7 +99,34 @@ def check_videos(cfg: RunConfig) -> None:
         raise ConfigError(f"videos.camera={camera!r}: suite {cfg.env.suite!r} renders {list(cams)}")
 
 
+def check_numerics_mode(cfg: RunConfig) -> None:
+    """The portable mode needs an x86-64 CPU with AVX2 (this host's, where its actors run); on a
+    GPU backbone it pins the CPU's kernels only, which the log says at start."""
+    ex = cfg.executor
+    if ex.numerics_mode != "portable":
+        return
+    from workers.hardware import PORTABLE_ENV, check_portable_cpu
+
+    local = not (ex.kind == "ray" and ex.address)
+    why = check_portable_cpu() if local else None
+    if why:
+        raise ConfigError(
+            f"executor.numerics_mode=portable pins torch, MKL and oneDNN to AVX2, but {why}: "
+            "use executor.numerics_mode=native on this machine"
+        )
+    device = str(cfg.backbone.params.get("device") or "")
+    if device.startswith("cuda"):
+        log.warning(
+            "executor.numerics_mode=portable pins the CPU's kernels (%s) and the CPU renderer, "
+            "not the GPU's: cuBLAS / cuDNN kernels still depend on the GPU model (set "
+            "CUBLAS_WORKSPACE_CONFIG and deterministic algorithms for run-to-run identity on "
+            "one GPU model)",
+            ", ".join(f"{k}={v}" for k, v in PORTABLE_ENV.items()),
+        )
+
+
 def check_executor(cfg: RunConfig) -> None:
+    check_numerics_mode(cfg)
     ex = cfg.executor
     if ex.policy == "shared" and ex.kind != "ray":
         raise ConfigError(

@@ -62,7 +62,7 @@ from pipeline.rundir import (
     update_run_json,
 )
 from workers.episode import EpisodeResult, WorkerSpec
-from workers.hardware import hardware_class
+from workers.hardware import hardware_class, numerics_env
 
 if TYPE_CHECKING:
     from pipeline.planning.checkpoint_fit import Fit
@@ -123,8 +123,11 @@ def host_hardware(cfg: RunConfig) -> dict[str, object] | None:
     if cfg.executor.kind == "ray" and cfg.executor.address:
         return None
     device = cfg.backbone.params.get("device") if cfg.backbone.kind != "remote" else None
-    from workers.hardware import hardware_record, renderer_in_child
+    from workers.hardware import apply_numerics_env, hardware_record, renderer_in_child
 
+    # the actors set the mode's pins first thing; the record is taken as they will see it (and
+    # an inline executor's actor is this process)
+    apply_numerics_env(numerics_env(cfg.executor.numerics_mode))
     record = hardware_record(device)
     record["renderer"] = renderer_in_child()
     return record
@@ -165,6 +168,7 @@ def _worker_spec(
         perturbations=perturbations_of(tasks),
         forward_rows=cfg.executor.forward_shape(),
         torch_threads=cfg.executor.threads(),
+        numerics_env=numerics_env(cfg.executor.numerics_mode),
         video_episodes=cfg.videos.episodes,
         video_camera=cfg.videos.camera,
         video_fps=cfg.videos.fps,

@@ -69,6 +69,13 @@ class ExecutorConfig(StrictModel):
         "None: shared, 3 x max_batch (one IDR request is 3 rows); in_actor, each inference's own "
         "rows (1, or 3 for IDR). The same value in both modes gives the same tables",
     )
+    numerics_mode: Literal["native", "portable"] = Field(
+        default="native",
+        description="native: each host's own kernels (tables equal run to run on one machine); "
+        "portable: torch, MKL and oneDNN pinned to AVX2 and llvmpipe to 256-bit vectors in "
+        "every actor, so x86 machines of other CPU models give the same tables "
+        "(docs/reproducibility.md)",
+    )
     torch_threads: int | None = Field(
         default=None,
         ge=1,

@@ -167,6 +167,7 @@ class RayActorPool:
                 log_dir=spec.log_dir,
                 rows=spec.forward_rows,
                 threads=spec.torch_threads,
+                env=spec.numerics_env,
             )
             for _ in range(ex.policy_actors)
         ]
