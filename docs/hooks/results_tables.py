@@ -594,6 +594,47 @@ def shared_numerics(d: Data) -> str:
     return block(*parts, source("shared_numerics", d))
 
 
+def portable_numerics(d: Data) -> str:
+    """portable_numerics.json: the portable mode run to run, against native, its cost, and the
+    machines where the reference digest held or not."""
+    w = d["wall_seconds"]
+    here = d["measured_on"]
+    figures = key_values(
+        [
+            ("slice", f"`{d['config']}` with {', '.join(f'`{o}`' for o in d['overrides'])}"),
+            ("episodes", d["episodes"]),
+            (
+                "portable, run to run",
+                "identical" if d["portable_run_to_run_identical"] else "differ",
+            ),
+            (
+                "episodes equal native vs portable",
+                f"{d['episodes_equal_native_vs_portable']} of {d['episodes']}",
+            ),
+            ("wall, portable (s)", f"{w['portable_1']}, {w['portable_2']}"),
+            ("wall, native (s)", w["native"]),
+            ("portable / native wall", num(d["portable_cost_ratio"]) + "x"),
+            ("digest", f"`{d['digest'][:16]}`"),
+        ]
+    )
+    machines = table(
+        ["CPU model", "torch dispatches", "reference holds", "first difference", "date"],
+        [
+            [
+                m["cpu_model"],
+                m["cpu_capability"],
+                "yes" if m["holds"] else "no",
+                m.get("first_difference") or "–",
+                m.get("date", ""),
+            ]
+            for m in d["machines"]
+        ],
+    )
+    mach = f"{here['cpu_model']} ({here['cpu_capability']})"
+    return block(figures, "Machines checked against the reference digest:", machines,
+                 source("portable_numerics", d, f"measured on {mach}"))  # fmt: skip
+
+
 RENDERERS: dict[str, Callable[[Data], str]] = {
     f.__name__: f
     for f in (
@@ -618,6 +659,7 @@ RENDERERS: dict[str, Callable[[Data], str]] = {
         gpu_rendering,
         tabletop_env_egl_h100,
         tiny_vla_alignment,
+        portable_numerics,
     )
 }
 
