@@ -131,7 +131,7 @@ class IDRConfig(PreTrainedConfig):
                 guidance=self.guidance,
             )
         except ValueError as e:
-            raise IDRConfigError(str(e).replace("IDRConfig.", "policy.")) from None
+            raise IDRConfigError(str(e).replace("RefinerConfig.", "policy.")) from None
         if cfg.refines and self.tau is None:
             raise IDRConfigError(
                 f"policy.mode={self.mode!r} refines actions and needs policy.tau: run mode "

@@ -169,11 +169,12 @@ class LiberoEnv:
 
     @classmethod
     def _protocol_of(cls, params: dict[str, Any]) -> LiberoProtocol:
-        """The validated protocol of constructor params (``lazy_render`` changes nothing).
-        Only LiberoEnv's own parameters decide it; every name was already checked against the
-        class's constructor (``workers.envs.factory.check_suite``)."""
+        """The validated protocol of constructor params (``lazy_render`` changes nothing): the
+        params bind to the class's own constructor (a name it does not take raises TypeError),
+        and LiberoEnv's parameters decide the protocol."""
         import inspect
 
+        inspect.signature(cls.__init__).bind(None, **params)
         sig = inspect.signature(LiberoEnv.__init__)
         bound = sig.bind(None, **{k: v for k, v in params.items() if k in sig.parameters})
         bound.apply_defaults()
