@@ -117,3 +117,33 @@ def test_the_zoo_preset_validates() -> None:
     cfg = load_config(zoo.ROOT / "conf" / "zoo" / "tabletop.yaml")
     assert "pick_color@image_blackout:1" in cfg.env.tasks
     assert [c.idr.mode for c in cfg.cells()] == ["diagnose", "E"]
+
+
+@pytest.mark.parametrize(
+    ("preset", "refusal"),
+    [
+        # PushT: one 96 px camera `image`, a 2-d state, 2-d actions
+        ("pusht_smoke.yaml", r"reads observation\.images\.agentview, which matches no env camera"),
+        # MetaWorld: one 480 px camera, a 4-d state, 4-d actions
+        ("metaworld_smoke.yaml", r"reads observation\.images\.agentview, which matches no env"),
+    ],
+)
+def test_a_zoo_checkpoint_on_a_suite_it_was_not_trained_on_is_refused_before_work(
+    preset, refusal, tmp_path
+) -> None:
+    from pipeline.execution.runner import plan_run
+    from pipeline.planning.config import ConfigError, load_config
+
+    ckpt = zoo.ROOT / zoo.SHIPPED / "tiny_vla"
+    cfg = load_config(
+        zoo.ROOT / "conf" / preset,
+        [
+            "backbone.kind=lerobot",
+            f"backbone.params={{path: {ckpt}, device: cpu}}",
+            "executor.kind=inline",
+            "tracking.enabled=false",
+        ],
+    )
+    with pytest.raises(ConfigError, match=refusal):
+        plan_run(cfg, tmp_path / "run")
+    assert not (tmp_path / "run").exists()
