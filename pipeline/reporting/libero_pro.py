@@ -15,7 +15,7 @@ def _pct(x: float | None) -> str:
     return "–" if x is None or math.isnan(x) else f"{100 * x:.1f}"
 
 
-def _entry(c: lp.Cell) -> str:
+def _entry(c: lp.FamilyEntry) -> str:
     text = f"{_pct(c.success)} (n={c.n})"
     if c.delta is not None:
         text += f" Δ {100 * c.delta:+.1f} [{100 * c.ci_low:+.1f}, {100 * c.ci_high:+.1f}]"

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from pipeline.reporting import libero_pro
+from pipeline.reporting.suite_sections import suite_sections
 from pipeline.results import aggregate as agg
 from pipeline.results.calibration import read_calibration
 from pipeline.results.store import RunStore
@@ -336,7 +336,7 @@ def build_report(
         "",
         main_table(paired if focus is not None else episodes),
         *perturbation_section(paired if focus is not None else episodes),
-        *libero_pro.section(episodes),
+        *suite_sections(episodes),
     ]
     for table in TABLES:
         if (built := table(episodes)) is not None:
