@@ -16,19 +16,10 @@ import numpy as np
 import pandas as pd
 import pyarrow.dataset as ds
 
-# what differs between two executions of the same plan by design
-VOLATILE = {
-    "run_id",
-    "code_version",
-    "wall_seconds",
-    "started_at",
-    "finished_at",
-    "worker",
-    "node",
-    "inference_ms",
-    "inference_ms_mean",
-    "attempt",
-}
+from pipeline.results.digest import EXCLUDED
+
+# what differs between two executions of the same plan by design, or names the machine
+VOLATILE = EXCLUDED
 KEYS = {
     "episodes": ["cell_id", "task_id", "episode_index"],
     "steps": ["cell_id", "task_id", "episode_index", "inference_index"],
