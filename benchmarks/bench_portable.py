@@ -37,6 +37,9 @@ def slice_overrides(episodes: int) -> list[str]:
     return [f"episodes_per_task={episodes}", "tracking.enabled=false"]
 
 
+LOAD: dict[str, float] = {}  # the 1-minute load average when each run started
+
+
 def run(out: Path, mode: str, episodes: int) -> float:
     cmd = [
         str(Path(sys.executable).with_name("idr-eval")),
@@ -47,6 +50,9 @@ def run(out: Path, mode: str, episodes: int) -> float:
         *slice_overrides(episodes),
         f"executor.numerics_mode={mode}",
     ]
+    import os
+
+    LOAD[f"{out.name}"] = round(os.getloadavg()[0], 2)
     t0 = time.perf_counter()
     subprocess.run(cmd, cwd=ROOT, check=True, capture_output=True, text=True)
     return time.perf_counter() - t0
@@ -102,6 +108,8 @@ def main() -> None:
         "portable_run_to_run_identical": p1 == p2,
         "episodes_equal_native_vs_portable": same_native,
         "wall_seconds": {k: round(v, 1) for k, v in wall.items()},
+        # other load on the machine skews the wall times, not the tables
+        "load_average_at_start": dict(LOAD),
         "portable_cost_ratio": round(
             (wall["portable_1"] + wall["portable_2"]) / 2 / wall["native"], 3
         ),

@@ -23,6 +23,7 @@ import json
 import os
 import platform
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -221,7 +222,12 @@ def cmd_train(args: argparse.Namespace) -> None:
     cmd = train_command(args.name, member, args)
     print(" ".join(cmd), flush=True)
     t0 = time.perf_counter()
-    rc = subprocess.call(cmd, cwd=ROOT, env=offline_env(args.threads))
+    child = subprocess.Popen(cmd, cwd=ROOT, env=offline_env(args.threads))
+    # a stop (SIGTERM / SIGINT) goes to lerobot-train, and the session is still logged: its last
+    # checkpoint is where the next `train` resumes
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda signum, _frame: child.send_signal(signum))
+    rc = child.wait()
     # wall time accumulates over resumed sessions (the model card states the total)
     log = out / "zoo_sessions.jsonl"
     if out.exists():

@@ -631,8 +631,60 @@ def portable_numerics(d: Data) -> str:
         ],
     )
     mach = f"{here['cpu_model']} ({here['cpu_capability']})"
-    return block(figures, "Machines checked against the reference digest:", machines,
+    note = f"Note: {d['note']}." if d.get("note") else ""
+    return block(figures, note, "Machines checked against the reference digest:", machines,
                  source("portable_numerics", d, f"measured on {mach}"))  # fmt: skip
+
+
+def zoo_tabletop(d: Data) -> str:
+    """zoo_tabletop.json: per member, its training record and its success per task and cell
+    on the zoo preset, with Wilson intervals, its diagnose cell's effects and E vs diagnose."""
+    train_rows, task_rows, effect_rows = [], [], []
+    for name, m in d["members"].items():
+        t, e = m["train"], m["eval"]
+        train_rows.append(
+            [
+                name,
+                t["policy_type"],
+                "yes" if t["language"] else "no",
+                f"{t['params']:,}",
+                t["steps"],
+                t["batch_size"],
+                t["seed"],
+                f"{t['train_seconds'] / 60:.0f} min",
+                ", ".join(t["machines"]) + f" ({'/'.join(map(str, t['threads']))} threads)",
+            ]
+        )
+        for r in m["tasks"]:
+            lo, hi = r["ci95"]
+            task_rows.append(
+                [name, r["cell"], r["task"], f"{r['successes']}/{r['n']}",
+                 f"{100 * r['success']:.0f} [{100 * lo:.0f}, {100 * hi:.0f}]"]
+            )  # fmt: skip
+        eff = m["diagnose_effects"]
+        paired = "; ".join(
+            f"{p['cell']} {100 * p['diff']:+.1f} pp [{100 * p['ci95'][0]:+.1f}, "
+            f"{100 * p['ci95'][1]:+.1f}], p={p['mcnemar_p']:.2g} (n={p['n_pairs']})"
+            for p in m["paired_vs_diagnose"]
+        )
+        effect_rows.append(
+            [name, num(eff["e_img"]), num(eff["e_prop"]), num(eff["r_img"]), paired or "–",
+             f"{e['episodes_per_task']} per task, {e['machine']}, {e['date']}"]
+        )  # fmt: skip
+    return block(
+        table(
+            ["member", "type", "instruction", "parameters", "steps", "batch", "seed",
+             "training (wall)", "trained on"],
+            train_rows,
+        ),
+        table(["member", "cell", "task", "successes", "success % [95% Wilson]"], task_rows),
+        table(
+            ["member", "E_img", "E_prop", "R_img", "E − diagnose (paired, 95% CI, McNemar)",
+             "evaluated"],
+            effect_rows,
+        ),
+        source("zoo_tabletop", d),
+    )  # fmt: skip
 
 
 RENDERERS: dict[str, Callable[[Data], str]] = {
@@ -660,6 +712,7 @@ RENDERERS: dict[str, Callable[[Data], str]] = {
         tabletop_env_egl_h100,
         tiny_vla_alignment,
         portable_numerics,
+        zoo_tabletop,
     )
 }
 

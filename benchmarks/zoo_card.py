@@ -1,0 +1,103 @@
+"""The zoo's model card figures: each member's training record and its evaluation on the zoo
+preset (``conf/zoo/tabletop.yaml``), per task and cell with Wilson intervals, mean E_img, E_prop
+and R_img of its diagnose cell, and E − diagnose paired per member.
+
+Reads ``checkpoints/zoo/<member>/train_meta.json`` and a finished run dir per member; writes
+``benchmarks/results/zoo_tabletop.json`` (rendered in docs/zoo.md). A member evaluated again
+replaces its entry; the others are kept.
+
+Usage: ``python benchmarks/zoo_card.py MEMBER=RUN_DIR [MEMBER=RUN_DIR ...]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from datetime import date
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results" / "zoo_tabletop.json"
+
+
+def member_entry(name: str, run_dir: Path) -> dict:
+    from pipeline.results import aggregate as agg
+    from pipeline.results.store import RunStore
+    from workers.hardware import cpu_model
+
+    meta_path = ROOT / "checkpoints" / "zoo" / name / "train_meta.json"
+    meta = json.loads(meta_path.read_text())
+    episodes = RunStore(run_dir, read_only=True).episodes().to_pandas()
+    rates = agg.success_by_task(episodes)
+    tasks = [
+        {
+            "cell": r.cell_id,
+            "task": r.task_id,
+            "n": int(r.n),
+            "successes": int(r.successes),
+            "errors": int(r.errors),
+            "success": float(r.success_rate),
+            "ci95": [float(r.ci_low), float(r.ci_high)],
+        }
+        for r in rates.itertuples()
+    ]
+    ok = episodes[episodes["error"].isna()]
+    diag = ok[ok["mode"] == "diagnose"]
+    effects = {
+        "e_img": float(diag["e_img_mean"].mean()),
+        "e_prop": float(diag["e_prop_mean"].mean()),
+    }
+    effects["r_img"] = effects["e_img"] / (effects["e_img"] + effects["e_prop"] + 1e-6)
+    paired = [
+        {
+            "cell": p.cell_id,
+            "n_pairs": p.n_pairs,
+            "diff": p.diff,
+            "ci95": [p.ci_low, p.ci_high],
+            "mcnemar_p": p.p_value,
+        }
+        for p in agg.paired_vs_baseline(episodes)
+    ]
+    return {
+        "member": name,
+        "train": {
+            k: meta[k]
+            for k in (
+                "policy_type",
+                "language",
+                "params",
+                "steps",
+                "batch_size",
+                "seed",
+                "train_seconds",
+                "machines",
+                "threads",
+            )
+        },
+        "eval": {
+            "run_dir": run_dir.name,
+            "episodes_per_task": int(episodes.groupby(["cell_id", "task_id"]).size().max()),
+            "machine": cpu_model(),
+            "date": date.today().isoformat(),
+        },
+        "tasks": tasks,
+        "diagnose_effects": effects,
+        "paired_vs_diagnose": paired,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("runs", nargs="+", help="MEMBER=RUN_DIR")
+    args = ap.parse_args()
+    old = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {"members": {}}
+    for item in args.runs:
+        name, _, run = item.partition("=")
+        old["members"][name] = member_entry(name, Path(run))
+    old["preset"] = "conf/zoo/tabletop.yaml"
+    RESULTS.write_text(json.dumps(old, indent=2) + "\n")
+    print(json.dumps(old, indent=2)[:3000])
+
+
+if __name__ == "__main__":
+    main()
