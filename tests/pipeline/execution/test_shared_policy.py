@@ -166,7 +166,9 @@ def _real(tmp_path: Path, name: str, *overrides: str):
     cfg = load_config(CONF / "tiny_vla.yaml", [*REAL, *overrides])
     summary = execute(plan_run(cfg, tmp_path / name))
     assert summary.stored == 8 and summary.errors == 0
-    return _episodes(tmp_path / name), _steps(tmp_path / name)
+    # an actor that dies under a loaded machine's memory pressure has its episodes run again:
+    # the retry count differs, the results must not
+    return _episodes(tmp_path / name).drop(columns="attempt"), _steps(tmp_path / name)
 
 
 @pytest.mark.slow
