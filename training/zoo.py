@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import shutil
 import signal
 import subprocess
@@ -205,22 +204,14 @@ def offline_env(threads: int) -> dict[str, str]:
     return env
 
 
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
 def cmd_train(args: argparse.Namespace) -> None:
     member = _member(args.name)
     check_features(args.name, member, args.dataset)
     out = run_dir(args.name, args.seed, args.runs)
     cmd = train_command(args.name, member, args)
     print(" ".join(cmd), flush=True)
+    from workers.hardware import cpu_model
+
     t0 = time.perf_counter()
     child = subprocess.Popen(cmd, cwd=ROOT, env=offline_env(args.threads))
     # a stop (SIGTERM / SIGINT) goes to lerobot-train, and the session is still logged: its last

@@ -68,9 +68,11 @@ def gl_renderer(backend: str | None) -> str | None:
     return f"{mesa.group(1) if mesa else version} / {renderer}"
 
 
+@cache
 def renderer_in_child(timeout_s: float = 30.0) -> str | None:
     """:func:`gl_renderer` as an actor of this host would see it, read in a child process (the
-    caller keeps its own GL settings and imports): the backend ``configure_rendering`` picks."""
+    caller keeps its own GL settings and imports): the backend ``configure_rendering`` picks.
+    Read once per process: a host's renderer does not change while a driver runs."""
     import subprocess
     import sys
 
