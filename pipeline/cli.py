@@ -85,6 +85,41 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_study(args: argparse.Namespace) -> int:
+    """Every run of the study planned (and pre-flighted) first, then run in order; a finished
+    run is skipped by its own resume. Then STUDY/observations.md from all of them."""
+    from pipeline.execution.runner import execute, plan_run
+    from pipeline.planning.study import load_study
+    from pipeline.reporting.observations import OBS_MD, RunRef, write
+
+    study = load_study(args.study, args.overrides)
+    out = Path(args.out)
+    plans = []
+    for run in study.runs:
+        _import_logging_libraries(run.config)
+        plans.append(plan_run(run.config, out / run.label, yes=args.yes))
+        print(f"{run.label}: {len(plans[-1].all_specs())} episodes -> {out / run.label}")
+    for run, plan in zip(study.runs, plans, strict=True):
+        try:
+            with stop_on_signals():
+                summary = execute(plan)
+        except RunInterrupted as e:
+            print(
+                f"idr-eval: {e}: finished episodes are stored under {out}; run the same "
+                "command again to resume the study",
+                file=sys.stderr,
+            )
+            return e.exit_code
+        print(
+            f"{run.label}: done in {summary.wall_seconds:.1f}s ({summary.stored} stored, "
+            f"{summary.skipped} already stored, {summary.errors} errors)"
+        )
+    refs = [RunRef(r.arch, r.env, out / r.label) for r in study.runs]
+    write(out, refs, study.name)
+    print((out / OBS_MD).read_text())
+    return 0
+
+
 def _import_logging_libraries(cfg: RunConfig) -> None:
     """Import Ray and MLflow now, where the run uses them, and send their log records to the
     run's log (pipeline.execution.run_log): each installs its own terminal handler when imported."""
@@ -257,7 +292,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="idr-eval", description=__doc__)
     p.add_argument("-v", "--verbose", action="store_true")
     sub = p.add_subparsers(dest="command", required=True)
-    for add in (_add_run, _add_results, _add_sidecar, _add_compare, _add_ui, _add_list):
+    for add in (_add_run, _add_study, _add_results, _add_sidecar, _add_compare, _add_ui, _add_list):
         add(sub)
     return p
 
@@ -294,6 +329,19 @@ def _add_run(sub: Subparsers) -> None:
         "forward_rows / torch_threads); the report names both",
     )
     run.set_defaults(func=_cmd_run)
+
+
+def _add_study(sub: Subparsers) -> None:
+    st = sub.add_parser(
+        "study",
+        help="run a study (architecture x environment runs, e.g. conf/paper/observations.yaml) "
+        "and report the paper's observations across them",
+    )
+    st.add_argument("study", help="study YAML, e.g. conf/paper/observations.yaml")
+    st.add_argument("--out", required=True, help="STUDY_DIR: one run dir per arch@env inside")
+    st.add_argument("overrides", nargs="*", help="dotted key=value overrides for every run")
+    st.add_argument("--yes", action="store_true", help="allow runs above the grid size guard")
+    st.set_defaults(func=_cmd_study)
 
 
 def _add_results(sub: Subparsers) -> None:
@@ -419,7 +467,7 @@ def main(argv: list[str] | None = None) -> int:
     # Overrides may follow --out; argparse leaves those after an option as unknown args.
     args, extra = parser.parse_known_args(argv)
     if extra:
-        if args.command != "run" or any("=" not in e for e in extra):
+        if args.command not in ("run", "study") or any("=" not in e for e in extra):
             parser.error(f"unrecognized arguments: {' '.join(extra)}")
         args.overrides = [*args.overrides, *extra]
     from pipeline.execution.run_log import RUN_LOG

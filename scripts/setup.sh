@@ -74,4 +74,7 @@ bash scripts/setup_openpi.sh
 
 # --- LIBERO offline: link packaged assets, write the config (never prompts) ----------------
 "$VENV/bin/python" -m workers.envs.suites.libero.assets >/dev/null
+
+# --- the zoo's tokenizers / VLM configs into the local Hugging Face cache, by their hub ids --
+"$VENV/bin/python" -m training.zoo_hub install >/dev/null
 log "ready: $VENV (Python $("$VENV/bin/python" -c 'import platform; print(platform.python_version())'))"

@@ -29,6 +29,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from training.zoo_hub import SMOLVLM, XVLA_TOKENIZER, install, repo_id, xvla_florence_config
+
 ROOT = Path(__file__).resolve().parents[1]
 DATASET = Path("data/zoo/tabletop")
 RUNS = Path("data/zoo/runs")
@@ -77,6 +79,7 @@ MEMBERS: dict[str, Member] = {
         steps=6000,
         batch_size=32,
         language=False,
+        save_freq=500,
     ),
     # Diffusion Policy from scratch: a small 1-D UNet (64-128-256) over a ResNet-18 with group
     # norm (required without pretrained weights); DDIM with 10 steps, so the three IDR passes can
@@ -91,10 +94,78 @@ MEMBERS: dict[str, Member] = {
             "--policy.down_dims=[64,128,256]",
             "--policy.noise_scheduler_type=DDIM",
             "--policy.num_inference_steps=10",
+            "--policy.n_obs_steps=1",
         ),
         steps=6000,
         batch_size=32,
         language=False,
+        save_freq=500,
+    ),
+    # X-VLA, the paper's backbone: Florence-2 at small widths (training/zoo_hub.py) reads both
+    # cameras and the instruction; the state enters with the action tokens of a 3-layer
+    # transformer of width 128 (flow matching, 10 denoising steps). Tokenizer by hub id from the
+    # local cache (installed by make setup), so the checkpoint loads from any folder.
+    "xvla": Member(
+        "xvla",
+        (
+            "--policy.florence_config=" + json.dumps(xvla_florence_config(), separators=(",", ":")),
+            f"--policy.tokenizer_name={repo_id(XVLA_TOKENIZER)}",
+            "--policy.tokenizer_max_length=16",
+            "--policy.hidden_size=128",
+            "--policy.depth=3",
+            "--policy.num_heads=4",
+            "--policy.num_domains=1",
+            "--policy.len_soft_prompts=4",
+            "--policy.dim_time=16",
+            "--policy.action_mode=auto",
+            "--policy.num_denoising_steps=10",
+            "--policy.max_state_dim=8",
+            "--policy.max_action_dim=7",
+            "--policy.chunk_size=8",
+            "--policy.n_action_steps=4",
+            # one learning rate for every part: lerobot's X-VLA preset gives the VLM a tenth of
+            # it, meant for fine-tuning pretrained Florence-2 weights; here they start random
+            "--use_policy_training_preset=false",
+            "--optimizer.type=adamw",
+            "--optimizer.lr=3e-4",
+            "--optimizer.weight_decay=0.0",
+            "--optimizer.grad_clip_norm=10",
+            "--scheduler.type=cosine_decay_with_warmup",
+            "--scheduler.peak_lr=3e-4",
+            "--scheduler.decay_lr=1e-5",
+            "--scheduler.num_warmup_steps=200",
+            "--scheduler.num_decay_steps=6000",
+        ),
+        steps=6000,
+        batch_size=32,
+        language=True,
+        save_freq=500,
+    ),
+    # SmolVLA: SmolVLM2 at small widths (training/zoo_hub.py: a 2-layer vision tower, a
+    # 4-layer Llama of width 64) built from its config (no weights) and trained whole, with its
+    # flow-matching action expert; instruction, both cameras at 96 px, state as a token.
+    "smolvla": Member(
+        "smolvla",
+        (
+            f"--policy.vlm_model_name={repo_id(SMOLVLM)}",
+            "--policy.load_vlm_weights=false",
+            # random VLM weights: train everything (the defaults freeze the VLM for fine-tuning)
+            "--policy.train_expert_only=false",
+            "--policy.freeze_vision_encoder=false",
+            "--policy.resize_imgs_with_padding=[96,96]",
+            "--policy.tokenizer_max_length=16",
+            "--policy.num_vlm_layers=4",
+            "--policy.num_expert_layers=4",
+            "--policy.chunk_size=8",
+            "--policy.n_action_steps=4",
+            "--policy.num_steps=10",
+            "--policy.max_state_dim=8",
+            "--policy.max_action_dim=7",
+        ),
+        steps=6000,
+        batch_size=32,
+        language=True,
+        save_freq=500,
     ),
     # the tiny VLA (our plugin's type), by lerobot's trainer on the zoo's dataset: the net, the
     # masked orientation dims and the chunking of the shipped one (docs/tiny-vla.md)
@@ -170,6 +241,7 @@ def train_command(name: str, member: Member, args: argparse.Namespace) -> list[s
             f"--config_path={last / 'pretrained_model' / 'train_config.json'}",
             "--resume=true",
             f"--steps={args.steps or member.steps}",
+            f"--save_freq={member.save_freq}",
         ]
     return [
         exe,
@@ -208,6 +280,7 @@ def cmd_train(args: argparse.Namespace) -> None:
     member = _member(args.name)
     check_features(args.name, member, args.dataset)
     out = run_dir(args.name, args.seed, args.runs)
+    install()  # the sub-model files the member names by hub id (no-op when present)
     cmd = train_command(args.name, member, args)
     print(" ".join(cmd), flush=True)
     from workers.hardware import cpu_model

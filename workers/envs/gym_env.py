@@ -8,6 +8,16 @@ default: every 1-D numeric entry, sorted by key), ``instruction`` (envs without 
 PushT, get this fixed string, recorded with every episode) and ``success_key`` (the ``info``
 entry that says the task is done; ``is_success`` by Gymnasium's convention).
 
+Envs whose observation is a state vector (MetaWorld's own ``Meta-World/MT1``, Gymnasium's MuJoCo
+tasks) get their rendered frame as a camera with ``render_key`` (Gymnasium's
+``AddRenderObservation``: the observation becomes ``{render_key: frame, "state": obs}``), at the
+size the env's ``width`` / ``height`` kwargs give; ``render_quality`` sets MuJoCo's
+``model.vis.quality`` fields before the first frame (software rendering spends most of a small
+frame on the 4096 px shadow map and 4x multisampling: ``{shadowsize: 512, offsamples: 0}``). A
+state entry may take a slice, ``state[0:4]``. ``tasks`` makes several tasks of one env id,
+each with its own ``kwargs`` (merged over the shared ones) and ``instruction``; each task's env
+is built at its first reset.
+
 Episode ``i`` of a run with seed ``s`` resets with ``seed = s + i`` (lerobot-eval's rule with one
 env). The episode ends at success, at ``terminated`` / ``truncated``, or after ``max_steps``
 (default: the env spec's ``max_episode_steps``).
@@ -18,6 +28,7 @@ from __future__ import annotations
 import contextlib
 import difflib
 import importlib
+import re
 from collections.abc import Mapping
 from typing import Any
 
@@ -62,13 +73,26 @@ def check_registered(env_id: str) -> str:
     return bare
 
 
+_SLICE = re.compile(r"^(?P<path>.+)\[(?P<lo>\d*):(?P<hi>\d*)\]$")
+
+
+def _split_slice(path: str) -> tuple[str, slice | None]:
+    """``state[0:4]`` -> ("state", slice(0, 4)); a plain path -> (path, None)."""
+    m = _SLICE.match(path)
+    if m is None:
+        return path, None
+    lo, hi = m["lo"], m["hi"]
+    return m["path"], slice(int(lo) if lo else None, int(hi) if hi else None)
+
+
 def _get(obs: Mapping[str, Any], path: str) -> Any:
+    path, part_of = _split_slice(path)
     node: Any = obs
     for part in path.split("/"):
         if not isinstance(node, Mapping) or part not in node:
             return None
         node = node[part]
-    return node
+    return node if part_of is None else np.asarray(node).reshape(-1)[part_of]
 
 
 def _leaves(space: Any, prefix: str = "") -> dict[str, Any]:
@@ -84,6 +108,12 @@ def _leaves(space: Any, prefix: str = "") -> dict[str, Any]:
             else {f"{prefix}{key}": sub}
         )
     return out
+
+
+def _leaf_len(leaves: Mapping[str, Any], key: str) -> int:
+    path, part_of = _split_slice(key)
+    n = int(np.prod(leaves[path].shape))
+    return n if part_of is None else len(range(n)[part_of])
 
 
 def _is_image(space: Any) -> bool:
@@ -123,7 +153,7 @@ def map_observation(
         else sorted(k for k, s in leaves.items() if _is_vector(s))
     )
     for role, paths in (("images", list(cams.values())), ("state", keys)):
-        missing = [p for p in paths if p not in leaves]
+        missing = [p for p in paths if _split_slice(p)[0] not in leaves]
         if missing:
             raise ValueError(
                 f"{where}.{role}: {missing} not in the observation (it has {sorted(leaves)})"
@@ -155,12 +185,59 @@ class GymnasiumEnv:
         success_key: str = "is_success",
         max_steps: int | None = None,
         control_hz: float | None = None,
+        tasks: dict[str, dict[str, Any]] | None = None,
+        render_key: str | None = None,
+        render_quality: dict[str, int] | None = None,
     ) -> None:
+        from workers.rendering import configure_rendering
+
+        configure_rendering()  # before a MuJoCo env imports mujoco (no-op if already chosen)
+        self.env_id = check_registered(id)
+        self._render_key = render_key
+        self._render_quality = dict(render_quality or {})
+        self._variants = _variants(tasks, kwargs, instruction)
+        self._envs: dict[str, Any] = {}
+        first = next(iter(self._variants))
+        self._env = self._make(first)
+        self._envs[first] = self._env
+        self._setup(images, state, instruction, success_key, max_steps, control_hz, "env.params")
+        if tasks:
+            base = self._task_spec
+            self._task_specs = {
+                name: TaskSpec(
+                    name, f"{self.env_id}:{name}", base.max_steps, instruction=v["instruction"]
+                )
+                for name, v in self._variants.items()
+            }
+
+    def _make(self, task: str) -> Any:
         import gymnasium as gym
 
-        self.env_id = check_registered(id)
-        self._env = gym.make(self.env_id, disable_env_checker=True, **(kwargs or {}))
-        self._setup(images, state, instruction, success_key, max_steps, control_hz, "env.params")
+        env = gym.make(self.env_id, disable_env_checker=True, **self._variants[task]["kwargs"])
+        if self._render_quality:
+            quality = getattr(getattr(env.unwrapped, "model", None), "vis", None)
+            if quality is None:
+                raise ValueError(
+                    f"env.params.render_quality: {self.env_id} is not a MuJoCo env (no "
+                    "model.vis); drop the key"
+                )
+            for key, value in self._render_quality.items():
+                if not hasattr(quality.quality, key):
+                    raise ValueError(
+                        f"env.params.render_quality.{key}: not a MuJoCo model.vis.quality field "
+                        "(e.g. shadowsize, offsamples)"
+                    )
+                setattr(quality.quality, key, value)
+        if self._render_key is not None:
+            from gymnasium.wrappers import AddRenderObservation
+
+            if env.render_mode != "rgb_array":
+                raise ValueError(
+                    "env.params.render_key: the env must render frames; add render_mode: "
+                    "rgb_array to env.params.kwargs"
+                )
+            env = AddRenderObservation(env, render_only=False, render_key=self._render_key)
+        return env
 
     def _setup(
         self,
@@ -178,7 +255,7 @@ class GymnasiumEnv:
             env.observation_space, leaves, images, state, where
         )
         self.cameras = tuple(self._cams)
-        self.state_dim = int(sum(leaves[k].shape[0] for k in self._state_keys))
+        self.state_dim = int(sum(_leaf_len(leaves, k) for k in self._state_keys))
         self.action_dim = int(env.action_space.shape[0])
         self.image_sizes = {c: tuple(leaves[p].shape[:2]) for c, p in self._cams.items()}
         spec_steps = env.spec.max_episode_steps if env.spec is not None else None
@@ -197,14 +274,23 @@ class GymnasiumEnv:
 
     # -- the Env protocol -----------------------------------------------------------------------
     def tasks(self) -> list[TaskSpec]:
-        return [self._task_spec]
+        return list(
+            getattr(self, "_task_specs", {self._task_spec.task_id: self._task_spec}).values()
+        )
 
     def reset(self, task_id: str, episode_index: int, seed: int) -> EnvObservation:
-        if task_id != self._task_spec.task_id:
-            raise ValueError(f"task_id={task_id!r} unknown; allowed: [{self._task_spec.task_id!r}]")
+        specs = {t.task_id: t for t in self.tasks()}
+        if task_id not in specs:
+            raise ValueError(f"task_id={task_id!r} unknown; allowed: {sorted(specs)}")
         self._task = None
+        if hasattr(self, "_task_specs"):
+            if task_id not in self._envs:
+                self._envs[task_id] = self._make(task_id)
+            self._env = self._envs[task_id]
+            self._instruction = specs[task_id].instruction or self._instruction
         obs, _ = self._env.reset(seed=int(seed) + int(episode_index))
-        self._task, self._steps, self._success, self._ended = self._task_spec, 0, False, False
+        self.raw_observation = obs
+        self._task, self._steps, self._success, self._ended = specs[task_id], 0, False, False
         return self._observe(obs)
 
     def step(self, action: np.ndarray) -> EnvObservation:
@@ -216,6 +302,7 @@ class GymnasiumEnv:
         if self.done:
             raise RuntimeError("step() after the episode is done; call reset()")
         obs, _, terminated, truncated, info = self._env.step(action)
+        self.raw_observation = obs  # as the env gave it (a scripted expert reads its state)
         self._steps += 1
         self._success = self._success or bool(info.get(self.success_key, False))
         self._ended = bool(terminated or truncated)
@@ -255,7 +342,8 @@ class GymnasiumEnv:
         return self._steps
 
     def close(self) -> None:
-        self._env.close()
+        for env in getattr(self, "_envs", {}).values() or [self._env]:
+            env.close()
 
     # -- pre-flight ------------------------------------------------------------------------------
     @classmethod
@@ -265,6 +353,32 @@ class GymnasiumEnv:
             return env_io(env)
         finally:
             env.close()
+
+
+def _variants(
+    tasks: dict[str, dict[str, Any]] | None, kwargs: dict[str, Any] | None, instruction: str | None
+) -> dict[str, dict[str, Any]]:
+    """Task name -> {kwargs, instruction}; one unnamed task without ``tasks``."""
+    if not tasks:
+        return {"": {"kwargs": dict(kwargs or {}), "instruction": instruction}}
+    if not isinstance(tasks, Mapping):
+        raise ValueError(
+            "env.params.tasks: write a mapping task name -> {kwargs: {...}, instruction: ...}"
+        )
+    out = {}
+    for name, v in tasks.items():
+        v = dict(v or {})
+        unknown = set(v) - {"kwargs", "instruction"}
+        if unknown:
+            raise ValueError(
+                f"env.params.tasks.{name}: unknown keys {sorted(unknown)}; a task has kwargs "
+                "and instruction"
+            )
+        out[str(name)] = {
+            "kwargs": {**(kwargs or {}), **(v.get("kwargs") or {})},
+            "instruction": v.get("instruction") or instruction,
+        }
+    return out
 
 
 def env_io(env: Any) -> EnvIO:

@@ -1,0 +1,258 @@
+"""The paper's observations over a study's runs (architecture x environment): STUDY/observations.md,
+observations.json and figures.
+
+Sections, each number with an interval:
+
+- the R_img heatmap: architecture x (environment, task), from each run's reference diagnose cell
+  (the paper's figure; R_img is the ratio of mean effects, as everywhere in the reports);
+- per architecture and environment: R_img with a 95% interval (episodes resampled), E_img and
+  E_prop in the environment's action units (the refine space: the backbone's unnormalized
+  action output; only R_img compares across environments, as in the paper's X-VLA table);
+- IDR's gain per run: success(E) - success(diagnose), paired by episode, with a bootstrap 95%
+  interval and the exact McNemar p;
+- R_img against that gain across runs: Spearman's rank correlation with an exact permutation p
+  (all pairings up to 8 runs);
+- R_img over normalized task progress per run (10 bins, ratio of bin means).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from pipeline.results import aggregate as agg
+
+EPS = agg.RIMG_EPS
+N_BOOT = 2000
+BINS = 10
+OBS_MD = "observations.md"
+OBS_JSON = "observations.json"
+CONTROL = "@image_blackout"  # the image-zeroed control's perturbation
+
+
+@dataclass(frozen=True)
+class RunRef:
+    """One study run as the report sees it."""
+
+    arch: str
+    env: str
+    run_dir: Path
+
+    @property
+    def label(self) -> str:
+        return f"{self.arch}@{self.env}"
+
+
+def ratio(e_img: np.ndarray, e_prop: np.ndarray) -> float:
+    return float(e_img.mean() / (e_img.mean() + e_prop.mean() + EPS)) if len(e_img) else math.nan
+
+
+def rimg_interval(
+    steps: pd.DataFrame, n_boot: int = N_BOOT, seed: int = 0
+) -> tuple[float, float, float]:
+    """R_img of ``steps`` (e_img, e_prop, task_id, episode_index) with a 95% percentile interval
+    from resampling whole episodes (steps of one episode are not independent)."""
+    per_ep = steps.groupby(["task_id", "episode_index"])[["e_img", "e_prop"]].agg(["sum", "count"])
+    s_img = per_ep[("e_img", "sum")].to_numpy()
+    s_prop = per_ep[("e_prop", "sum")].to_numpy()
+    if len(s_img) == 0:
+        return math.nan, math.nan, math.nan
+    point = float(s_img.sum() / (s_img.sum() + s_prop.sum() + EPS))
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, len(s_img), size=(n_boot, len(s_img)))
+    a, b = s_img[idx].sum(axis=1), s_prop[idx].sum(axis=1)
+    boots = a / (a + b + EPS)
+    return point, float(np.quantile(boots, 0.025)), float(np.quantile(boots, 0.975))
+
+
+def rank_correlation(x: list[float], y: list[float]) -> dict[str, float | int | str]:
+    """Spearman's rho of (x, y) and its two-sided permutation p (exact up to 8 points)."""
+    from scipy import stats
+
+    n = len(x)
+    if n < 3:
+        return {"n": n, "rho": math.nan, "p": math.nan, "finding": "too few runs (< 3)"}
+    res = stats.permutation_test(
+        (np.asarray(x), np.asarray(y)),
+        lambda a, b: stats.spearmanr(a, b).statistic,
+        permutation_type="pairings",
+        n_resamples=np.inf if n <= 8 else 20000,
+        alternative="two-sided",
+        random_state=0,
+    )
+    rho, p = float(res.statistic), float(res.pvalue)
+    finding = "inconclusive" if not p < 0.05 else ("positive" if rho > 0 else "negative")
+    return {"n": n, "rho": rho, "p": p, "finding": finding}
+
+
+def _run_section(ref: RunRef) -> dict:
+    from pipeline.reporting.run_data import load_run, reference_diagnose
+
+    data = load_run(ref.run_dir)
+    diag = reference_diagnose(data.steps)
+    out: dict = {"arch": ref.arch, "env": ref.env, "run_dir": str(ref.run_dir), "diagnose": diag}
+    if diag is None:
+        return out
+    steps = data.steps.loc[
+        data.steps["cell_id"] == diag, ["task_id", "episode_index", "e_img", "e_prop", "progress"]
+    ].dropna(subset=["e_img", "e_prop"])
+    per_task = {
+        str(t): ratio(g["e_img"].to_numpy(), g["e_prop"].to_numpy())
+        for t, g in steps.groupby("task_id")
+    }
+    # the image-zeroed control (black images at every step: E_img is ~0 by construction) shows
+    # in the heatmap, not in the environment's pooled R_img
+    steps = steps[~steps["task_id"].astype(str).str.contains(CONTROL, regex=False)]
+    point, lo, hi = rimg_interval(steps)
+    out.update(
+        r_img=point,
+        r_img_ci95=[lo, hi],
+        e_img=float(steps["e_img"].mean()),
+        e_prop=float(steps["e_prop"].mean()),
+        inferences=len(steps),
+        per_task=per_task,
+    )
+    binned = np.minimum((steps["progress"].to_numpy() * BINS).astype(int), BINS - 1)
+    out["progress"] = [
+        ratio(steps["e_img"].to_numpy()[binned == b], steps["e_prop"].to_numpy()[binned == b])
+        for b in range(BINS)
+    ]
+    ok = data.episodes[data.episodes["error"].isna()]
+    rates = ok.groupby("cell_id")["success"].agg(["sum", "count"])
+    out["success"] = {
+        str(c): {
+            "n": int(r["count"]),
+            "rate": float(r["sum"] / r["count"]),
+            "ci95": list(agg.wilson(int(r["sum"]), int(r["count"]))),
+        }
+        for c, r in rates.iterrows()
+    }
+    gains = [p for p in agg.paired_vs_baseline(data.episodes, baseline=diag) if p.cell_id == "E"]
+    if gains:
+        g = gains[0]
+        out["gain_E"] = {
+            "n_pairs": g.n_pairs,
+            "diff": g.diff,
+            "ci95": [g.ci_low, g.ci_high],
+            "mcnemar_p": g.p_value,
+        }
+    return out
+
+
+def build(refs: list[RunRef]) -> dict:
+    runs = [_run_section(r) for r in refs]
+    points = [r for r in runs if "r_img" in r and "gain_E" in r]
+    corr = rank_correlation([r["r_img"] for r in points], [r["gain_E"]["diff"] for r in points])
+    corr["runs"] = [f"{r['arch']}@{r['env']}" for r in points]
+    return {"runs": runs, "rimg_vs_gain": corr}
+
+
+def _pct(x: float) -> str:
+    return "–" if x is None or not np.isfinite(x) else f"{100 * x:.1f}"
+
+
+def markdown(result: dict, name: str) -> str:
+    runs = [r for r in result["runs"] if "r_img" in r]
+    lines = [f"# The paper's observations: `{name}`", ""]
+    lines += [
+        f"{len(result['runs'])} runs (architecture @ environment); each number from its run's "
+        "diagnose cell (R_img) or its E and diagnose cells paired by episode (gain).",
+        "",
+        "## R_img per architecture and environment (observations 1 and 2)",
+        "",
+        "| arch | env | R_img % (95% CI) | E_img | E_prop | inferences | success diagnose % (95% CI) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in runs:
+        s = r["success"].get(r["diagnose"], {})
+        ci = s.get("ci95", [math.nan, math.nan])
+        lines.append(
+            f"| {r['arch']} | {r['env']} | {_pct(r['r_img'])} [{_pct(r['r_img_ci95'][0])}, "
+            f"{_pct(r['r_img_ci95'][1])}] | {r['e_img']:.3g} | {r['e_prop']:.3g} | "
+            f"{r['inferences']} | {_pct(s.get('rate', math.nan))} [{_pct(ci[0])}, {_pct(ci[1])}] |"
+        )
+    lines += [
+        "",
+        "Pooled over each environment's tasks and perturbations, without the image-zeroed "
+        "control (black images: E_img is ~0 by construction; it shows in the heatmap). "
+        "E_img and E_prop are L2 norms in each environment's action units (the backbone's "
+        "unnormalized output, where IDR refines): compare them within an environment only.",
+        "",
+        "![R_img heatmap](figures/observations_rimg_heatmap.png)",
+        "",
+        "## IDR mode E against diagnose, per run",
+        "",
+        "| arch | env | Δ success pp (95% CI) | McNemar p | pairs |",
+        "|---|---|---|---|---|",
+    ]
+    for r in result["runs"]:
+        g = r.get("gain_E")
+        if g is None:
+            continue
+        lines.append(
+            f"| {r['arch']} | {r['env']} | {100 * g['diff']:+.1f} [{100 * g['ci95'][0]:+.1f}, "
+            f"{100 * g['ci95'][1]:+.1f}] | {g['mcnemar_p']:.3g} | {g['n_pairs']} |"
+        )
+    c = result["rimg_vs_gain"]
+    rho = "–" if not np.isfinite(c["rho"]) else f"{c['rho']:+.2f}"
+    p = "–" if not np.isfinite(c["p"]) else f"{c['p']:.3g}"
+    lines += [
+        "",
+        "## R_img against IDR's gain across runs",
+        "",
+        f"Spearman ρ = {rho} over {c['n']} runs, permutation p = {p}: **{c['finding']}**.",
+        "",
+        "## R_img over task progress (observation 3)",
+        "",
+        "| run | " + " | ".join(f"{b / BINS:.1f}-{(b + 1) / BINS:.1f}" for b in range(BINS)) + " |",
+        "|---|" + "---|" * BINS,
+    ]
+    for r in runs:
+        lines.append(
+            f"| {r['arch']}@{r['env']} | " + " | ".join(_pct(v) for v in r["progress"]) + " |"
+        )
+    lines += ["", "![R_img over progress](figures/observations_rimg_progress.png)", ""]
+    return "\n".join(lines)
+
+
+def heatmap_matrix(result: dict) -> pd.DataFrame:
+    rows = {}
+    for r in result["runs"]:
+        for task, v in (r.get("per_task") or {}).items():
+            rows.setdefault(r["arch"], {})[f"{r['env']}\n{task}"] = v
+    return pd.DataFrame(rows).T.sort_index().sort_index(axis=1)
+
+
+def write(study_dir: Path, refs: list[RunRef], name: str) -> dict:
+    """Build the observations from the runs and write STUDY/observations.{md,json} and figures."""
+    from pipeline.reporting.figures import _figure, rimg_heatmap, save
+    from pipeline.rundir import FIGURES_DIR
+
+    result = build(refs)
+    result["name"] = name
+    study_dir.mkdir(parents=True, exist_ok=True)
+    (study_dir / OBS_JSON).write_text(json.dumps(result, indent=2, default=float) + "\n")
+    figs = study_dir / FIGURES_DIR
+    matrix = heatmap_matrix(result)
+    if not matrix.empty:
+        fig = rimg_heatmap(matrix, "Baseline R_img per architecture x (environment, task)")
+        fig.axes[0].set_xlabel("environment / task")
+        fig.axes[0].set_ylabel("architecture")
+        save(fig, figs / "observations_rimg_heatmap.png")
+    fig = _figure()
+    ax = fig.add_subplot()
+    x = (np.arange(BINS) + 0.5) / BINS
+    for r in result["runs"]:
+        if "progress" in r:
+            ax.plot(x, r["progress"], marker="o", ms=3, label=f"{r['arch']}@{r['env']}")
+    ax.set(xlim=(0, 1), ylim=(0, 1), xlabel="normalized task progress", ylabel="R_img")
+    ax.set_title("R_img over task progress (diagnose cells)")
+    ax.legend(fontsize=8)
+    save(fig, figs / "observations_rimg_progress.png")
+    (study_dir / OBS_MD).write_text(markdown(result, name))
+    return result

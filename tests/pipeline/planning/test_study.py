@@ -1,0 +1,76 @@
+"""Study files: every run's config checked before any work, errors naming the entry."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from pipeline.planning.config import ConfigError
+from pipeline.planning.study import load_study
+
+CONF = Path(__file__).resolve().parents[3] / "conf"
+SMOKE = str(CONF / "smoke.yaml")
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "study.yaml"
+    p.write_text(text)
+    return p
+
+
+def test_runs_get_shared_then_own_then_cli_overrides(tmp_path: Path) -> None:
+    p = _write(
+        tmp_path,
+        f"""
+name: s
+set: [episodes_per_task=2, seed=3]
+runs:
+  - {{arch: a, env: fake, config: {SMOKE}, set: [episodes_per_task=4]}}
+  - {{arch: b, env: fake, config: {SMOKE}}}
+""",
+    )
+    study = load_study(p, ["seed=5"])
+    assert [r.label for r in study.runs] == ["a@fake", "b@fake"]
+    assert [r.config.episodes_per_task for r in study.runs] == [4, 2]  # own beats shared
+    assert {r.config.seed for r in study.runs} == {5}  # the command line beats both
+
+
+def test_a_bad_key_in_a_later_run_is_refused_naming_it(tmp_path: Path) -> None:
+    p = _write(
+        tmp_path,
+        f"""
+runs:
+  - {{arch: a, env: fake, config: {SMOKE}}}
+  - {{arch: b, env: fake, config: {SMOKE}, set: [episodes_per_tsk=4]}}
+""",
+    )
+    with pytest.raises(ConfigError, match=r"(?s)runs\[1\] \(b@fake\).*episodes_per_tsk"):
+        load_study(p)
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("runs: []", "non-empty list"),
+        ("name: x", "runs:"),
+        (f"runs: [{{arch: a, config: {SMOKE}}}]", r"missing \['env'\]"),
+        (f"runs: [{{arch: a, env: e, config: {SMOKE}, seed: 1}}]", r"unknown keys \['seed'\]"),
+        (f"runs: [{{arch: a, env: e, config: {SMOKE}, set: seed}}]", "key=value"),
+        (
+            f"runs: [{{arch: a, env: e, config: {SMOKE}}}, {{arch: a, env: e, config: {SMOKE}}}]",
+            "appear twice",
+        ),
+        ("runs: [{arch: a, env: e, config: conf/nope.yaml}]", "nope.yaml"),
+    ],
+)
+def test_malformed_studies_are_refused(tmp_path: Path, text: str, match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        load_study(_write(tmp_path, text))
+
+
+def test_the_shipped_observations_study_loads() -> None:
+    study = load_study(CONF / "paper" / "observations.yaml")
+    assert {r.arch for r in study.runs} >= {"tiny_vla", "act", "xvla"}
+    assert all(r.config.episodes_per_task == 10 for r in study.runs)
+    assert all(r.config.backbone.params["path"] == f"checkpoints/zoo/{r.arch}" for r in study.runs)
