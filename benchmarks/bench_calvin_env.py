@@ -11,11 +11,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import time
 from pathlib import Path
 
 import numpy as np
+
+from workers.hardware import machine_record
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).parent / "results" / "calvin_env.json"
@@ -88,7 +89,7 @@ def main() -> None:
         "rgb_gripper 84 px read every step; a new sequence rebuilds the simulator",
         "steps": args.steps,
         "renderers": rows,
-        "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
+        "machine": machine_record(),
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=2) + "\n")

@@ -18,12 +18,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+from workers.hardware import machine_record
 
 ROOT = Path(__file__).resolve().parents[1]
 for p in (ROOT, ROOT / "tests"):
@@ -74,7 +75,7 @@ def main() -> None:
 
     one = ["grid=[{mode: [baseline]}]", "env.tasks=[reach]"]
     res: dict[str, Any] = {
-        "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
+        "machine": machine_record(),
         "cluster": "a head and a second node started with `ray start` on this machine, 1 CPU each",
     }
     with RayCluster() as cluster:

@@ -12,8 +12,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import tempfile
 import time
 from pathlib import Path
@@ -29,6 +27,7 @@ from pipeline.results import aggregate as agg
 from pipeline.results.store import RunStore
 from workers.envs.base import TaskSpec
 from workers.episode import EpisodeResult, EpisodeRow, EpisodeSpec, StepRow
+from workers.hardware import machine_record
 from workers.idr import RefinerConfig
 from workers.interventions import InterventionConfig
 
@@ -159,7 +158,7 @@ def main() -> None:
     args = ap.parse_args()
     q = args.quick
     init_ray(None, 2)
-    res: dict[str, Any] = {"machine": {"cpus": os.cpu_count(), "python": platform.python_version()}}
+    res: dict[str, Any] = {"machine": machine_record()}
     res["scheduling_overhead"] = scheduling_overhead(10 if q else 60)
     print("scheduling overhead", res["scheduling_overhead"])
     res["scaling_1_vs_2_workers"] = scaling(4 if q else 32, 0.05)

@@ -13,14 +13,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from workers.hardware import machine_record
 
 RESULTS = Path(__file__).parent / "results" / "env_server.json"
 PARAMS = {"image_size": 96, "cameras": ["agentview", "wrist"]}
@@ -126,7 +126,7 @@ def main() -> None:
         "server_start_s": start_s,
         "identical": identical,
         "per_step": rows,
-        "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
+        "machine": machine_record(),
         "targets": {"overhead_ms": 1.0, "overhead_pct_of_rendered_step": 5.0},
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

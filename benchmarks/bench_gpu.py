@@ -44,6 +44,8 @@ from typing import Any, ClassVar
 
 import torch
 
+from workers.hardware import machine_record
+
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a plain script from a checkout that is not installed
     sys.path.insert(0, str(ROOT))
@@ -323,10 +325,10 @@ def _q(v: list[float], q: float) -> float:
 
 def _machine(device: torch.device) -> dict[str, Any]:
     m: dict[str, Any] = {
+        **machine_record(str(device)),
         "python": platform.python_version(),
         "torch": torch.__version__,
         "device": str(device),
-        "cpu": platform.processor() or platform.machine(),
         "threads": torch.get_num_threads(),
         "tf32_matmul": torch.backends.cuda.matmul.allow_tf32,
         "cudnn_tf32": torch.backends.cudnn.allow_tf32,

@@ -23,6 +23,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from workers.hardware import machine_record
+
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
@@ -133,9 +135,9 @@ def main() -> None:
 
     results: dict[str, Any] = {
         "machine": {
+            **machine_record(),
             "python": platform.python_version(),
             "mujoco": mujoco.__version__,
-            "cpu": platform.processor() or platform.machine(),
             "dev_nvidia0": Path("/dev/nvidia0").exists(),
         },
         "backend": backend,

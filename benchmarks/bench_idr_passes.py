@@ -23,6 +23,7 @@ import torch
 
 from workers.backbones.base import Observation
 from workers.backbones.fakes import FakeMarkerBackbone
+from workers.hardware import machine_record
 from workers.idr import RefinerConfig
 from workers.idr_wrapper import IDRWrapper
 
@@ -119,10 +120,10 @@ def main() -> None:
 
     results: dict[str, Any] = {
         "machine": {
+            **machine_record(),
             "python": platform.python_version(),
             "torch": torch.__version__,
             "threads": torch.get_num_threads(),
-            "cpu": platform.processor() or platform.machine(),
             "device": "cpu",
         },
         "backbones": {},

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from workers.hardware import machine_record
 from workers.rendering import configure_rendering
 
 RESULTS = Path(__file__).parent / "results" / "libero_env.json"
@@ -189,6 +190,7 @@ def main() -> None:
     res: dict[str, Any] = {
         "task": TASK,
         "machine": {
+            **machine_record(),
             "cpus": os.cpu_count(),
             "python": platform.python_version(),
             "render_backend": backend,

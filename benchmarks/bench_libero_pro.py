@@ -26,6 +26,7 @@ from typing import Any
 
 from bench_libero_env import _actions  # the same arm motion as the LIBERO benchmark
 
+from workers.hardware import machine_record
 from workers.rendering import configure_rendering
 
 RESULTS = Path(__file__).parent / "results" / "libero_pro_step.json"
@@ -105,6 +106,7 @@ def main() -> None:
         "cameras": CAMERAS,
         "image_size": 256,
         "machine": {
+            **machine_record(),
             "cpus": os.cpu_count(),
             "python": platform.python_version(),
             "render_backend": backend,

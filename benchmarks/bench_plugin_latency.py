@@ -28,6 +28,8 @@ import torch
 from lerobot_policy_idr.loading import load_idr
 from lerobot_policy_idr.wrap import main as wrap_main
 
+from workers.hardware import machine_record
+
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a plain script: the test fixtures build the ACT base
     sys.path.insert(0, str(ROOT))
@@ -91,10 +93,10 @@ def main() -> None:
     results: dict[str, Any] = {
         "what": "per-chunk latency: preprocessor + predict_action_chunk + postprocessor, batch 1",
         "machine": {
+            **machine_record(),
             "python": platform.python_version(),
             "torch": torch.__version__,
             "threads": torch.get_num_threads(),
-            "cpu": platform.processor() or platform.machine(),
             "device": "cpu",
         },
         "backbones": {},

@@ -59,11 +59,9 @@ def run(out: Path, mode: str, episodes: int) -> float:
 
 
 def machine() -> dict[str, str]:
-    import torch
+    from workers.hardware import machine_record
 
-    from workers.hardware import cpu_model
-
-    return {"cpu_model": cpu_model(), "cpu_capability": torch.backends.cpu.get_cpu_capability()}
+    return machine_record()
 
 
 def main() -> None:

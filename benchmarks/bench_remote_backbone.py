@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import socket
 import statistics
 import subprocess
@@ -22,6 +20,8 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
+
+from workers.hardware import machine_record
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -112,7 +112,7 @@ def main() -> None:
         "over loopback websockets (openpi's protocol), 96 px image + 8-d state",
         "calls": args.calls,
         "per_inference": rows,
-        "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
+        "machine": machine_record(),
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=2) + "\n")

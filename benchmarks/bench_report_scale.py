@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import shutil
 import subprocess
 import sys
@@ -27,6 +26,8 @@ from typing import Any
 
 import pyarrow as pa
 import pyarrow.compute as pc
+
+from workers.hardware import machine_record
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).parent / "results" / "report_scale.json"
@@ -172,7 +173,7 @@ def main() -> None:
         print("compacted", after, flush=True)
         files_after = len(list(a.rglob("*.parquet")))
     res = {
-        "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
+        "machine": machine_record(),
         "run_dir": {**made, "files_compacted": files_after},
         "uncompacted": before,
         "compaction": compact["a"],

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import statistics
 import sys
 import tempfile
@@ -30,6 +29,8 @@ from pathlib import Path
 from typing import Any
 
 import torch
+
+from workers.hardware import machine_record
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -219,7 +220,7 @@ def main() -> None:
         RESULTS.write_text(json.dumps(result, indent=2) + "\n")
         return
     result: dict[str, Any] = {
-        "machine": f"{platform.processor() or platform.machine()}, torch {torch.__version__}",
+        "machine": machine_record(),
         "torch_threads": 1,
         "units": "ms per call answering N requests (3 rows each); *_vs_dynamic: ratio to the "
         "dynamic path in the same round",

@@ -15,13 +15,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from workers.hardware import machine_record
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -164,7 +165,7 @@ def main() -> None:
         "metrics_per_child_max": max(counts),
         "metrics_per_child_min": min(counts),
         "parent_tables": tables,
-        "machine": f"{platform.machine()}, {platform.python_version()}",
+        "machine": machine_record(),
     }
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(out, indent=2) + "\n")

@@ -22,6 +22,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from workers.hardware import machine_record
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).parent / "results" / "faults.json"
 TESTS = [
@@ -63,7 +65,7 @@ def main() -> int:
     totals = {k: sum(r["outcome"].get(k, 0) for r in records) for k in COUNTS}
     report = {
         "generated_at": datetime.now(UTC).isoformat(timespec="seconds"),
-        "machine": f"{platform.platform()}, {os.cpu_count()} CPUs",
+        "machine": {**machine_record(), "platform": platform.platform()},
         "command": " ".join(cmd[1:]),
         "pytest_exit_code": done.returncode,
         "wall_seconds": round(wall, 1),

@@ -23,7 +23,7 @@ RESULTS = ROOT / "benchmarks" / "results" / "zoo_tabletop.json"
 def member_entry(name: str, run_dir: Path) -> dict:
     from pipeline.results import aggregate as agg
     from pipeline.results.store import RunStore
-    from workers.hardware import cpu_model
+    from workers.hardware import machine_record
 
     meta_path = ROOT / "checkpoints" / "zoo" / name / "train_meta.json"
     meta = json.loads(meta_path.read_text())
@@ -77,7 +77,7 @@ def member_entry(name: str, run_dir: Path) -> dict:
         "eval": {
             "run_dir": run_dir.name,
             "episodes_per_task": int(episodes.groupby(["cell_id", "task_id"]).size().max()),
-            "machine": cpu_model(),
+            "machine": machine_record(),
             "date": date.today().isoformat(),
         },
         "tasks": tasks,

@@ -142,3 +142,47 @@ def test_no_page_tells_development_history() -> None:
         if any(p.search(line) for p in HISTORY)
     ]
     assert not found, found
+
+
+def test_every_benchmark_names_its_machine_by_the_cpu_model() -> None:
+    """A result's machine comes from workers.hardware.machine_record (the CPU model and the
+    instruction set torch dispatches to), not a hand-made dict."""
+    writers = [
+        p.name
+        for p in sorted((ROOT / "benchmarks").glob("*.py"))
+        if '"machine":' in p.read_text()
+        and not re.search(r"machine_record\(|_machine\(|\bmachine\(\)", p.read_text())
+    ]
+    assert not writers, writers
+
+
+def test_a_results_caption_names_the_cpu_or_says_it_was_not_recorded() -> None:
+    hook = _hook()
+    line = hook.machine(
+        {"machine": {"cpu_model": "AMD EPYC 7B13", "cpu_capability": "AVX2", "cpus": 2}}
+    )
+    assert line.startswith("AMD EPYC 7B13, torch dispatching AVX2, 2 CPUs")
+    assert hook.machine({"machine": {"cpus": 2}}).endswith("(CPU model not recorded)")
+    assert hook.machine({"machine": "x86_64"}) == "x86_64 (CPU model not recorded)"
+    for path in sorted((ROOT / "benchmarks" / "results").glob("*.json")):
+        data = json.loads(path.read_text())
+        if isinstance(data, dict) and data.get("machine"):
+            text = hook.machine(data)
+            cpu = data["machine"].get("cpu_model") if isinstance(data["machine"], dict) else None
+            assert (cpu and cpu in text) or "not recorded" in text, path.name
+
+
+# a time measured in prose: "8 min 33 s", "0.21-0.25 s", "~160 ms at batch 64"
+_MEASURED = re.compile(r"\d(?:[\d.,]*)\s?(?:ms|min|minutes|s per|s a step)\b")
+_MACHINE = re.compile(r"EPYC|Xeon|Ryzen|Core i\d|H100|H200|A100|results:")
+
+
+def test_every_page_of_measured_figures_names_the_machine() -> None:
+    """A page that quotes measured times names the CPU (or GPU) they were measured on, or
+    renders them from a results file whose caption does."""
+    missing = [
+        str(page.relative_to(ROOT))
+        for page in sorted(DOCS.rglob("*.md"))
+        if _MEASURED.search(page.read_text()) and not _MACHINE.search(page.read_text())
+    ]
+    assert not missing, missing

@@ -44,6 +44,38 @@ TABLETOP_FEATURES = {
     "observation.state": [8],
     "action": [7],
 }
+# MetaWorld at 96 px (conf/zoo/metaworld.yaml; training/metaworld_demos.py): one camera, the
+# hand's position and gripper, a 4-d action
+METAWORLD_FEATURES = {
+    "observation.image": [96, 96, 3],
+    "observation.state": [4],
+    "action": [4],
+}
+
+
+@dataclass(frozen=True)
+class Benchmark:
+    """Where a benchmark's dataset, training runs and exported checkpoints live."""
+
+    dataset: Path
+    features: dict[str, list[int]]
+    runs: Path
+    shipped: Path
+    record: str  # the command that records its dataset
+
+
+BENCHMARKS = {
+    "tabletop": Benchmark(
+        DATASET, TABLETOP_FEATURES, RUNS, SHIPPED, "bash scripts/record_zoo_data.sh"
+    ),
+    "metaworld": Benchmark(
+        Path("data/zoo/metaworld"),
+        METAWORLD_FEATURES,
+        RUNS / "metaworld",
+        SHIPPED / "metaworld",
+        "python -m training.metaworld_demos --root data/zoo/metaworld --episodes 30",
+    ),
+}
 
 
 @dataclass(frozen=True)
@@ -57,7 +89,8 @@ class Member:
     language: bool  # whether the class conditions on the instruction
     save_freq: int = 1000
     vocab: bool = False  # the class takes its instruction vocabulary from the dataset's tasks
-    features: dict[str, list[int]] = field(default_factory=lambda: dict(TABLETOP_FEATURES))
+    # flags for one benchmark only (the tiny VLA masks the tabletop state's orientation dims)
+    benchmark_flags: dict[str, tuple[str, ...]] = field(default_factory=dict)
 
 
 MEMBERS: dict[str, Member] = {
@@ -172,7 +205,6 @@ MEMBERS: dict[str, Member] = {
     "tiny_vla": Member(
         "tiny_vla",
         (
-            "--policy.ignored_state_dims=[3,4,5]",
             "--policy.chunk_size=8",
             "--policy.n_action_steps=4",
         ),
@@ -180,6 +212,7 @@ MEMBERS: dict[str, Member] = {
         batch_size=64,
         language=True,
         vocab=True,
+        benchmark_flags={"tabletop": ("--policy.ignored_state_dims=[3,4,5]",)},
     ),
 }
 
@@ -196,28 +229,30 @@ def vocab_flag(root: Path) -> str:
     return "--policy.vocab=[" + ",".join(vocabulary(dataset_tasks(root))) + "]"
 
 
-def dataset_features(root: Path) -> dict[str, list[int]]:
+def dataset_features(
+    root: Path, record: str = BENCHMARKS["tabletop"].record
+) -> dict[str, list[int]]:
     info = root / "meta" / "info.json"
     if not info.is_file():
         raise SystemExit(
             f"--dataset {root}: no LeRobotDataset there (meta/info.json missing); record it with "
-            "`bash scripts/record_zoo_data.sh` (about 15 minutes on 2 cores)"
+            f"`{record}`"
         )
     feats = json.loads(info.read_text())["features"]
     return {k: list(v["shape"]) for k, v in feats.items()}
 
 
-def check_features(name: str, member: Member, root: Path) -> None:
-    """Stop before training when the dataset lacks a feature the member is built for."""
-    have = dataset_features(root)
-    wrong = {
-        k: (shape, have.get(k)) for k, shape in member.features.items() if have.get(k) != shape
-    }
+def check_features(name: str, bench: str, root: Path) -> None:
+    """Stop before training when the dataset lacks a feature the benchmark's members are built
+    for."""
+    have = dataset_features(root, BENCHMARKS[bench].record)
+    want = BENCHMARKS[bench].features
+    wrong = {k: (shape, have.get(k)) for k, shape in want.items() if have.get(k) != shape}
     if wrong:
         detail = "; ".join(f"{k}: wants {w}, dataset has {h}" for k, (w, h) in wrong.items())
         raise SystemExit(
-            f"--dataset {root} does not fit zoo member {name!r} ({detail}); record the zoo's "
-            "dataset with `bash scripts/record_zoo_data.sh` or pick a member built for it"
+            f"--dataset {root} does not fit zoo member {name!r} on {bench} ({detail}); record "
+            f"the zoo's {bench} dataset with `{BENCHMARKS[bench].record}` or pick --benchmark"
         )
 
 
@@ -245,15 +280,16 @@ def train_command(name: str, member: Member, args: argparse.Namespace) -> list[s
         ]
     return [
         exe,
-        "--dataset.repo_id=local/zoo_tabletop",
+        f"--dataset.repo_id=local/zoo_{args.benchmark}",
         f"--dataset.root={args.dataset}",
         f"--policy.type={member.policy_type}",
         f"--policy.device={args.device}",
         "--policy.push_to_hub=false",
         *member.flags,
+        *member.benchmark_flags.get(args.benchmark, ()),
         *([vocab_flag(args.dataset)] if member.vocab else []),
         f"--output_dir={out}",
-        f"--job_name=zoo_{name}",
+        f"--job_name=zoo_{args.benchmark}_{name}",
         f"--seed={args.seed}",
         f"--steps={args.steps or member.steps}",
         f"--batch_size={member.batch_size}",
@@ -278,7 +314,7 @@ def offline_env(threads: int) -> dict[str, str]:
 
 def cmd_train(args: argparse.Namespace) -> None:
     member = _member(args.name)
-    check_features(args.name, member, args.dataset)
+    check_features(args.name, args.benchmark, args.dataset)
     out = run_dir(args.name, args.seed, args.runs)
     install()  # the sub-model files the member names by hub id (no-op when present)
     cmd = train_command(args.name, member, args)
@@ -320,7 +356,7 @@ def cmd_export(args: argparse.Namespace) -> None:
             f"no checkpoint of {args.name!r} under {out}; train it first: "
             f"python -m training.zoo train {args.name}"
         )
-    dest = args.dest or SHIPPED / args.name
+    dest = args.dest or BENCHMARKS[args.benchmark].shipped / args.name
     if dest.exists():
         shutil.rmtree(dest)
     shutil.copytree(last / "pretrained_model", dest)
@@ -353,14 +389,15 @@ def cmd_export(args: argparse.Namespace) -> None:
     print(json.dumps(meta, indent=2))
 
 
-def cmd_list(_args: argparse.Namespace) -> None:
+def cmd_list(args: argparse.Namespace) -> None:
+    bench = BENCHMARKS[args.benchmark]
     for name, m in MEMBERS.items():
-        last = last_checkpoint(run_dir(name, 0))
+        last = last_checkpoint(run_dir(name, 0, bench.runs))
         state = "not trained"
         if last is not None:
             step = json.loads((last / "training_state" / "training_step.json").read_text())
             state = f"step {step['step']} of {m.steps}"
-        shipped = "shipped" if (SHIPPED / name / "config.json").is_file() else "not shipped"
+        shipped = "shipped" if (bench.shipped / name / "config.json").is_file() else "not shipped"
         print(f"{name:10s} {m.policy_type:10s} {state:22s} {shipped}")
 
 
@@ -381,22 +418,30 @@ def main(argv: list[str] | None = None) -> None:
     t.add_argument("name")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--steps", type=int, default=None, help="override the member's steps")
-    t.add_argument("--dataset", type=Path, default=DATASET)
+    t.add_argument("--dataset", type=Path, default=None, help="default: the benchmark's")
     t.add_argument("--device", default="cpu")
     t.add_argument("--threads", type=int, default=2)
     t.add_argument("--num-workers", type=int, default=0)
-    t.add_argument("--runs", type=Path, default=RUNS, help="where lerobot-train's runs go")
+    t.add_argument("--runs", type=Path, default=None, help="where lerobot-train's runs go")
     t.set_defaults(func=cmd_train)
-    e = sub.add_parser("export", help="copy the last checkpoint to checkpoints/zoo/NAME")
+    e = sub.add_parser("export", help="copy the last checkpoint to checkpoints/zoo/[BENCH/]NAME")
     e.add_argument("name")
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--dest", type=Path, default=None)
-    e.add_argument("--runs", type=Path, default=RUNS)
-    e.add_argument("--dataset", type=Path, default=DATASET)
+    e.add_argument("--runs", type=Path, default=None)
+    e.add_argument("--dataset", type=Path, default=None)
     e.set_defaults(func=cmd_export)
-    sub.add_parser("list", help="members and their state").set_defaults(func=cmd_list)
+    ls = sub.add_parser("list", help="members and their state")
+    ls.set_defaults(func=cmd_list)
+    for p in (t, e, ls):
+        p.add_argument("--benchmark", choices=sorted(BENCHMARKS), default="tabletop")
     args = ap.parse_args(argv)
     os.chdir(ROOT)
+    bench = BENCHMARKS[args.benchmark]
+    if getattr(args, "dataset", "-") is None:
+        args.dataset = bench.dataset
+    if getattr(args, "runs", "-") is None:
+        args.runs = bench.runs
     args.func(args)
 
 

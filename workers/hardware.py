@@ -140,6 +140,24 @@ def hardware_record(device: str | None = None, render_backend: str | None = None
     return rec
 
 
+def machine_record(device: str | None = None) -> dict[str, Any]:
+    """What a benchmark result names its machine by: the CPU model and the instruction set torch
+    dispatches to (the hardware class), core count, Python and torch; the GPU's name where
+    ``device`` is one. Cheap: no GL context, no child process."""
+    import torch
+
+    rec: dict[str, Any] = {
+        "cpu_model": cpu_model(),
+        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+    }
+    if device and str(device).startswith("cuda") and torch.cuda.is_available():
+        rec["device_name"] = torch.cuda.get_device_name(torch.device(device).index or 0)
+    return rec
+
+
 #: ``executor.numerics_mode: portable``: what decides CPU float order, pinned in every process
 #: that holds a model or renders, before its first kernel runs. torch's kernels, MKL and oneDNN
 #: to AVX2 (the widest set common to the x86 CPUs of a mixed cluster: AVX-512 machines would

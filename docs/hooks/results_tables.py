@@ -62,10 +62,12 @@ def table(header: Iterable[str], rows: Iterable[Iterable[Any]]) -> str:
 
 
 def machine(data: Mapping[str, Any]) -> str:
-    """The machine line a result records, if any."""
+    """The machine line a result records, if any; a record without the CPU's model says so."""
     m = data.get("machine")
     if isinstance(m, Mapping):
         spelled = {
+            "cpu_model": "{}",
+            "cpu_capability": "torch dispatching {}",
             "device_name": "{}",
             "cpus": "{} CPUs",
             "threads": "{} threads",
@@ -73,8 +75,9 @@ def machine(data: Mapping[str, Any]) -> str:
             "torch": "torch {}",
             "cuda": "CUDA {}",
         }
-        return ", ".join(f.format(m[k]) for k, f in spelled.items() if k in m)
-    return str(m) if m else ""
+        line = ", ".join(f.format(m[k]) for k, f in spelled.items() if m.get(k) is not None)
+        return line if "cpu_model" in m else f"{line} (CPU model not recorded)"
+    return f"{m} (CPU model not recorded)" if m else ""
 
 
 def source(name: str, data: Mapping[str, Any], *extra: str) -> str:
@@ -669,7 +672,7 @@ def zoo_tabletop(d: Data) -> str:
         )
         effect_rows.append(
             [name, num(eff["e_img"]), num(eff["e_prop"]), num(eff["r_img"]), paired or "–",
-             f"{e['episodes_per_task']} per task, {e['machine']}, {e['date']}"]
+             f"{e['episodes_per_task']} per task, {machine(e)}, {e['date']}"]
         )  # fmt: skip
     return block(
         table(
