@@ -209,3 +209,20 @@ def test_a_zoo_checkpoint_on_a_suite_it_was_not_trained_on_is_refused_before_wor
     with pytest.raises(ConfigError, match=refusal):
         plan_run(cfg, tmp_path / "run")
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.slow
+def test_a_tabletop_dataset_is_refused_for_the_metaworld_benchmark(tmp_path) -> None:
+    info = {"features": {k: {"shape": v} for k, v in zoo.TABLETOP_FEATURES.items()}}
+    (tmp_path / "ds" / "meta").mkdir(parents=True)
+    (tmp_path / "ds" / "meta" / "info.json").write_text(json.dumps(info))
+    out = _zoo(
+        "train", "tiny_vla", "--benchmark", "metaworld", "--dataset", str(tmp_path / "ds"),
+        "--runs", str(tmp_path / "r"),
+    )  # fmt: skip
+    assert out.returncode != 0 and "on metaworld" in out.stderr
+    assert "observation.image: wants [96, 96, 3], dataset has None" in out.stderr
+    assert "training.metaworld_demos" in out.stderr and not (tmp_path / "r").exists()
+    rebuild = json.loads((zoo.ROOT / "checkpoints/zoo/metaworld/REBUILD.json").read_text())
+    assert set(rebuild) == set(zoo.MEMBERS)
+    assert all("--benchmark metaworld" in c for c in rebuild.values())
