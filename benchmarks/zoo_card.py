@@ -2,11 +2,11 @@
 preset (``conf/zoo/tabletop.yaml``), per task and cell with Wilson intervals, mean E_img, E_prop
 and R_img of its diagnose cell, and E − diagnose paired per member.
 
-Reads ``checkpoints/zoo/<member>/train_meta.json`` and a finished run dir per member; writes
-``benchmarks/results/zoo_tabletop.json`` (rendered in docs/zoo.md). A member evaluated again
+Reads ``checkpoints/zoo/[<benchmark>/]<member>/train_meta.json`` and a finished run dir per
+member; writes ``benchmarks/results/zoo_<benchmark>.json`` (rendered in docs/zoo.md). A member evaluated again
 replaces its entry; the others are kept.
 
-Usage: ``python benchmarks/zoo_card.py MEMBER=RUN_DIR [MEMBER=RUN_DIR ...]``
+Usage: ``python benchmarks/zoo_card.py [--benchmark metaworld] MEMBER=RUN_DIR [...]``
 """
 
 from __future__ import annotations
@@ -17,15 +17,20 @@ from datetime import date
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "benchmarks" / "results" / "zoo_tabletop.json"
+PRESETS = {"tabletop": "conf/zoo/tabletop.yaml", "metaworld": "conf/zoo/metaworld.yaml"}
 
 
-def member_entry(name: str, run_dir: Path) -> dict:
+def results_file(benchmark: str) -> Path:
+    return ROOT / "benchmarks" / "results" / f"zoo_{benchmark}.json"
+
+
+def member_entry(name: str, run_dir: Path, benchmark: str = "tabletop") -> dict:
     from pipeline.results import aggregate as agg
     from pipeline.results.store import RunStore
     from workers.hardware import machine_record
 
-    meta_path = ROOT / "checkpoints" / "zoo" / name / "train_meta.json"
+    sub = () if benchmark == "tabletop" else (benchmark,)
+    meta_path = ROOT.joinpath("checkpoints", "zoo", *sub, name, "train_meta.json")
     meta = json.loads(meta_path.read_text())
     episodes = RunStore(run_dir, read_only=True).episodes().to_pandas()
     rates = agg.success_by_task(episodes)
@@ -89,13 +94,15 @@ def member_entry(name: str, run_dir: Path) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("runs", nargs="+", help="MEMBER=RUN_DIR")
+    ap.add_argument("--benchmark", choices=sorted(PRESETS), default="tabletop")
     args = ap.parse_args()
-    old = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {"members": {}}
+    results = results_file(args.benchmark)
+    old = json.loads(results.read_text()) if results.is_file() else {"members": {}}
     for item in args.runs:
         name, _, run = item.partition("=")
-        old["members"][name] = member_entry(name, Path(run))
-    old["preset"] = "conf/zoo/tabletop.yaml"
-    RESULTS.write_text(json.dumps(old, indent=2) + "\n")
+        old["members"][name] = member_entry(name, Path(run), args.benchmark)
+    old["preset"] = PRESETS[args.benchmark]
+    results.write_text(json.dumps(old, indent=2) + "\n")
     print(json.dumps(old, indent=2)[:3000])
 
 

@@ -642,6 +642,10 @@ def portable_numerics(d: Data) -> str:
 def zoo_tabletop(d: Data) -> str:
     """zoo_tabletop.json: per member, its training record and its success per task and cell
     on the zoo preset, with Wilson intervals, its diagnose cell's effects and E vs diagnose."""
+    return _zoo_card(d, "zoo_tabletop")
+
+
+def _zoo_card(d: Data, name: str) -> str:
     train_rows, task_rows, effect_rows = [], [], []
     for name, m in d["members"].items():
         t, e = m["train"], m["eval"]
@@ -686,7 +690,7 @@ def zoo_tabletop(d: Data) -> str:
              "evaluated"],
             effect_rows,
         ),
-        source("zoo_tabletop", d),
+        source(name, d),
     )  # fmt: skip
 
 

@@ -73,4 +73,7 @@ def test_the_shipped_observations_study_loads() -> None:
     study = load_study(CONF / "paper" / "observations.yaml")
     assert {r.arch for r in study.runs} >= {"tiny_vla", "act", "xvla"}
     assert all(r.config.episodes_per_task == 10 for r in study.runs)
-    assert all(r.config.backbone.params["path"] == f"checkpoints/zoo/{r.arch}" for r in study.runs)
+    for r in study.runs:
+        sub = "" if r.env == "tabletop" else f"{r.env}/"
+        assert r.config.backbone.params["path"] == f"checkpoints/zoo/{sub}{r.arch}"
+    assert {r.env for r in study.runs} == {"tabletop", "metaworld"}
