@@ -4,9 +4,10 @@
   ``**kwargs`` to ``sample_actions``; SmolVLA and Diffusion by name): one batched forward with
   the draw repeated for the three thirds. Diffusion shares it exactly only under DDIM (DDPM
   draws fresh noise at every denoising step).
-- ``seeded_rng``: the policy samples but ignores a noise argument (X-VLA) or has none: three
+- ``seeded_rng``: the policy samples but ignores a noise argument (X-VLA, VLA-JEPA) or has none
+  (VQ-BeT draws its codes with ``torch.multinomial``; TD-MPC plans with CEM noise): three
   forwards, each under a forked RNG seeded identically.
-- ``deterministic``: no sampling at inference (ACT, VQ-BeT, TD-MPC, the tiny VLA).
+- ``deterministic``: no sampling at inference (ACT, the tiny VLA).
 """
 
 from __future__ import annotations
@@ -14,10 +15,11 @@ from __future__ import annotations
 import inspect
 from typing import Any
 
-DETERMINISTIC_TYPES = frozenset({"act", "vqbet", "tdmpc", "tiny_vla"})
+DETERMINISTIC_TYPES = frozenset({"act", "tiny_vla"})
 # pi0 / pi0.5 take ``noise`` through ``**kwargs``: the signature alone does not show it.
 NOISE_VIA_KWARGS_TYPES = frozenset({"pi0", "pi05"})
-NOISE_IGNORED_TYPES = frozenset({"xvla"})  # names a ``noise`` argument and ignores it
+# name a ``noise`` argument and ignore it (measured: zeros and ones give the same actions)
+NOISE_IGNORED_TYPES = frozenset({"xvla", "vla_jepa"})
 
 
 def crn_mode(policy_type: str, predict_action_chunk: Any) -> str:
