@@ -645,6 +645,11 @@ def zoo_tabletop(d: Data) -> str:
     return _zoo_card(d, "zoo_tabletop")
 
 
+def zoo_metaworld(d: Data) -> str:
+    """zoo_metaworld.json: the same card for the members trained on MetaWorld at 96 px."""
+    return _zoo_card(d, "zoo_metaworld")
+
+
 def _zoo_card(d: Data, name: str) -> str:
     train_rows, task_rows, effect_rows = [], [], []
     for name, m in d["members"].items():
@@ -720,6 +725,7 @@ RENDERERS: dict[str, Callable[[Data], str]] = {
         tiny_vla_alignment,
         portable_numerics,
         zoo_tabletop,
+        zoo_metaworld,
     )
 }
 
