@@ -17,7 +17,6 @@ import argparse
 import json
 import shutil
 import signal
-import threading
 import time
 from pathlib import Path
 
@@ -79,6 +78,8 @@ def record(
     configure_rendering()
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+    from training.tabletop_demos import defer_stop_signals
+
     env, all_tasks = env_from_config(config)
     tasks = tasks or all_tasks
     unknown = sorted(set(tasks) - {t.task_id for t in env.tasks()})
@@ -95,15 +96,7 @@ def record(
         use_videos=False,
     )
     (cam,) = env.cameras
-    stop: list[int] = []
-    previous = (
-        {
-            sig: signal.signal(sig, lambda signum, _frame: stop.append(signum))
-            for sig in (signal.SIGINT, signal.SIGTERM)
-        }
-        if threading.current_thread() is threading.main_thread()
-        else {}
-    )
+    stop, previous = defer_stop_signals()
     stats: dict[str, dict[str, float]] = {}
     try:
         for task in tasks:

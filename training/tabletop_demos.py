@@ -34,6 +34,19 @@ import numpy as np
 CAMERA_KEYS = {"agentview": "observation.images.agentview", "wrist": "observation.images.wrist"}
 
 
+def defer_stop_signals() -> tuple[list[int], dict]:
+    """SIGINT / SIGTERM recorded in the returned list instead of raising (a recorder stops after
+    the episode in progress and still finalizes its dataset); the previous handlers, to restore."""
+    stop: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        return stop, {}
+    previous = {
+        sig: signal.signal(sig, lambda signum, _frame: stop.append(signum))
+        for sig in (signal.SIGINT, signal.SIGTERM)
+    }
+    return stop, previous
+
+
 def features(image_size: int, cameras: tuple[str, ...]) -> dict:
     feats = {
         CAMERA_KEYS[c]: {
@@ -94,15 +107,7 @@ def record(
     stats: dict[str, dict[str, float]] = {}
     # SIGINT / SIGTERM stop after the episode in progress and still finalize the dataset (some
     # library in the stack swallows KeyboardInterrupt, and an unfinalized dataset is unreadable)
-    stop: list[int] = []
-    previous = (
-        {
-            sig: signal.signal(sig, lambda signum, _frame: stop.append(signum))
-            for sig in (signal.SIGINT, signal.SIGTERM)
-        }
-        if threading.current_thread() is threading.main_thread()
-        else {}
-    )
+    stop, previous = defer_stop_signals()
     try:
         for task in tasks:
             if stop:
