@@ -60,6 +60,14 @@ def _overrides(value: Any, where: str) -> tuple[str, ...]:
     return tuple(value)
 
 
+def _refuse_unknown(
+    mapping: dict, allowed: frozenset[str] | set[str], where: str, what: str
+) -> None:
+    unknown = set(mapping) - set(allowed)
+    if unknown:
+        raise ConfigError(f"{where}: unknown keys {sorted(unknown)}; {what} has {sorted(allowed)}")
+
+
 def load_study(path: str | Path, extra: list[str] | None = None) -> Study:
     """Read and check a study file; ``extra``: overrides given on the command line (after the
     file's own, so they win)."""
@@ -71,11 +79,7 @@ def load_study(path: str | Path, extra: list[str] | None = None) -> Study:
         raise ConfigError(
             f"{path}: a study file has a `runs:` list (see pipeline/planning/study.py)"
         )
-    unknown = set(raw) - STUDY_KEYS
-    if unknown:
-        raise ConfigError(
-            f"{path}: unknown keys {sorted(unknown)}; a study has {sorted(STUDY_KEYS)}"
-        )
+    _refuse_unknown(raw, STUDY_KEYS, f"{path}", "a study")
     shared = _overrides(raw.get("set"), f"{path}: set")
     runs: list[StudyRun] = []
     if not isinstance(raw["runs"], list) or not raw["runs"]:
@@ -89,11 +93,7 @@ def load_study(path: str | Path, extra: list[str] | None = None) -> Study:
             raise ConfigError(
                 f"{where}: missing {sorted(missing)} (each run names arch, env, config)"
             )
-        unknown = set(entry) - RUN_KEYS
-        if unknown:
-            raise ConfigError(
-                f"{where}: unknown keys {sorted(unknown)}; a run has {sorted(RUN_KEYS)}"
-            )
+        _refuse_unknown(entry, RUN_KEYS, where, "a run")
         own = _overrides(entry.get("set"), f"{where}.set")
         overrides = (*shared, *own, *(extra or []))
         label = f"{entry['arch']}@{entry['env']}"
