@@ -292,7 +292,16 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="idr-eval", description=__doc__)
     p.add_argument("-v", "--verbose", action="store_true")
     sub = p.add_subparsers(dest="command", required=True)
-    for add in (_add_run, _add_study, _add_results, _add_sidecar, _add_compare, _add_ui, _add_list):
+    for add in (
+        _add_run,
+        _add_slurm,
+        _add_study,
+        _add_results,
+        _add_sidecar,
+        _add_compare,
+        _add_ui,
+        _add_list,
+    ):
         add(sub)
     return p
 
@@ -329,6 +338,34 @@ def _add_run(sub: Subparsers) -> None:
         "forward_rows / torch_threads); the report names both",
     )
     run.set_defaults(func=_cmd_run)
+
+
+def _cmd_slurm(args: argparse.Namespace) -> int:
+    from pipeline.execution import slurm
+
+    passed = ["--yes"] if args.yes else []
+    passed += ["--allow-numerics-change"] if args.allow_numerics_change else []
+    passed += ["--allow-code-change"] if args.allow_code_change else []
+    return slurm.run(args.config, args.out, args.overrides, passed)
+
+
+def _add_slurm(sub: Subparsers) -> None:
+    sl = sub.add_parser(
+        "slurm",
+        help="inside a Slurm allocation: Ray on its nodes, then `run` on the first "
+        "(docker/slurm.sbatch)",
+    )
+    sl.add_argument("config", help="YAML config, e.g. conf/smoke.yaml")
+    sl.add_argument("--out", required=True, help="RUN_DIR on a filesystem every node mounts")
+    sl.add_argument("overrides", nargs="*", help="dotted key=value overrides")
+    sl.add_argument("--yes", action="store_true", help="as for `run`")
+    sl.add_argument("--allow-code-change", action="store_true", help="as for `run`")
+    sl.add_argument(
+        "--allow-numerics-change",
+        action="store_true",
+        help="as for `run`: a requeued job that lands on other hardware resumes",
+    )
+    sl.set_defaults(func=_cmd_slurm)
 
 
 def _add_study(sub: Subparsers) -> None:
@@ -467,7 +504,7 @@ def main(argv: list[str] | None = None) -> int:
     # Overrides may follow --out; argparse leaves those after an option as unknown args.
     args, extra = parser.parse_known_args(argv)
     if extra:
-        if args.command not in ("run", "study") or any("=" not in e for e in extra):
+        if args.command not in ("run", "slurm", "study") or any("=" not in e for e in extra):
             parser.error(f"unrecognized arguments: {' '.join(extra)}")
         args.overrides = [*args.overrides, *extra]
     from pipeline.execution.run_log import RUN_LOG

@@ -39,6 +39,18 @@ if [ "${IDR_SKIP_BROWSER:-0}" != 1 ] && ! command -v chromium >/dev/null; then
     fi
 fi
 
+# IDR_SKIP_SLURM=1: no Slurm daemons (the Docker images). The Slurm tests start a real
+# slurmctld and slurmd from Debian's slurm-wlm and munge (root only); without them they skip,
+# saying why.
+if [ "${IDR_SKIP_SLURM:-0}" != 1 ] && ! command -v slurmctld >/dev/null; then
+    if can_apt; then
+        log "installing slurm-wlm and munge (the Slurm tests' daemons, ~30 s)"
+        apt_install slurm-wlm munge iproute2 || log "could not install slurm-wlm: the Slurm tests will skip"
+    else
+        log "slurm-wlm is not installed (sudo apt-get install slurm-wlm munge): the Slurm tests will skip"
+    fi
+fi
+
 # --- the virtual environment ---------------------------------------------------------------
 want=$(cat requirements.lock pyproject.toml lerobot_policy_idr/pyproject.toml scripts/setup.sh scripts/find_python.sh | sha256sum | cut -d' ' -f1)
 if [ -x "$VENV/bin/python" ] && [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want" ]; then

@@ -349,10 +349,11 @@ def remote_worker_class(
 
 def current_node() -> str:
     """Where this worker runs: ``HOSTNAME/RAY_NODE_ID`` inside a Ray actor (several nodes can
-    share a host), the hostname elsewhere (the inline executor)."""
+    share a host), the hostname elsewhere (the inline executor). Under Slurm the node's Slurm
+    name stands for the hostname (several slurmd can share a host too)."""
     from workers.worker_log import in_ray_actor
 
-    host = socket.gethostname()
+    host = os.environ.get("SLURMD_NODENAME") or socket.gethostname()
     if in_ray_actor():
         try:
             return f"{host}/{sys.modules['ray'].get_runtime_context().get_node_id()}"
