@@ -11,7 +11,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+import torch
 
 from training import zoo
 
@@ -226,3 +228,39 @@ def test_a_tabletop_dataset_is_refused_for_the_metaworld_benchmark(tmp_path) -> 
     rebuild = json.loads((zoo.ROOT / "checkpoints/zoo/metaworld/REBUILD.json").read_text())
     assert set(rebuild) == set(zoo.MEMBERS)
     assert all("--benchmark metaworld" in c for c in rebuild.values())
+
+
+@pytest.mark.sim
+@pytest.mark.slow
+def test_the_state_cut_keeps_every_frame_and_cuts_the_stats_to_match(toy_dataset, tmp_path):
+    """training/zoo_state.py: the tabletop_pos dataset lerobot's architectures train on (no
+    orientation dims) is the same frames with a 5-d state, stats included."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from training.zoo_state import derive
+
+    keep = [0, 1, 2, 6, 7]
+    out = derive(toy_dataset, tmp_path / "pos", keep)
+    src = LeRobotDataset("local/src", root=toy_dataset)
+    cut = LeRobotDataset("local/cut", root=out)
+    assert len(cut) == len(src) and cut.num_episodes == src.num_episodes
+    for i in (0, len(src) // 2, len(src) - 1):
+        a, b = src[i], cut[i]
+        assert b["observation.state"].shape == (5,)
+        assert torch.equal(b["observation.state"], a["observation.state"][keep])
+        assert torch.equal(b["action"], a["action"]) and b["task"] == a["task"]
+        assert torch.equal(b["observation.images.wrist"], a["observation.images.wrist"])
+    for key in ("mean", "std", "min", "max"):
+        np.testing.assert_array_equal(
+            cut.meta.stats["observation.state"][key], src.meta.stats["observation.state"][key][keep]
+        )
+    import pyarrow.parquet as pq
+
+    for f in (out / "meta" / "episodes").rglob("*.parquet"):  # the per-episode stats
+        for mean in pq.read_table(f, columns=["stats/observation.state/mean"]).column(0):
+            assert len(mean.as_py()) == 5
+    zoo.check_features("act", "tabletop_pos", out)  # fits the benchmark made for it
+    with pytest.raises(SystemExit, match=r"observation.state: wants \[8\], dataset has \[5\]"):
+        zoo.check_features("act", "tabletop", out)
+    with pytest.raises(SystemExit, match=r"--keep \[3, 9\]"):
+        derive(toy_dataset, tmp_path / "bad", [3, 9])

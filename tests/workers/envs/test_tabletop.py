@@ -152,6 +152,8 @@ def test_images_render_only_when_read(env) -> None:
             r"env.params.cameras=\['top'\]: choose one or more of \['agentview', 'wrist'\]",
         ),
         ({"max_steps": {"fly": 3}}, r"env.params.max_steps=\{'fly': 3\}"),
+        ({"state_dims": [0, 8]}, r"env.params.state_dims=\[0, 8\]: distinct dims of the 8-d"),
+        ({"state_dims": [1, 1]}, r"env.params.state_dims=\[1, 1\]"),
     ],
 )
 def test_bad_params(kwargs, pattern) -> None:
@@ -191,3 +193,17 @@ def test_an_episode_does_not_depend_on_the_one_before(env) -> None:
     finally:
         fresh_env.close()
     np.testing.assert_array_equal(after, fresh)
+
+
+def test_state_dims_leave_out_the_orientation(env) -> None:
+    """``state_dims`` gives a policy some of the 8 dims (the zoo's lerobot architectures get
+    position and gripper, training/zoo_state.py); the same episode, the same values."""
+    from workers.envs.suites.tabletop.env import TabletopEnv
+
+    cut = TabletopEnv(state_dims=[0, 1, 2, 6, 7])
+    full, part = env.reset("pick_color", 3, 0), cut.reset("pick_color", 3, 0)
+    assert part.state.shape == (5,) and cut.state_dim == 5
+    np.testing.assert_array_equal(part.state, full.state[[0, 1, 2, 6, 7]])
+    assert TabletopEnv.describe(state_dims=[0, 1, 2, 6, 7]).state_dim == 5
+    assert TabletopEnv.describe().state_dim == 8
+    cut.close()

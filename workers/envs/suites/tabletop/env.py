@@ -73,7 +73,11 @@ class TabletopEnv:
         max_steps: dict[str, int] | None = None,
         subtask_budget: int = DEFAULT_SUBTASK_BUDGET,
         fast_render: bool = True,
+        state_dims: list[int] | None = None,
     ) -> None:
+        self.state_dims = self._check_state_dims(state_dims)
+        if self.state_dims is not None:
+            self.state_dim = len(self.state_dims)
         if image_size <= 0:
             raise ValueError(f"env.params.image_size={image_size} must be > 0")
         unknown = [c for c in cameras if c not in CAMERAS]
@@ -113,10 +117,29 @@ class TabletopEnv:
         ]
 
     @classmethod
+    def _check_state_dims(cls, dims: list[int] | None) -> tuple[int, ...] | None:
+        """``state_dims``: which of the 8 state dims the policy gets, e.g. [0, 1, 2, 6, 7] (no
+        orientation: the zoo's lerobot architectures, training/zoo_state.py). None: all."""
+        if dims is None:
+            return None
+        dims = list(dims)
+        if (
+            not dims
+            or len(set(dims)) != len(dims)
+            or any(not isinstance(d, int) or not 0 <= d < cls.state_dim for d in dims)
+        ):
+            raise ValueError(
+                f"env.params.state_dims={dims}: distinct dims of the {cls.state_dim}-d state "
+                "(0-2 position, 3-5 orientation, 6-7 gripper), e.g. [0, 1, 2, 6, 7]"
+            )
+        return tuple(dims)
+
+    @classmethod
     def describe(
         cls,
         image_size: int = 96,
         cameras: tuple[str, ...] | list[str] = ("agentview", "wrist"),
+        state_dims: list[int] | None = None,
         **_: Any,
     ) -> EnvIO:
         """What the suite gives a policy (docs/suites/index.md): images uint8 at ``image_size``
@@ -124,7 +147,7 @@ class TabletopEnv:
         return EnvIO(
             cameras=tuple(cameras),
             image_size=int(image_size),
-            state_dim=cls.state_dim,
+            state_dim=len(dims) if (dims := cls._check_state_dims(state_dims)) else cls.state_dim,
             action_dim=cls.action_dim,
             camera_aliases={c: ROBOSUITE_CAMERA_ALIASES[c] for c in cameras if c in CAMERAS},
         )
@@ -227,6 +250,8 @@ class TabletopEnv:
         state = np.concatenate(
             [o["robot0_eef_pos"], quat2axisangle(o["robot0_eef_quat"]), o["robot0_gripper_qpos"]]
         ).astype(np.float32)
+        if self.state_dims is not None:
+            state = state[list(self.state_dims)]
         # rendering and the privileged state read the live simulator: valid until the next step
         ep, steps = self._ep, self._ep.steps
 
