@@ -264,3 +264,14 @@ def test_the_state_cut_keeps_every_frame_and_cuts_the_stats_to_match(toy_dataset
         zoo.check_features("act", "tabletop", out)
     with pytest.raises(SystemExit, match=r"--keep \[3, 9\]"):
         derive(toy_dataset, tmp_path / "bad", [3, 9])
+
+
+@pytest.mark.sim
+@pytest.mark.slow
+def test_the_open_loop_error_of_a_learned_policy_beats_the_mean_action(toy_dataset) -> None:
+    from training.zoo_openloop import open_loop_error
+
+    out = open_loop_error(zoo.ROOT / "checkpoints/zoo/tiny_vla", toy_dataset, frames=20)
+    assert out["frames"] == 20 and out["dims"] == [0, 1, 2, 6]  # dims 3-5 never vary
+    assert len(out["mae_in_std"]) == len(out["mean_action_mae_in_std"]) == 4
+    assert out["ratio_to_mean_action"] < 0.6  # the shipped zoo tiny VLA learned the actions
