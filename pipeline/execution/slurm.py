@@ -420,6 +420,15 @@ def _run(config: str, out: str, overrides: list[str], driver_args: list[str]) ->
         read_allocation()  # the message that names sbatch and salloc
     ping_controller()
     alloc = read_allocation()
+    here = os.environ.get("SLURMD_NODENAME")
+    if here != alloc.nodes[0]:
+        # inside salloc the shell is on the login node: the head must be on the allocation
+        raise ConfigError(
+            f"`idr-eval slurm` runs on the allocation's first node ({alloc.nodes[0]}), this is "
+            f"{here or 'not a node of it'}: submit docker/slurm.sbatch with sbatch, or inside "
+            f"salloc run `srun --nodes=1 --ntasks=1 --nodelist={alloc.nodes[0]} idr-eval slurm "
+            "...`"
+        )
     groups = cfg.executor.actor_groups()
     check_fits(
         alloc,

@@ -286,3 +286,36 @@ def test_a_default_slice_runs_under_slurm(slurm, tmp_path) -> None:
     steps = pq.read_table(out / "steps", columns=["e_img", "e_prop"])
     assert steps.num_rows > 10  # the per-step causal effects
     assert (out / "report.md").is_file() and (out.parent / "mlflow.db").is_file()
+
+
+@slurm_only
+def test_off_the_allocations_first_node_names_srun(slurm, tmp_path, monkeypatch, capsys):
+    """Inside salloc the shell stays on the login node: the head would start off the
+    allocation. Refused, naming the srun line that puts it on the first node."""
+    import re
+
+    got = subprocess.run(
+        ["salloc", "--nodes=1", "--cpus-per-task=2", "--no-shell"],
+        env=slurm.env(),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    job = re.search(r"allocation (\d+)", got.stderr).group(1)
+    try:
+        node = slurm.job(job)["NodeList"]
+        for key, value in {
+            "SLURM_CONF": str(slurm.conf),
+            "SLURM_JOB_ID": job,
+            "SLURM_JOB_NODELIST": node,
+            "SLURM_JOB_CPUS_PER_NODE": "2",
+        }.items():
+            monkeypatch.setenv(key, value)
+        monkeypatch.delenv("SLURMD_NODENAME", raising=False)
+        out = tmp_path / "run"
+        assert main(["slurm", "conf/smoke.yaml", "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert f"srun --nodes=1 --ntasks=1 --nodelist={node} idr-eval slurm" in err
+        assert not out.exists()
+    finally:
+        subprocess.run(["scancel", job], env=slurm.env(), check=False)
