@@ -120,6 +120,10 @@ def _requeue(sc, tmp: Path) -> dict:
         if eligible[:1].isdigit()
         else None
     )
+    # released once the last start has left the nodes (earlier, the new start fails: "Job
+    # credential revoked")
+    _until(lambda: sc.job(job).get("Reason") == "BeginTime" and sc.all_idle(), 120, "not held")
+    time.sleep(1)
     sc.scontrol("update", f"JobId={job}", "StartTime=now", check=False)
     n = _stored(out)
     resumed = _until(lambda: _stored(out) > n, 300, "no episode after the requeue")
