@@ -114,15 +114,15 @@ def _requeue(sc, tmp: Path) -> dict:
     wall_requeue = time.time()
     sc.scontrol("requeue", job)
     _until(lambda: sc.job(job).get("Restarts") == "1", 120, "not requeued")
-    eligible = sc.job(job).get("EligibleTime", "")
+    # released once the last start has left the nodes (earlier, the new start fails: "Job
+    # credential revoked")
+    _until(lambda: sc.job(job).get("Reason") == "BeginTime" and sc.all_idle(), 120, "not held")
+    eligible = sc.job(job).get("EligibleTime", "")  # the hold Slurm put on the requeued job
     hold = (
         datetime.fromisoformat(eligible).timestamp() - wall_requeue
         if eligible[:1].isdigit()
         else None
     )
-    # released once the last start has left the nodes (earlier, the new start fails: "Job
-    # credential revoked")
-    _until(lambda: sc.job(job).get("Reason") == "BeginTime" and sc.all_idle(), 120, "not held")
     time.sleep(1)
     sc.scontrol("update", f"JobId={job}", "StartTime=now", check=False)
     n = _stored(out)
