@@ -417,6 +417,27 @@ def cluster(d: Data) -> str:
     return block(key_values(rows), source("cluster", d, d["cluster"]))
 
 
+def slurm(d: Data) -> str:
+    """slurm.json: the smoke under a real Slurm (2 slurmd) vs a local Ray; a requeue."""
+    s, loc, r = d["slurm"], d["local_ray"], d["requeue"]
+    rows = [
+        (
+            "to the first stored episode (s): sbatch / local `idr-eval run`",
+            f"{num(s['sbatch_to_first_episode_s'])} / {num(loc['start_to_first_episode_s'])}",
+        ),
+        (
+            "to the end (s): sbatch / local",
+            f"{num(s['sbatch_to_end_s'])} / {num(loc['start_to_end_s'])} "
+            f"({num(d['slurm_over_local_ratio'])}x, +{num(d['slurm_overhead_s'])} s)",
+        ),
+        ("of which Ray up on the allocation (s)", num(s["ray_up_s"])),
+        ("Slurm's hold of a requeued job (s)", num(r["slurm_hold_s"])),
+        ("requeue to the first resumed episode, hold released (s)", num(r["requeue_to_resume_s"])),
+    ]
+    note = f"Medians of {d['repeats']} runs each."
+    return block(key_values(rows), note, source("slurm", d))
+
+
 def perturbations(d: Data) -> str:
     """perturbations.json: reset and step cost under each perturbation."""
 
@@ -716,6 +737,7 @@ RENDERERS: dict[str, Callable[[Data], str]] = {
         report_scale,
         tracking_scale,
         cluster,
+        slurm,
         perturbations,
         plugin_latency,
         idr_passes,
