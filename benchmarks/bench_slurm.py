@@ -54,19 +54,24 @@ def _until(pred, timeout_s: float, what: str) -> float:
     raise TimeoutError(what)
 
 
-def _slurm_smoke(sc, tmp: Path, i: int, extra: list[str] | None = None) -> dict:
-    out, log = tmp / f"smoke{i}", tmp / f"smoke{i}.out"
-    t0 = time.monotonic()
-    job = sc.sbatch(
+def _submit(sc, out: Path, log: Path, overrides: list[str]) -> str:
+    """The smoke preset as a 2-node job of docker/slurm.sbatch."""
+    return sc.sbatch(
         "--nodes=2",
         "--cpus-per-task=2",
         f"--output={log}",
         str(SBATCH),
         "conf/smoke.yaml",
         str(out),
-        *(extra or []),
+        *overrides,
         cwd=ROOT,
     )
+
+
+def _slurm_smoke(sc, tmp: Path, i: int) -> dict:
+    out, log = tmp / f"smoke{i}", tmp / f"smoke{i}.out"
+    t0 = time.monotonic()
+    job = _submit(sc, out, log, [])
     first = _until(lambda: _stored(out) > 0, 300, f"no episode of job {job}")
     end = _until(lambda: sc.job(job).get("JobState") in {"COMPLETED", "FAILED"}, 300, f"job {job}")
     state = sc.job(job)["JobState"]
@@ -98,17 +103,7 @@ def _local_smoke(tmp: Path, i: int) -> dict:
 
 def _requeue(sc, tmp: Path) -> dict:
     out, log = tmp / "requeue", tmp / "requeue.out"
-    grid = ["episodes_per_task=12", "backbone.params.delay_s=0.1"]
-    job = sc.sbatch(
-        "--nodes=2",
-        "--cpus-per-task=2",
-        f"--output={log}",
-        str(SBATCH),
-        "conf/smoke.yaml",
-        str(out),
-        *grid,
-        cwd=ROOT,
-    )
+    job = _submit(sc, out, log, ["episodes_per_task=12", "backbone.params.delay_s=0.1"])
     _until(lambda: _stored(out) >= 4, 300, "no episodes before the requeue")
     t_requeue = time.monotonic()
     wall_requeue = time.time()
