@@ -287,7 +287,7 @@ def train_command(name: str, member: Member, args: argparse.Namespace) -> list[s
             f"--config_path={last / 'pretrained_model' / 'train_config.json'}",
             "--resume=true",
             f"--steps={args.steps or member.steps}",
-            f"--save_freq={member.save_freq}",
+            f"--save_freq={args.save_freq or member.save_freq}",
         ]
     return [
         exe,
@@ -304,7 +304,7 @@ def train_command(name: str, member: Member, args: argparse.Namespace) -> list[s
         f"--seed={args.seed}",
         f"--steps={args.steps or member.steps}",
         f"--batch_size={member.batch_size}",
-        f"--save_freq={member.save_freq}",
+        f"--save_freq={args.save_freq or member.save_freq}",
         "--log_freq=100",
         f"--num_workers={args.num_workers}",
         "--wandb.enable=false",
@@ -429,6 +429,12 @@ def main(argv: list[str] | None = None) -> None:
     t.add_argument("name")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--steps", type=int, default=None, help="override the member's steps")
+    t.add_argument(
+        "--save-freq",
+        type=int,
+        default=None,
+        help="override the member's checkpoint interval (a session that ends soon)",
+    )
     t.add_argument("--dataset", type=Path, default=None, help="default: the benchmark's")
     t.add_argument("--device", default="cpu")
     t.add_argument("--threads", type=int, default=2)
