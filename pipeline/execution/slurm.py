@@ -184,10 +184,13 @@ def node_address(node: str) -> str:
 
 
 def _srun(node: str | None, alloc: Allocation, cmd: list[str]) -> list[str]:
-    where = ["--nodes=1", "--ntasks=1", f"--nodelist={node}"] if node else []
-    if not node:
-        n = len(alloc.nodes)
-        where = [f"--nodes={n}", f"--ntasks={n}", "--ntasks-per-node=1"]
+    """``cmd`` on ``node``, or once on every node of the allocation."""
+    n = len(alloc.nodes)
+    where = (
+        ["--nodes=1", "--ntasks=1", f"--nodelist={node}"]
+        if node
+        else [f"--nodes={n}", f"--ntasks={n}", "--ntasks-per-node=1"]
+    )
     # --overlap: a Ray node and a check may share a node's CPUs with the batch script
     return ["srun", "--overlap", "--kill-on-bad-exit=0", *where, *cmd]
 
@@ -429,12 +432,8 @@ def _run(config: str, out: str, overrides: list[str], driver_args: list[str]) ->
             f"salloc run `srun --nodes=1 --ntasks=1 --nodelist={alloc.nodes[0]} idr-eval slurm "
             "...`"
         )
-    groups = cfg.executor.actor_groups()
-    check_fits(
-        alloc,
-        sum(n * d["CPU"] for _, n, d in groups),
-        sum(n * d.get("GPU", 0.0) for _, n, d in groups),
-    )
+    gpus = sum(n * d.get("GPU", 0.0) for _, n, d in cfg.executor.actor_groups())
+    check_fits(alloc, cfg.executor.local_cpus(), gpus)
     run_dir = Path(out).resolve()
     control = run_dir.parent / f".slurm-{alloc.job_id}-{run_dir.name}"
     try:
