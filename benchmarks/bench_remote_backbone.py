@@ -2,7 +2,8 @@
 request vs three requests, against the same closed-form policy called in this process.
 
 The server is the fake openpi-protocol server of the tests (another process, websockets);
-the in-process reference calls its policy function directly on the same observations.
+the in-process reference is its policy as a backbone (tests.doubles.closed_form) on the same
+observations.
 Writes ``benchmarks/results/remote_backbone.json``.
 Usage: ``python benchmarks/bench_remote_backbone.py [--calls 300]``
 """
@@ -17,7 +18,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 
@@ -26,30 +27,6 @@ from workers.hardware import machine_record
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 RESULTS = Path(__file__).parent / "results" / "remote_backbone.json"
-KEYS = {"image:agentview": "observation/image", "state": "observation/state", "prompt": "prompt"}
-
-
-class InProcess:
-    """The fake server's policy as an in-process backbone (the reference)."""
-
-    native_intervention_spaces: ClassVar[frozenset[str]] = frozenset()
-    can_batch = True
-    name, chunk_len, action_dim = "closed_form", 4, 7
-
-    def reset(self) -> None:
-        pass
-
-    def make_noise(self, batch_size: int, seed: int) -> None:
-        return None
-
-    def predict_chunk(self, obs: Any, noise: Any = None, intervention: Any = None) -> np.ndarray:
-        from tests.doubles.openpi_server import act
-        from workers.backbones.websocket.client import WebsocketBackbone
-
-        rows = [WebsocketBackbone._row(self, obs, i) for i in range(obs.batch_size)]  # type: ignore[arg-type]
-        return np.stack([act(r, 2.0, 0.5, 0.0, 4, 7) for r in rows])
-
-    key_map = KEYS
 
 
 def _port() -> int:
@@ -76,6 +53,7 @@ def main() -> None:
     ap.add_argument("--calls", type=int, default=300)
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
+    from tests.doubles.closed_form import KEY_MAP, ClosedFormBackbone
     from workers.backbones.websocket.client import WebsocketBackbone
     from workers.idr_wrapper import IDRWrapper
     from workers.observation import to_policy_observation
@@ -88,7 +66,7 @@ def main() -> None:
         state=rng.standard_normal(8).astype(np.float32),
     )
     obs = to_policy_observation(raw, "pick up the red cube")
-    rows: dict[str, float] = {"in_process_ms": measure(IDRWrapper(InProcess()), obs, args.calls)}
+    rows: dict[str, float] = {"in_process_ms": measure(IDRWrapper(ClosedFormBackbone()), obs, args.calls)}
     for label, flags in (("three_requests_ms", []), ("one_batched_request_ms", ["--batch"])):
         port = _port()
         server = subprocess.Popen(
@@ -99,7 +77,7 @@ def main() -> None:
         )
         try:
             assert server.stdout is not None and server.stdout.readline().strip() == "ready"
-            backbone = WebsocketBackbone(port=port, key_map=KEYS)
+            backbone = WebsocketBackbone(port=port, key_map=KEY_MAP)
             rows[label] = measure(IDRWrapper(backbone), obs, args.calls)
             backbone.close()
         finally:

@@ -720,6 +720,100 @@ def _zoo_card(d: Data, name: str) -> str:
     )  # fmt: skip
 
 
+def serving(d: Data) -> str:
+    """serving.json: one model through each serving path, B concurrent clients; ours' breakdown."""
+    parts = []
+    for model, e in d["models"].items():
+        rows, skipped = [], []
+        for path in ("in_process", "ours", "vla_eval", "openpi", "ray_floor"):
+            p = e.get(path)
+            if p is None:
+                continue
+            if "skipped" in p:
+                skipped.append(f"{path}: skipped ({p['skipped']})")
+                continue
+            for r in p["rows"]:
+                overhead = "-" if path == "in_process" else num(r["overhead_ms"])
+                rows.append(
+                    [path, r["clients"], r["rtt_ms_median"], r["rtt_ms_p90"], r["mu_per_s"],
+                     num(e["compute_ms"][str(r["clients"])]), overhead]
+                )  # fmt: skip
+        ratio_rows = []
+        for other, per_b in e.get("ratios", {}).items():
+            for b, v in per_b.items():
+                o = v["overhead_ratio"]
+                ratio_rows.append([other.removeprefix("ours_vs_"), int(b),
+                                   "-" if o is None else f"{num(o)}x", f"{num(v['mu_ratio'])}x"])  # fmt: skip
+        parts.append(f"**{model}**")
+        parts.append(
+            table(
+                ["path", "B clients", "round trip median (ms)", "p90 (ms)", "μ(B) (req/s)",
+                 "compute of one forward of B (ms)", "overhead per request (ms)"],
+                rows,
+            )
+        )  # fmt: skip
+        if ratio_rows:
+            parts.append(
+                table(["ours against", "B", "overhead ratio (ours / theirs)", "μ ratio"],
+                      ratio_rows)
+            )  # fmt: skip
+        if skipped:
+            parts.append("; ".join(skipped))
+        if bd := e.get("breakdown_b1"):
+            parts.append(
+                key_values(
+                    [
+                        ("ours at B = 1: round trip (ms)", bd["round_trip_ms"]),
+                        ("client: observation and request (ms)", bd["client_ms"]),
+                        ("Ray: serialization, transport, scheduling (ms)", bd["ray_ms"]),
+                        (
+                            "policy actor: handoff to and from the batching thread, batch wait (ms)",
+                            bd["actor_handoff_ms"],
+                        ),
+                        ("policy actor: the forward (ms)", bd["actor_forward_ms"]),
+                    ]
+                )
+            )
+    if before := d.get("before"):
+        rows = []
+        for model, e in before["models"].items():
+            now = d["models"].get(model, {}).get("ours", {}).get("rows", [])
+            for r in e["ours"]["rows"]:
+                after = next((a for a in now if a["clients"] == r["clients"]), None)
+                rows.append(
+                    [model, r["clients"], r["overhead_ms"], r["mu_per_s"],
+                     "-" if after is None else num(after["overhead_ms"]),
+                     "-" if after is None else num(after["mu_per_s"])]
+                )  # fmt: skip
+        parts.append(f"**Ours before and after** (before: {before['code']})")
+        parts.append(
+            table(["model", "B", "overhead before (ms)", "μ before", "overhead now (ms)", "μ now"],
+                  rows)
+        )  # fmt: skip
+        bd_rows = []
+        for model, e in before["models"].items():
+            b0, b1 = e["breakdown_b1"], d["models"].get(model, {}).get("breakdown_b1")
+            if b1 is None:
+                continue
+            for key, label in (
+                ("round_trip_ms", "round trip"),
+                ("ray_ms", "Ray"),
+                ("actor_handoff_ms", "handoff and batch wait"),
+                ("actor_forward_ms", "forward"),
+            ):
+                bd_rows.append([model, label, b0[key], b1[key]])  # fmt: skip
+        if bd_rows:
+            parts.append(table(["model", "ours at B = 1 (ms)", "before", "now"], bd_rows))
+        if d.get("noise"):
+            parts.append(f"Noise: {d['noise']}.")
+    note = (
+        f"Batching wait {num(d['wait_ms'])} ms and at most {d['max_batch']} requests per forward, "
+        "both servers; overhead = round-trip median − in-process compute of one forward of B "
+        "requests (in_process: every client holds its own model, so no overhead is defined)."
+    )
+    return block(*parts, note, source("serving", d))
+
+
 RENDERERS: dict[str, Callable[[Data], str]] = {
     f.__name__: f
     for f in (
@@ -732,6 +826,7 @@ RENDERERS: dict[str, Callable[[Data], str]] = {
         env_server,
         calvin_env,
         policy_service,
+        serving,
         shared_numerics,
         remote_backbone,
         report_scale,
