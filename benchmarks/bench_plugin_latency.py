@@ -5,8 +5,11 @@ What a robot's control loop waits for at each chunk boundary: the preprocessor, 
 ``baseline``, which is the base's own code path) and for IDR (modes ``diagnose`` and ``E``:
 three rows per observation in one forward, unnormalization and refinement). Backbones: lerobot
 ACT at its default size built offline from its config (96 px, random weights: the cost is the
-same) and the project's tiny VLA checkpoint. Variants are interleaved round by round so load
-on the machine hits them alike; compare the ratios, measured in one run.
+same), the project's tiny VLA checkpoint, and learned zoo checkpoints trained by lerobot-train
+(``checkpoints/zoo/tiny_vla``, shipped; ACT on MetaWorld, ``checkpoints/zoo/metaworld/act``,
+rebuilt by its command in ``checkpoints/zoo/metaworld/REBUILD.json`` and recorded as skipped
+where absent). Variants are interleaved round by round so load on the machine hits them alike;
+compare the ratios, measured in one run.
 
 Writes ``benchmarks/results/plugin_latency.json`` and prints a table.
 Usage: ``python benchmarks/bench_plugin_latency.py [--rounds 30] [--out PATH]``
@@ -103,7 +106,17 @@ def main() -> None:
     }
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        bases = {"tiny_vla": ROOT / "checkpoints" / "tiny_vla"}
+        bases = {
+            "tiny_vla": ROOT / "checkpoints" / "tiny_vla",
+            "zoo_tiny_vla": ROOT / "checkpoints" / "zoo" / "tiny_vla",
+        }
+        zoo_act = ROOT / "checkpoints" / "zoo" / "metaworld" / "act"
+        if (zoo_act / "model.safetensors").is_file():
+            bases["zoo_act_metaworld"] = zoo_act
+        else:
+            results["skipped"] = {
+                "zoo_act_metaworld": f"{zoo_act} absent (checkpoints/zoo/metaworld/REBUILD.json)"
+            }
         # ACT at lerobot's default widths (dim_model 512, 4+1 layers, ResNet-18), 96 px
         bases["act_96px"] = build_act(
             work / "act_96px", image=96, chunk=100, n_action_steps=100, full_size=True

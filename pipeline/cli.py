@@ -97,7 +97,15 @@ def _cmd_study(args: argparse.Namespace) -> int:
     plans = []
     for run in study.runs:
         _import_logging_libraries(run.config)
-        plans.append(plan_run(run.config, out / run.label, yes=args.yes))
+        plans.append(
+            plan_run(
+                run.config,
+                out / run.label,
+                yes=args.yes,
+                allow_code_change=args.allow_code_change,
+                allow_numerics_change=args.allow_numerics_change,
+            )
+        )
         print(f"{run.label}: {len(plans[-1].all_specs())} episodes -> {out / run.label}")
     for run, plan in zip(study.runs, plans, strict=True):
         try:
@@ -378,6 +386,14 @@ def _add_study(sub: Subparsers) -> None:
     st.add_argument("--out", required=True, help="STUDY_DIR: one run dir per arch@env inside")
     st.add_argument("overrides", nargs="*", help="dotted key=value overrides for every run")
     st.add_argument("--yes", action="store_true", help="allow runs above the grid size guard")
+    st.add_argument(
+        "--allow-code-change",
+        action="store_true",
+        help="as for `run`: resume the study's run dirs made by another code version",
+    )
+    st.add_argument(
+        "--allow-numerics-change", action="store_true", help="as for `run`, for every run"
+    )
     st.set_defaults(func=_cmd_study)
 
 

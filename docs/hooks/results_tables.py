@@ -472,7 +472,8 @@ def plugin_latency(d: Data) -> str:
         for name, b in d["backbones"].items()
     ]
     head = ["base", "baseline ms (median / p90)", "diagnose ms", "E ms", "E / baseline"]
-    return block(table(head, rows), source("plugin_latency", d, d["what"]))
+    skipped = "; ".join(f"{k}: skipped ({v})" for k, v in d.get("skipped", {}).items())
+    return block(table(head, rows), skipped, source("plugin_latency", d, d["what"]))
 
 
 def _passes(name: str, d: Data) -> str:
@@ -673,11 +674,11 @@ def zoo_metaworld(d: Data) -> str:
 
 def _zoo_card(d: Data, name: str) -> str:
     train_rows, task_rows, effect_rows = [], [], []
-    for name, m in d["members"].items():
+    for member, m in d["members"].items():
         t, e = m["train"], m["eval"]
         train_rows.append(
             [
-                name,
+                member,
                 t["policy_type"],
                 "yes" if t["language"] else "no",
                 f"{t['params']:,}",
@@ -691,7 +692,7 @@ def _zoo_card(d: Data, name: str) -> str:
         for r in m["tasks"]:
             lo, hi = r["ci95"]
             task_rows.append(
-                [name, r["cell"], r["task"], f"{r['successes']}/{r['n']}",
+                [member, r["cell"], r["task"], f"{r['successes']}/{r['n']}",
                  f"{100 * r['success']:.0f} [{100 * lo:.0f}, {100 * hi:.0f}]"]
             )  # fmt: skip
         eff = m["diagnose_effects"]
@@ -701,7 +702,7 @@ def _zoo_card(d: Data, name: str) -> str:
             for p in m["paired_vs_diagnose"]
         )
         effect_rows.append(
-            [name, num(eff["e_img"]), num(eff["e_prop"]), num(eff["r_img"]), paired or "–",
+            [member, num(eff["e_img"]), num(eff["e_prop"]), num(eff["r_img"]), paired or "–",
              f"{e['episodes_per_task']} per task, {machine(e)}, {e['date']}"]
         )  # fmt: skip
     return block(

@@ -50,7 +50,7 @@ def test_rank_correlation_exact_permutation_p() -> None:
     assert rank_correlation([1, 2], [1, 2])["finding"].startswith("too few")
 
 
-def test_study_runs_each_member_and_reports_across_them(tmp_path: Path) -> None:
+def test_study_runs_each_member_and_reports_across_them(tmp_path: Path, capsys) -> None:
     study = tmp_path / "study.yaml"
     smoke = CONF / "smoke.yaml"
     common = "executor.kind=inline, executor.workers=1, tracking.enabled=false"
@@ -87,6 +87,15 @@ runs:
     )
     # a second call resumes: every episode already stored, the same numbers
     assert cli.main(["study", str(study), "--out", str(out)]) == 0
+    assert json.loads((out / "observations.json").read_text())["runs"] == result["runs"]
+    # a run dir made by another code version: refused, then resumed with --allow-code-change
+    meta_path = out / "weak@fake" / "run.json"
+    meta = json.loads(meta_path.read_text())
+    meta_path.write_text(json.dumps({**meta, "code_version": "0000000older"}))
+    capsys.readouterr()
+    assert cli.main(["study", str(study), "--out", str(out)]) == 2
+    assert "code version 0000000older" in capsys.readouterr().err
+    assert cli.main(["study", str(study), "--out", str(out), "--allow-code-change"]) == 0
     assert json.loads((out / "observations.json").read_text())["runs"] == result["runs"]
 
 
