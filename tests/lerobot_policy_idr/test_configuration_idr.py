@@ -98,7 +98,11 @@ def test_bad_bases_are_refused_before_loading(bases, tmp_path) -> None:
     refused(tmp_path / "empty", r"is not a lerobot policy: no config.json")
     with pytest.raises(IDRConfigError, match=r"base_policy_path is required"):
         IDRConfig(mode="diagnose").resolve_base()
-    for kind, match in (("groot", "processors from the hub"), ("vqbet", "not supported")):
+    for kind, match in (
+        ("groot", "processors from the hub"),
+        ("vqbet", "select_action fills"),
+        ("eo1", "not run under IDR yet"),
+    ):
         other = tmp_path / kind
         shutil.copytree(bases["act"], other)
         cfg = json.loads((other / "config.json").read_text())

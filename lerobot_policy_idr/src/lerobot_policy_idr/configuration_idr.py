@@ -1,7 +1,8 @@
 """The lerobot policy config of IDR, registered as policy type ``idr``.
 
 An ``idr`` policy names a base policy (a lerobot checkpoint folder: act, diffusion, pi0, pi05,
-smolvla or tiny_vla) and IDR's settings. lerobot resolves the policy class from this class's
+smolvla, xvla, tiny_vla, or a type of a third-party ``lerobot_policy_*`` plugin) and IDR's
+settings. lerobot resolves the policy class from this class's
 name and module (``IDRConfig`` in ``configuration_idr`` -> ``modeling_idr.IDRPolicy``) and the
 processors from ``processor_idr.make_idr_pre_post_processors``.
 
@@ -14,6 +15,7 @@ Two ways to run it, both with lerobot's own tools:
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from dataclasses import dataclass, field
@@ -25,11 +27,37 @@ from idr_core.refiner import RefinerConfig
 from lerobot.configs import PreTrainedConfig
 from lerobot.configs.types import FeatureType, PolicyFeature
 
-#: Base policy types IDR wraps, and why the others are refused.
+#: Base policy types IDR wraps, and why lerobot's others are refused (each reason verified on
+#: lerobot 0.6.1 offline: docs/policy-types.md). A type registered by a third-party plugin
+#: (a ``lerobot_policy_*`` distribution) takes the generic path (``is_third_party_type``).
 SUPPORTED_BASE_TYPES = ("act", "diffusion", "pi0", "pi05", "smolvla", "xvla", "tiny_vla")
 REFUSED_BASE_TYPES = {
     "idr": "an idr policy cannot wrap another idr policy; wrap its base instead",
     "groot": "GR00T loads its processors from the hub; not supported offline",
+    "fastwam": "FastWAM builds Wan2.2's VAE from a hub id written into its code and UMT5-XXL "
+    "from the hub; neither can be had offline",
+    "gaussian_actor": "an RL actor with no predict_action_chunk (one action per step): IDR has "
+    "no chunk to run its passes on",
+    "lingbot_va": "LingBot-VA runs batch 1 and carries a KV cache across calls (counterfactual "
+    "passes would write into it), reads no state, and loads Wan's VAE and UMT5 from the hub",
+    "molmoact2": "MolmoAct2 constructs only from a full MolmoAct2 checkpoint folder (its hub "
+    "snapshot)",
+    "multi_task_dit": "Multi-Task DiT's predict_action_chunk reads the observation queues that "
+    "its select_action fills; IDR calls predict_action_chunk on whole batches",
+    "tdmpc": "TD-MPC is a state-based RL planner: its predict_action_chunk reads select_action's "
+    "queues and keeps a CEM warm start between calls",
+    "vqbet": "VQ-BeT's predict_action_chunk reads the 5-step observation queues that its "
+    "select_action fills; IDR calls predict_action_chunk on whole batches",
+    "wall_x": "WALL-OSS needs peft, torchdiffeq and qwen-vl-utils (not installed) and its "
+    "checkpoint from the hub",
+}
+#: lerobot types that construct offline with local sub-model folders and whose
+#: predict_action_chunk runs on a batch, but that IDR has not been run on here yet.
+UNVERIFIED_BASE_TYPES = {
+    "eo1": "Qwen2.5-VL",
+    "evo1": "InternVL3",
+    "pi0_fast": "PaliGemma and the FAST action tokenizer",
+    "vla_jepa": "Qwen3-VL",
 }
 REFINE_SPACES = ("physical", "normalized")
 
@@ -168,7 +196,7 @@ class IDRConfig(PreTrainedConfig):
         if not base.is_absolute() and anchor and (Path(anchor) / base).is_dir():
             base = Path(anchor) / base
         kind = _peek_type(base)  # the type first: an idr folder has no weights of its own
-        if kind is None or kind in SUPPORTED_BASE_TYPES:
+        if kind is None or kind in SUPPORTED_BASE_TYPES or is_third_party_type(kind):
             try:
                 kind = check_checkpoint_dir(base, "policy.base_policy_path")["type"]
             except ValueError as e:
@@ -178,10 +206,18 @@ class IDRConfig(PreTrainedConfig):
                 f"policy.base_policy_path={str(base)!r}: base type {kind!r} is refused: "
                 f"{REFUSED_BASE_TYPES[kind]}. Supported: {', '.join(SUPPORTED_BASE_TYPES)}"
             )
-        if kind not in SUPPORTED_BASE_TYPES:
+        if kind in UNVERIFIED_BASE_TYPES:
+            raise IDRConfigError(
+                f"policy.base_policy_path={str(base)!r}: base type {kind!r} is not run under "
+                f"IDR yet: it builds offline only with a local {UNVERIFIED_BASE_TYPES[kind]} "
+                f"folder and is untested here. Supported: {', '.join(SUPPORTED_BASE_TYPES)}, "
+                "and policy types of third-party lerobot_policy_* plugins"
+            )
+        if kind not in SUPPORTED_BASE_TYPES and not is_third_party_type(kind):
             raise IDRConfigError(
                 f"policy.base_policy_path={str(base)!r}: base type {kind!r} is not supported by "
-                f"IDR; supported: {', '.join(SUPPORTED_BASE_TYPES)}"
+                f"IDR: it is neither one of {', '.join(SUPPORTED_BASE_TYPES)} nor registered by "
+                "an installed lerobot_policy_* plugin"
             )
         if self.base_weights_sha256:
             have = sha256_file(base / WEIGHTS)
@@ -269,6 +305,26 @@ def read_base_config(path: Path) -> dict:
             "give a lerobot checkpoint folder"
         )
     return cfg
+
+
+@functools.cache
+def _plugins_registered() -> bool:
+    from lerobot.utils.import_utils import register_third_party_plugins
+
+    register_third_party_plugins()
+    return True
+
+
+def is_third_party_type(kind: str) -> bool:
+    """Whether ``kind`` is a policy type registered by an installed third-party plugin (a
+    ``lerobot_policy_*`` distribution, imported here as lerobot's tools import it): IDR runs
+    it on the generic path, through its own processors and predict_action_chunk."""
+    if kind in SUPPORTED_BASE_TYPES or kind in REFUSED_BASE_TYPES:
+        return False
+    _plugins_registered()
+    if kind not in PreTrainedConfig.get_known_choices():
+        return False
+    return not PreTrainedConfig.get_choice_class(kind).__module__.startswith("lerobot.")
 
 
 def _peek_type(path: Path) -> str | None:

@@ -61,6 +61,9 @@ class IDRPolicy(PreTrainedPolicy):
         self.base.eval()
         self.refiner_cfg = config.refiner()
         self.crn = crn_mode(base_cfg.type, self.base.predict_action_chunk)
+        if self.crn == "shared_noise" and noise_shape(base_cfg, 1, 1) is None:
+            # a noise input of a shape not known here (a third-party type): fork the RNG
+            self.crn = "seeded_rng"
         adopt_base_type(config, base_cfg.type)  # X-VLA: lerobot's env processors for X-VLA
         if config.mode != "baseline" and getattr(base_cfg, "temporal_ensemble_coeff", None):
             raise IDRConfigError(

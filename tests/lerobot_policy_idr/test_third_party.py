@@ -1,0 +1,120 @@
+"""IDR on a policy type nobody here wrote: a FAKE third-party plugin (tests/doubles/policy_plugin,
+discovered through its dist-info by lerobot's register_third_party_plugins), a stochastic policy
+with no noise argument. The generic path runs the base's own processors and
+predict_action_chunk, three passes under a forked RNG seeded alike."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+from idr_core.sidecar import read_sidecar
+
+from tests.lerobot_policy_idr.conftest import load, make_idr, obs_batch
+
+PLUGIN_SITE = Path(__file__).resolve().parents[1] / "doubles" / "policy_plugin"
+
+
+@pytest.fixture
+def fake_sampler_base(tmp_path, monkeypatch) -> Path:
+    """A checkpoint of the plugin's policy, found by lerobot's own plugin discovery."""
+    monkeypatch.syspath_prepend(str(PLUGIN_SITE))
+    from lerobot.configs import PreTrainedConfig
+    from lerobot.utils.import_utils import register_third_party_plugins
+
+    register_third_party_plugins()  # as lerobot's CLIs do at start
+    assert "fake_sampler" in PreTrainedConfig.get_known_choices()
+    from lerobot.policies.factory import get_policy_class
+
+    from tests.workers.backbones.lerobot_fixtures import _features, _stats, save_checkpoint
+
+    inputs, outputs = _features(64, 8, 7, ("agentview",))
+    cfg = PreTrainedConfig.get_choice_class("fake_sampler")(
+        input_features=inputs, output_features=outputs, device="cpu"
+    )
+    torch.manual_seed(0)
+    policy = get_policy_class("fake_sampler")(cfg)
+    return save_checkpoint(policy, cfg, _stats(64, 8, 7, ("agentview",)), tmp_path / "base")
+
+
+def _base(path: Path):
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+    cfg = PreTrainedConfig.from_pretrained(path)
+    policy = get_policy_class(cfg.type).from_pretrained(path, config=cfg).eval()
+    return policy, *make_pre_post_processors(cfg, pretrained_path=str(path))
+
+
+def test_baseline_is_the_third_party_base_bit_for_bit(fake_sampler_base, tmp_path) -> None:
+    folder = make_idr(fake_sampler_base, tmp_path / "idr", "--mode", "baseline")
+    theirs_policy, pre0, post0 = _base(fake_sampler_base)
+    policy, pre, post = load(folder)
+    for t in range(6):
+        obs = obs_batch(2, seed=t)
+        torch.manual_seed(t)
+        theirs = post0(theirs_policy.select_action(pre0(dict(obs))))
+        torch.manual_seed(t)
+        with torch.inference_mode():
+            ours = post(policy.select_action(pre(dict(obs))))
+        assert torch.equal(ours, theirs), t
+
+
+def test_generic_path_shares_the_sampling_noise_by_forking_the_rng(
+    fake_sampler_base, tmp_path
+) -> None:
+    """diagnose: the factual third is the base's own chunk under the same seed (three
+    forwards of B rows each, so exactly equal); the three thirds see the same noise, so E_img
+    and E_prop do not depend on the draw, and E_img > 0 when the image is zeroed."""
+    folder = make_idr(
+        fake_sampler_base, tmp_path / "idr", "--mode", "diagnose", "--diagnostics-dir",
+        str(tmp_path / "d"),
+    )  # fmt: skip
+    policy, pre, post = load(folder)
+    assert policy.crn == "seeded_rng"
+    base, pre0, post0 = _base(fake_sampler_base)
+    obs = obs_batch(2, seed=0)
+    chunks = []
+    for seed in (11, 12):
+        with torch.inference_mode():
+            ours = post(policy.predict_action_chunk(pre(dict(obs)), noise=torch.tensor([seed])))
+            torch.manual_seed(seed)
+            theirs = post0(base.predict_action_chunk(pre0(dict(obs))))
+        n = policy.n_action_steps
+        assert torch.equal(ours, theirs[:, :n])
+        chunks.append(ours)
+    assert not torch.equal(chunks[0], chunks[1])  # the policy does sample
+    policy.sidecar.flush()
+    rows = read_sidecar(tmp_path / "d")
+    first, second = rows.iloc[:2], rows.iloc[2:]
+    for key in ("e_img", "e_prop"):  # noise shared by the thirds: it cancels in the differences
+        assert first[key].to_numpy() == pytest.approx(second[key].to_numpy(), rel=1e-5), key
+    assert (rows["e_img"] > 0).all() and (rows["e_prop"] > 0).all()
+
+
+def test_mode_E_refines_a_third_party_policy(fake_sampler_base, tmp_path) -> None:
+    folder = make_idr(fake_sampler_base, tmp_path / "idr", "--tau", "1e9", "--no-clip")
+    policy, pre, post = load(folder)
+    base, pre0, post0 = _base(fake_sampler_base)
+    obs = obs_batch(2, seed=3)
+    with torch.inference_mode():
+        ours = post(policy.predict_action_chunk(pre(dict(obs)), noise=torch.tensor([5])))
+        torch.manual_seed(5)
+        theirs = post0(base.predict_action_chunk(pre0(dict(obs))))[:, : policy.n_action_steps]
+    assert torch.isfinite(ours).all() and not torch.equal(ours, theirs)  # the gate refined it
+
+
+def test_a_type_no_installed_plugin_registers_is_refused_by_name(tmp_path) -> None:
+    import json
+
+    from lerobot_policy_idr.configuration_idr import IDRConfig, IDRConfigError
+
+    base = tmp_path / "base"
+    base.mkdir()
+    (base / "config.json").write_text(json.dumps({"type": "nobody_registers_this"}))
+    with pytest.raises(IDRConfigError, match=r"nobody_registers_this.*lerobot_policy_\* plugin"):
+        IDRConfig(base_policy_path=str(base), mode="diagnose").resolve_base()
+    (base / "config.json").write_text(json.dumps({"type": "vqbet"}))
+    with pytest.raises(IDRConfigError, match=r"vqbet.*is refused.*select_action"):
+        IDRConfig(base_policy_path=str(base), mode="diagnose").resolve_base()
