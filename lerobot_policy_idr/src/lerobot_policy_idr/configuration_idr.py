@@ -57,6 +57,9 @@ UNVERIFIED_BASE_TYPES = {
     "eo1": "Qwen2.5-VL",
     "evo1": "InternVL3",
     "pi0_fast": "PaliGemma and the FAST action tokenizer",
+    # its postprocessor clips and snaps the gripper before unnormalizing and binarizes after:
+    # IDR's physical space takes the unnormalizer alone (measured: E_img differs from
+    # idr-eval's, which measures after the whole postprocessor)
     "vla_jepa": "Qwen3-VL",
 }
 REFINE_SPACES = ("physical", "normalized")
