@@ -49,11 +49,18 @@ def _obs(base: Path) -> dict[str, Any]:
     return obs
 
 
-def measure(base: Path, work: Path, rounds: int, warmup: int = 3) -> dict[str, Any]:
+def measure(name: str, base: Path, work: Path, rounds: int, warmup: int = 3) -> dict[str, Any]:
     loaded = {}
     for mode in MODES:
-        folder = work / f"{base.name}_{mode}"
-        args = [str(base), str(folder), "--mode", mode, "--diagnostics-dir", str(work / "diag")]
+        folder = work / f"{name}_{mode}"
+        args = [
+            str(base),
+            str(folder),
+            "--mode",
+            mode,
+            "--diagnostics-dir",
+            str(work / name / "diag"),
+        ]
         assert wrap_main([*args, *(["--tau", "1e9"] if mode == "E" else [])]) == 0
         loaded[mode] = load_idr(folder)
     obs = _obs(base)
@@ -71,7 +78,7 @@ def measure(base: Path, work: Path, rounds: int, warmup: int = 3) -> dict[str, A
         policy.sidecar.flush()
     from idr_core.sidecar import read_sidecar
 
-    rows = read_sidecar(work / "diag")
+    rows = read_sidecar(work / name / "diag")
     for mode in MODES:
         sel = rows[rows["mode"] == mode]["forward_ms"].to_numpy()[warmup:]
         forward[mode] = [float(x) for x in sel]
@@ -122,7 +129,7 @@ def main() -> None:
             work / "act_96px", image=96, chunk=100, n_action_steps=100, full_size=True
         )
         for name, base in bases.items():
-            results["backbones"][name] = measure(base, work, args.rounds)
+            results["backbones"][name] = measure(name, base, work, args.rounds)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2) + "\n")
     print(f"{'backbone':<10} {'baseline ms':>12} {'diagnose ms':>12} {'E ms':>8} {'E/base':>7}")
