@@ -66,7 +66,9 @@ def main() -> None:
         state=rng.standard_normal(8).astype(np.float32),
     )
     obs = to_policy_observation(raw, "pick up the red cube")
-    rows: dict[str, float] = {"in_process_ms": measure(IDRWrapper(ClosedFormBackbone()), obs, args.calls)}
+    rows: dict[str, float] = {
+        "in_process_ms": measure(IDRWrapper(ClosedFormBackbone()), obs, args.calls)
+    }
     for label, flags in (("three_requests_ms", []), ("one_batched_request_ms", ["--batch"])):
         port = _port()
         server = subprocess.Popen(

@@ -126,27 +126,12 @@ def test_a_real_plugin_that_trains_at_test_time_is_refused_at_its_first_chunk(tm
     path, and refuses it at the first chunk, before returning any action: its counterfactual rows
     would train the base, and the three passes would not run one network. Baseline (the base's
     own code path) runs it unchanged."""
-    from lerobot.configs import PreTrainedConfig
-    from lerobot.utils.import_utils import register_third_party_plugins
     from lerobot_policy_idr.configuration_idr import IDRConfigError, is_third_party_type
 
-    from tests.workers.backbones.lerobot_fixtures import _features, _stats, save_checkpoint
+    from tests.workers.backbones.lerobot_fixtures import build_act_ttt
 
-    register_third_party_plugins()
+    base = build_act_ttt(tmp_path / "b")
     assert is_third_party_type("act_ttt")
-    from lerobot.policies.factory import get_policy_class
-
-    inputs, outputs = _features(64, 8, 7, ("agentview",))
-    cfg = PreTrainedConfig.get_choice_class("act_ttt")(
-        input_features=inputs, output_features=outputs, device="cpu",
-        pretrained_backbone_weights=None, dim_model=64, n_heads=2, dim_feedforward=128,
-        n_encoder_layers=1, n_decoder_layers=1, chunk_size=4, n_action_steps=4, use_vae=False,
-        ttt_ss_head_latent_dim=16, ttt_steps=1, ttt_n_samples=2,
-    )  # fmt: skip
-    torch.manual_seed(0)
-    base = save_checkpoint(
-        get_policy_class("act_ttt")(cfg), cfg, _stats(64, 8, 7, ("agentview",)), tmp_path / "b"
-    )
     policy, pre, post = load(make_idr(base, tmp_path / "idr", "--mode", "diagnose"))
     refused = pytest.raises(IDRConfigError, match=r"'act_ttt'\) changed its own weights")
     with refused, torch.inference_mode():

@@ -335,3 +335,24 @@ def build_xvla(
     torch.manual_seed(0)
     policy = XVLAPolicy(cfg).eval()
     return save_checkpoint(policy, cfg, _stats(image, state, action, cams), out)
+
+
+def build_act_ttt(out: Path, image: int = 64, state: int = 8, action: int = 7) -> Path:
+    """lerobot-policy-act-ttt's ACT with test-time training (a real plugin from the package
+    index, registered through lerobot's plugin discovery), at small widths, random weights."""
+    from lerobot.configs import PreTrainedConfig
+    from lerobot.policies.factory import get_policy_class
+    from lerobot.utils.import_utils import register_third_party_plugins
+
+    register_third_party_plugins()
+    cams = ("agentview",)
+    inputs, outputs = _features(image, state, action, cams)
+    cfg = PreTrainedConfig.get_choice_class("act_ttt")(
+        input_features=inputs, output_features=outputs, device="cpu",
+        pretrained_backbone_weights=None, dim_model=64, n_heads=2, dim_feedforward=128,
+        n_encoder_layers=1, n_decoder_layers=1, chunk_size=4, n_action_steps=4, use_vae=False,
+        ttt_ss_head_latent_dim=16, ttt_steps=1, ttt_n_samples=2,
+    )  # fmt: skip
+    torch.manual_seed(0)
+    policy = get_policy_class("act_ttt")(cfg)
+    return save_checkpoint(policy, cfg, _stats(image, state, action, cams), out)

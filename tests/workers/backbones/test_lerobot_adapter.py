@@ -351,3 +351,16 @@ def test_the_preflight_takes_cameras_size_and_replan_from_the_checkpoint(tmp_pat
     bad = [sized if a.startswith("env.params=") else a for a in argv[4:]]
     with pytest.raises(ConfigError, match=r"renders .* at 128 px.*image_size=96"):
         plan_run(load_config(root / argv[1], bad), tmp_path / "run3")
+
+
+def test_a_policy_that_trains_at_test_time_is_refused(tmp_path) -> None:
+    """lerobot-policy-act-ttt (a real plugin: ACT whose backbone takes optimizer steps on what
+    it sees, at inference too): the first chunk is refused, naming why."""
+    from lerobot_fixtures import build_act_ttt
+
+    from workers.backbones.lerobot import LerobotBackbone
+
+    backbone = LerobotBackbone(str(build_act_ttt(tmp_path / "ttt")))
+    obs = Observation({"agentview": torch.rand(1, 3, 64, 64)}, torch.rand(1, 8), ["pick"])
+    with pytest.raises(ValueError, match="changed its own weights during predict_action_chunk"):
+        backbone.predict_chunk(obs)

@@ -23,6 +23,7 @@ seeded identically; deterministic ones (ACT) need neither. ``crn_mode`` records 
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import re
@@ -150,16 +151,27 @@ def policy_io(path: Path, chunk_len: int | None = None) -> PolicyIO:
 _REGISTER = re.compile(r"@PreTrainedConfig\.register_subclass\(\s*[\"']([\w.-]+)[\"']")
 
 
+def plugin_packages() -> list[str]:
+    """The installed third-party lerobot policy plugins, by the rule lerobot's own discovery
+    (``register_third_party_plugins``) uses: distributions named ``lerobot_policy_*``, imported
+    by that name (the project's own plugin, lerobot_policy_idr, among them)."""
+    import importlib.metadata
+
+    names = {d.metadata.get("Name") or "" for d in importlib.metadata.distributions()}
+    return sorted(n for n in names if n.startswith("lerobot_policy_"))
+
+
 def known_policy_types() -> set[str]:
-    """Policy types lerobot's config registry holds, the project's own (tiny_vla) included,
-    read from the policy config modules' source without importing them: importing lerobot's
-    policies costs 20-35 s on a 2-core machine, too much for a pre-flight (the actors pay it
-    once). Empty when lerobot's layout is not the expected one (the check is then skipped)."""
+    """Policy types lerobot's config registry holds, the project's own (tiny_vla) and installed
+    plugins' included, read from the policy config modules' source without importing them:
+    importing lerobot's policies costs 20-35 s on a 2-core machine, too much for a pre-flight
+    (the actors pay it once). Empty when lerobot's layout is not the expected one (the check
+    is then skipped)."""
     import importlib.util
 
     found: set[str] = set()
     roots = []
-    for package in ("lerobot.policies", "lerobot_policy_idr"):
+    for package in ("lerobot.policies", "lerobot_policy_idr", *plugin_packages()):
         spec = importlib.util.find_spec(package)
         if spec is not None and spec.submodule_search_locations:
             roots += [Path(p) for p in spec.submodule_search_locations]
@@ -169,10 +181,15 @@ def known_policy_types() -> set[str]:
     return found
 
 
+@functools.cache
 def register_project_policies() -> None:
-    """Make the project's own lerobot policy types (tiny_vla, idr) known to lerobot's registry:
-    importing the plugin registers them, as lerobot's own plugin discovery does."""
+    """Make the project's own lerobot policy types (tiny_vla, idr) and those of installed
+    third-party plugins known to lerobot's registry, as lerobot's CLIs do at start."""
+    from lerobot.utils.import_utils import register_third_party_plugins
+
     import lerobot_policy_idr  # noqa: F401
+
+    register_third_party_plugins()
 
 
 class LerobotBackbone:
@@ -354,6 +371,7 @@ class LerobotBackbone:
         finally:
             self._pending_do = None
         processed = self._add_obs_history(processed)
+        version = sum(p._version for p in self.policy.parameters())  # bumped by in-place writes
         if self.crn_mode == "shared_noise" and noise is not None:
             actions = self.policy.predict_action_chunk(processed, noise=noise)
         elif self.crn_mode == "seeded_rng" and noise is not None:
@@ -362,4 +380,10 @@ class LerobotBackbone:
                 actions = self.policy.predict_action_chunk(processed)
         else:
             actions = self.policy.predict_action_chunk(processed)
+        if sum(p._version for p in self.policy.parameters()) != version:
+            raise ValueError(
+                f"{self.name} changed its own weights during predict_action_chunk (test-time "
+                "training?): the grid's cells must run one frozen network, and IDR's "
+                "counterfactual rows would train it; turn the policy's adaptation off"
+            )
         return self.post(actions)[:, : self.chunk_len]
