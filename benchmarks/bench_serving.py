@@ -180,10 +180,10 @@ def _wait_until(t: float) -> None:
         time.sleep(min(left, 0.05))
 
 
-def _timed(call: Any, raws: list[Any], n: int, warmup: int, start_at: float) -> dict[str, Any]:
+def _timed(call: Any, raws: list[Any], n: int, warmup: int, ready: Any) -> dict[str, Any]:
     for i in range(warmup):
         call(raws[i % len(raws)], 10_000 + i)
-    _wait_until(start_at)
+    _wait_until(ready())  # every client warm, then one start for all
     rtt = []
     t0 = time.time()
     for i in range(n):
@@ -193,14 +193,16 @@ def _timed(call: Any, raws: list[Any], n: int, warmup: int, start_at: float) -> 
     return {"rtt_ms": rtt, "t0": t0, "t1": time.time()}
 
 
-def _run_job(job: dict[str, Any], state: _ClientState) -> dict[str, Any]:
+def _run_job(job: dict[str, Any], state: _ClientState, ready: Any) -> dict[str, Any]:
+    """One path's timed requests; ``ready()`` says this client is warm and returns the
+    wall-clock time every client starts at."""
     from workers.idr import RefinerConfig
     from workers.observation import to_policy_observation
 
     path, model, ep = job["path"], job["model"], job["endpoint"]
     m = MODELS[model]
     raws = raw_observations(model, job["client"])
-    n, warmup, start_at = job["n"], job["warmup"], job["start_at"]
+    n, warmup = job["n"], job["warmup"]
 
     def policy_obs(raw: Any) -> Any:
         return to_policy_observation(raw, INSTRUCTION, m["cameras"])
@@ -218,9 +220,7 @@ def _run_job(job: dict[str, Any], state: _ClientState) -> dict[str, Any]:
             state.models[model] = IDRWrapper(make_backbone(m["kind"], m["params"]))
         policy = state.models[model]
         policy.set_config(RefinerConfig(mode="E"))
-        return _timed(
-            lambda raw, seed: policy.infer(policy_obs(raw), seed), raws, n, warmup, start_at
-        )
+        return _timed(lambda raw, seed: policy.infer(policy_obs(raw), seed), raws, n, warmup, ready)
     if path == "ours":
         import ray
 
@@ -228,17 +228,13 @@ def _run_job(job: dict[str, Any], state: _ClientState) -> dict[str, Any]:
 
         client = PolicyServiceClient(ray.get_actor(ep["actor"]), ep["info"])
         client.set_config(RefinerConfig(mode="E"))
-        return _timed(
-            lambda raw, seed: client.infer(policy_obs(raw), seed), raws, n, warmup, start_at
-        )
+        return _timed(lambda raw, seed: client.infer(policy_obs(raw), seed), raws, n, warmup, ready)
     if path == "ray_floor":
         import ray
 
         echo = ray.get_actor(ep["actor"])
         request = wire_request(raws[0], 0)
-        return _timed(
-            lambda raw, seed: ray.get(echo.infer.remote(request)), raws, n, warmup, start_at
-        )
+        return _timed(lambda raw, seed: ray.get(echo.infer.remote(request)), raws, n, warmup, ready)
     if path == "openpi":
         from tests.doubles.closed_form import KEY_MAP
         from workers.backbones.websocket.client import WebsocketBackbone
@@ -249,18 +245,16 @@ def _run_job(job: dict[str, Any], state: _ClientState) -> dict[str, Any]:
             policy = IDRWrapper(backbone)
             policy.set_config(RefinerConfig(mode="E"))
             return _timed(
-                lambda raw, seed: policy.infer(policy_obs(raw), seed), raws, n, warmup, start_at
+                lambda raw, seed: policy.infer(policy_obs(raw), seed), raws, n, warmup, ready
             )
         finally:
             backbone.close()
     if path == "vla_eval":
-        return _vla_eval_client(ep["url"], raws, n, warmup, start_at)
+        return _vla_eval_client(ep["url"], raws, n, warmup, ready)
     raise ValueError(f"unknown path {path!r}")
 
 
-def _vla_eval_client(
-    url: str, raws: list[Any], n: int, warmup: int, start_at: float
-) -> dict[str, Any]:
+def _vla_eval_client(url: str, raws: list[Any], n: int, warmup: int, ready: Any) -> dict[str, Any]:
     import anyio
     from vla_eval.connection import Connection
     from vla_eval.protocol.numpy_codec import set_image_format
@@ -282,6 +276,7 @@ def _vla_eval_client(
 
             for i in range(warmup):
                 await call(raws[i % len(raws)], 10_000 + i)
+            start_at = ready()  # blocks the loop: nothing else runs on it
             while (left := start_at - time.time()) > 0:
                 await anyio.sleep(min(left, 0.05))
             rtt = []
@@ -303,9 +298,14 @@ def _client_main(conn: Any) -> None:
 
     torch.set_num_threads(1)
     state = _ClientState()
+
+    def ready() -> float:
+        conn.send(("ready", None))
+        return conn.recv()
+
     while (job := conn.recv()) is not None:
         try:
-            conn.send(("ok", _run_job(job, state)))
+            conn.send(("ok", _run_job(job, state, ready)))
         except Exception:
             conn.send(("error", traceback.format_exc()))
 
@@ -325,10 +325,20 @@ class ClientPool:
             self.procs.append(p)
 
     def run(self, jobs: list[dict[str, Any]]) -> list[dict[str, Any]]:
-        for conn, job in zip(self.conns, jobs, strict=False):
+        """Each job on a client of its own; the timed requests start together once every
+        client has connected, loaded and warmed up."""
+        conns = self.conns[: len(jobs)]
+        for conn, job in zip(conns, jobs, strict=True):
             conn.send(job)
+        for conn in conns:
+            status, value = conn.recv()
+            if status == "error":
+                raise RuntimeError(f"client failed:\n{value}")
+        start_at = time.time() + 0.2
+        for conn in conns:
+            conn.send(start_at)
         out = []
-        for conn, _ in zip(self.conns, jobs, strict=False):
+        for conn in conns:
             status, value = conn.recv()
             if status != "ok":
                 raise RuntimeError(f"client failed:\n{value}")
@@ -519,7 +529,6 @@ def measure(
     pool: ClientPool, server: Server, b: int, args: argparse.Namespace, compute: float
 ) -> dict[str, Any]:
     n = max(math.ceil(args.requests / b), 20)
-    start_at = time.time() + 2.0 + 0.5 * b  # after every client's warm-up
     jobs = [
         {
             "path": server.path,
@@ -528,7 +537,6 @@ def measure(
             "client": c,
             "n": n,
             "warmup": 5,
-            "start_at": start_at,
         }
         for c in range(b)
     ]
