@@ -22,8 +22,23 @@ CONF = Path(__file__).resolve().parents[3] / "conf"
 SERVER = f"env.python={sys.executable}"
 
 
+def _descends_from_this_process(pid: int) -> bool:
+    """Whether this test process is an ancestor of ``pid`` (its Ray's actors and their env
+    servers are; another pytest worker's are not)."""
+    me = os.getpid()
+    while pid > 1:
+        if pid == me:
+            return True
+        try:
+            pid = _parent(pid)
+        except OSError:
+            return False
+    return False
+
+
 def _servers() -> set[int]:
-    """pids of the env servers running on this machine."""
+    """pids of the env servers this test process started, directly or through its actors
+    (other pytest workers run env servers of their own at the same time)."""
     found = set()
     for d in Path("/proc").iterdir():
         if d.name.isdigit():
@@ -31,7 +46,7 @@ def _servers() -> set[int]:
                 cmd = (d / "cmdline").read_bytes()
             except OSError:
                 continue
-            if b"workers.envs.server.serve" in cmd:
+            if b"workers.envs.server.serve" in cmd and _descends_from_this_process(int(d.name)):
                 found.add(int(d.name))
     return found
 
