@@ -566,8 +566,6 @@ def breakdown(model: str, args: argparse.Namespace, calls: int = 300) -> dict[st
     work (to_policy_observation and the request built from it), the policy actor's time from
     receiving the call to answering it (the forward, and the handoff to and from the batching
     thread), the forward itself, and the rest (Ray: serialization, transport, scheduling)."""
-    import pickle
-
     import ray
 
     from workers.idr import RefinerConfig
@@ -612,7 +610,6 @@ def breakdown(model: str, args: argparse.Namespace, calls: int = 300) -> dict[st
             )
         )
     )
-    pickled = per_call(lambda i: pickle.loads(pickle.dumps(request, protocol=5)))
     served = s1["served_ms_median"]
     forward = (s1["busy_s"] - s0["busy_s"]) / max(s1["forwards"] - s0["forwards"], 1) * 1e3
     total = statistics.median(rtt) * 1e3
@@ -622,8 +619,7 @@ def breakdown(model: str, args: argparse.Namespace, calls: int = 300) -> dict[st
         "actor_forward_ms": forward,
         "actor_handoff_ms": served - forward,
         "ray_ms": total - (prep or 0.0) - served,
-        "request_pickle_roundtrip_ms": pickled,
-        "request_bytes": len(pickle.dumps(request, protocol=5)),
+        "request_image_bytes": sum(v.nbytes for v in request.obs.images.values()),
     }
 
 

@@ -2,26 +2,19 @@
 simulator side's proxy to them.
 
 A policy actor (a threaded Ray actor around :class:`workers.policy_service.PolicyWorker`)
-queues requests as they arrive; a batcher thread takes every request waiting and, while fewer
-than the largest of the last few forwards held have come, waits for more, up to
-``batch_wait_ms`` and ``max_batch``; then it runs one forward, while requests keep queueing, so
-the next batch starts at once. Waiting only for as many requests as recent forwards held is
-what keeps a lone client from paying the batching wait on every request (the batch mates it
-would wait for never come), while a steady crowd still fills its batches. Ray restarts a policy actor that dies
-(``max_restarts``) and retries the calls it held (``max_task_retries``): a request is a pure
-function of its content, so a retry gives the same answer.
+queues requests as they arrive; a batcher thread takes the first one waiting, gathers more for
+up to ``batch_wait_ms`` or until ``max_batch``, and runs one forward, while requests keep
+queueing, so the next batch starts at once. Ray restarts a policy
+actor that dies (``max_restarts``) and retries the calls it held (``max_task_retries``): a
+request is a pure function of its content, so a retry gives the same answer.
 
 :class:`PolicyServiceClient` is what an episode worker holds instead of an ``IDRWrapper`` in shared
 mode: the same ``set_config`` / ``reset`` / ``infer``, one Ray call per inference (never per
-env step), the observation sent once as numpy. Request and answer cross Ray as pickled bytes
-(protocol 5, in band): Ray's own serialization of a dataclass holding a dozen small arrays puts
-each array out of band, which costs more than the copy (``benchmarks/bench_serving.py``).
+env step), the observation sent once as numpy.
 """
 
 from __future__ import annotations
 
-import collections
-import pickle
 import queue
 import threading
 import time
@@ -34,8 +27,6 @@ from workers.idr import RefinerConfig
 from workers.idr_wrapper import IDRStep
 from workers.interventions import InterventionConfig
 from workers.policy_service import InferRequest, PolicyWorker
-
-RECENT_FORWARDS = 8  # forwards whose largest batch sets how many requests the next one waits for
 
 
 class BatchingPolicyActor:
@@ -65,8 +56,6 @@ class BatchingPolicyActor:
         self.wait_s = batch_wait_ms / 1e3
         self._queue: queue.SimpleQueue[_Pending] = queue.SimpleQueue()
         self._batch_sizes: list[int] = []
-        # requests in the last forwards: the batcher waits for as many as the largest held
-        self._recent: collections.deque[int] = collections.deque([1], maxlen=RECENT_FORWARDS)
         self._served: list[float] = []
         self._busy_s = 0.0
         threading.Thread(target=self._batcher, name="batcher", daemon=True).start()
@@ -89,44 +78,29 @@ class BatchingPolicyActor:
             "fit": self.worker.fit or 0,
         }
 
-    def infer(self, packed: bytes) -> bytes:
-        """One request, pickled (PolicyServiceClient.infer): its IDRStep, pickled."""
+    def infer(self, request: InferRequest) -> IDRStep:
         t_in = time.perf_counter()
-        pending = _Pending(pickle.loads(packed))
+        pending = _Pending(request)
         self._queue.put(pending)
         pending.done.wait()
         if pending.error is not None:
             raise pending.error
         assert pending.answer is not None
-        out = pickle.dumps(pending.answer, protocol=5)
         self._served.append(time.perf_counter() - t_in)
-        return out
-
-    def _gather(self) -> list[_Pending]:
-        """The next batch: every request waiting, and more while fewer than the largest of the
-        recent forwards held have come, for up to wait_s (a lone client's request goes at once)."""
-        batch = [self._queue.get()]
-        deadline = time.monotonic() + self.wait_s
-        target = min(self.max_batch, max(self._recent))
-        while len(batch) < self.max_batch:
-            try:
-                batch.append(self._queue.get_nowait())
-                continue
-            except queue.Empty:
-                pass
-            left = deadline - time.monotonic()
-            if len(batch) >= target or left <= 0:
-                break
-            try:
-                batch.append(self._queue.get(timeout=left))
-            except queue.Empty:
-                break
-        self._recent.append(len(batch))
-        return batch
+        return pending.answer
 
     def _batcher(self) -> None:
         while True:
-            batch = self._gather()
+            batch = [self._queue.get()]
+            deadline = time.monotonic() + self.wait_s
+            while len(batch) < self.max_batch:
+                left = deadline - time.monotonic()
+                try:
+                    batch.append(
+                        self._queue.get(timeout=left) if left > 0 else self._queue.get_nowait()
+                    )
+                except queue.Empty:
+                    break
             t0 = time.perf_counter()
             try:  # a forward out of memory is split (PolicyWorker): errors are per request
                 answers = self.worker.infer_each([p.request for p in batch])
@@ -215,8 +189,7 @@ class PolicyServiceClient:
     def infer(self, obs: Observation, step_seed: int = 0) -> IDRStep:
         import ray
 
-        packed = pickle.dumps(self.request(obs, step_seed), protocol=5)
-        return pickle.loads(ray.get(self.handle.infer.remote(packed)))
+        return ray.get(self.handle.infer.remote(self.request(obs, step_seed)))
 
     def request(self, obs: Observation, step_seed: int = 0) -> InferRequest:
         """What ``infer`` sends: the observation as plain numpy (images as the uint8 they were

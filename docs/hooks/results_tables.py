@@ -775,38 +775,25 @@ def serving(d: Data) -> str:
                     ]
                 )
             )
-    if before := d.get("before"):
-        rows = []
-        for model, e in before["models"].items():
-            now = d["models"].get(model, {}).get("ours", {}).get("rows", [])
-            for r in e["ours"]["rows"]:
-                after = next((a for a in now if a["clients"] == r["clients"]), None)
-                rows.append(
-                    [model, r["clients"], r["overhead_ms"], r["mu_per_s"],
-                     "-" if after is None else num(after["overhead_ms"]),
-                     "-" if after is None else num(after["mu_per_s"])]
-                )  # fmt: skip
-        parts.append(f"**Ours before and after** (before: {before['code']})")
+    tried_rows = []
+    for model, e in d["models"].items():
+        t = e.get("tried_adaptive_batcher")
+        if t is None:
+            continue
+        for r, now in zip(t["rows"], e["ours"]["rows"], strict=True):
+            tried_rows.append([model, r["clients"], now["rtt_ms_median"], r["rtt_ms_median"],
+                               now["mu_per_s"], r["mu_per_s"]])  # fmt: skip
+        bd, bt = e["breakdown_b1"], t["breakdown_b1"]
+        tried_rows.append([model, "1, in the benchmark's process", bd["round_trip_ms"],
+                           bt["round_trip_ms"], "-", "-"])  # fmt: skip
+    if tried_rows:
+        parts.append(f"**Tried, not adopted:** {d.get('tried', 'another batcher')}")
         parts.append(
-            table(["model", "B", "overhead before (ms)", "μ before", "overhead now (ms)", "μ now"],
-                  rows)
+            table(["model", "B", "round trip ours (ms)", "round trip tried (ms)", "μ ours",
+                   "μ tried"], tried_rows)
         )  # fmt: skip
-        bd_rows = []
-        for model, e in before["models"].items():
-            b0, b1 = e["breakdown_b1"], d["models"].get(model, {}).get("breakdown_b1")
-            if b1 is None:
-                continue
-            for key, label in (
-                ("round_trip_ms", "round trip"),
-                ("ray_ms", "Ray"),
-                ("actor_handoff_ms", "handoff and batch wait"),
-                ("actor_forward_ms", "forward"),
-            ):
-                bd_rows.append([model, label, b0[key], b1[key]])  # fmt: skip
-        if bd_rows:
-            parts.append(table(["model", "ours at B = 1 (ms)", "before", "now"], bd_rows))
-        if d.get("noise"):
-            parts.append(f"Noise: {d['noise']}.")
+    if d.get("noise"):
+        parts.append(f"Noise: {d['noise']}.")
     note = (
         f"Batching wait {num(d['wait_ms'])} ms and at most {d['max_batch']} requests per forward, "
         "both servers; overhead = round-trip median − in-process compute of one forward of B "
