@@ -158,7 +158,7 @@ class IDRPolicy(PreTrainedPolicy):
                 "the idr_counterfactual_batch step (load it with the idr folder's processors)"
             )
         batch = self._with_history(batch)
-        version = _weights_version(self.base)
+        version = weights_version(self.base)
         if noise is None and self.crn == "shared_noise":
             shape = noise_shape(self.base.config, b, self.action_dim)
             if shape is not None:  # one draw from torch's RNG, shared by the three thirds
@@ -169,7 +169,7 @@ class IDRPolicy(PreTrainedPolicy):
             out = self.base.predict_action_chunk(batch, noise=repeat3(noise))
         else:
             out = self.base.predict_action_chunk(batch)
-        if _weights_version(self.base) != version:
+        if weights_version(self.base) != version:
             raise IDRConfigError(
                 f"the base policy (type {self.base.config.type!r}) changed its own weights during "
                 "predict_action_chunk (test-time training?): IDR's three passes must run one "
@@ -310,7 +310,7 @@ def _queue_empty(policy: PreTrainedPolicy) -> bool:
     return q is None or len(q) == 0
 
 
-def _weights_version(module: torch.nn.Module) -> int:
+def weights_version(module: torch.nn.Module) -> int:
     """The sum of the parameters' version counters: torch bumps a tensor's counter at every
     in-place write (an optimizer step, a copy_), inference mode included."""
     return sum(p._version for p in module.parameters())

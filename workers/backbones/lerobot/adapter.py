@@ -371,7 +371,9 @@ class LerobotBackbone:
         finally:
             self._pending_do = None
         processed = self._add_obs_history(processed)
-        version = sum(p._version for p in self.policy.parameters())  # bumped by in-place writes
+        from lerobot_policy_idr.modeling_idr import weights_version
+
+        version = weights_version(self.policy)
         if self.crn_mode == "shared_noise" and noise is not None:
             actions = self.policy.predict_action_chunk(processed, noise=noise)
         elif self.crn_mode == "seeded_rng" and noise is not None:
@@ -380,7 +382,7 @@ class LerobotBackbone:
                 actions = self.policy.predict_action_chunk(processed)
         else:
             actions = self.policy.predict_action_chunk(processed)
-        if sum(p._version for p in self.policy.parameters()) != version:
+        if weights_version(self.policy) != version:
             raise ValueError(
                 f"{self.name} changed its own weights during predict_action_chunk (test-time "
                 "training?): the grid's cells must run one frozen network, and IDR's "
