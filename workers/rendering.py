@@ -11,6 +11,7 @@ import ctypes.util
 import os
 import sys
 from pathlib import Path
+from typing import Any
 
 
 class RenderingError(RuntimeError):
@@ -45,3 +46,41 @@ def configure_rendering(preferred: str | None = None) -> str:
         # one thread per actor measured fastest here (DESIGN.md)
         os.environ.setdefault("LP_NUM_THREADS", "1")
     return backend
+
+
+def _gl_viewers(env: Any) -> list[Any]:
+    """The Gymnasium MuJoCo viewers under ``env`` (a Gymnasium env or wrapper, a vector env's
+    sub-envs, or a lerobot env holding the MuJoCo env in ``_env``); none for other envs."""
+    viewers: list[Any] = []
+    for sub in getattr(env, "envs", None) or [env]:
+        base = getattr(sub, "unwrapped", sub)
+        for obj in (base, getattr(base, "_env", None)):
+            renderer = getattr(obj, "mujoco_renderer", None)
+            viewers.extend(getattr(renderer, "_viewers", {}).values())
+    return viewers
+
+
+def own_gl_context(env: Any) -> None:
+    """Make the GL context of ``env``'s MuJoCo viewer the current one, before it renders.
+
+    Gymnasium's ``MujocoRenderer`` makes a viewer's context current only when it creates it, so
+    in a process holding several MuJoCo envs (one per task, or another suite's env beside this
+    one) a frame is drawn in whichever context was made current last; once another env's GL
+    objects are freed there, the frames come back black.
+    """
+    for viewer in _gl_viewers(env):
+        viewer.make_context_current()
+
+
+def release_gl_context(env: Any) -> None:
+    """Free ``env``'s MuJoCo GL objects (``MjrContext``) under its own context.
+
+    Left to the garbage collector, ``mjr_freeContext`` runs under whichever context is current
+    then, deleting another env's framebuffer (OSMesa numbers objects per context from 1, so the
+    names coincide): that env renders black frames from then on.
+    """
+    for viewer in _gl_viewers(env):
+        con = getattr(viewer, "con", None)
+        if con is not None:
+            viewer.make_context_current()
+            con.free()

@@ -60,6 +60,8 @@ def lerobot_eval_env(
     after each step, when given); and eval_policy_all's info. ``max_steps``: the budget the
     rollout reads (``env.call("_max_episode_steps")``) for an env whose config does not set it
     (MetaWorld's is 500), as ``env.params.max_steps`` sets ours; the env is unchanged."""
+    import gc
+
     import gymnasium as gym
     import torch
     from lerobot.configs.policies import PreTrainedConfig
@@ -89,6 +91,12 @@ def lerobot_eval_env(
                 recorded[-1]["states"].append(state(self.env))
             return out
 
+    from workers.rendering import release_gl_context
+
+    # a MuJoCo env an earlier test left to the collector frees its GL objects under whichever
+    # context is current when it is collected: collected now, not in the middle of this
+    # reference run (where it would delete this env's framebuffer: black frames from then on)
+    gc.collect()
     envs = make_env(env_cfg, n_envs=1)
     envs = {suite: {tid: Recorder(v) for tid, v in m.items()} for suite, m in envs.items()}
     cfg = PreTrainedConfig.from_pretrained(policy_dir)
@@ -116,6 +124,7 @@ def lerobot_eval_env(
     finally:
         for m in envs.values():
             for v in m.values():
+                release_gl_context(v.env)
                 v.close()
         sidecar = getattr(policy, "sidecar", None)
         if sidecar is not None:

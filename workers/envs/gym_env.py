@@ -36,6 +36,7 @@ import numpy as np
 
 from workers.envs.base import EnvObservation, TaskSpec
 from workers.io_spec import EnvIO
+from workers.rendering import own_gl_context, release_gl_context
 
 DEFAULT_INSTRUCTION = "do the task"
 
@@ -288,6 +289,7 @@ class GymnasiumEnv:
                 self._envs[task_id] = self._make(task_id)
             self._env = self._envs[task_id]
             self._instruction = specs[task_id].instruction or self._instruction
+        own_gl_context(self._env)
         obs, _ = self._env.reset(seed=int(seed) + int(episode_index))
         self.raw_observation = obs
         self._task, self._steps, self._success, self._ended = specs[task_id], 0, False, False
@@ -301,6 +303,7 @@ class GymnasiumEnv:
             raise RuntimeError("step() before reset()")
         if self.done:
             raise RuntimeError("step() after the episode is done; call reset()")
+        own_gl_context(self._env)
         obs, _, terminated, truncated, info = self._env.step(action)
         self.raw_observation = obs  # as the env gave it (a scripted expert reads its state)
         self._steps += 1
@@ -341,9 +344,23 @@ class GymnasiumEnv:
     def steps(self) -> int:
         return self._steps
 
+    def _held_envs(self) -> list[Any]:
+        """Every Gymnasium env this suite holds (one per task where tasks are variants)."""
+        return list(getattr(self, "_envs", {}).values()) or [self._env]
+
     def close(self) -> None:
-        for env in getattr(self, "_envs", {}).values() or [self._env]:
+        for env in self._held_envs():
+            release_gl_context(env)
             env.close()
+
+    def __del__(self) -> None:
+        # an env dropped without close(): its MuJoCo GL objects are freed under its own
+        # context, not under whichever env's context is current when the collector runs
+        try:
+            for env in self._held_envs():
+                release_gl_context(env)
+        except Exception:  # interpreter shutdown, or __init__ failed: nothing to protect
+            pass
 
     # -- pre-flight ------------------------------------------------------------------------------
     @classmethod

@@ -50,6 +50,32 @@ def test_the_zoo_metaworld_block_is_five_tasks_of_one_env_at_96px() -> None:
         env.close()
 
 
+@pytest.mark.parametrize("drop", ["close", "collect"])
+def test_an_env_keeps_its_frames_when_another_env_in_the_process_goes(drop) -> None:
+    """Two MuJoCo envs in one process (the recorder after an earlier test's env, one env per
+    task): the other one closed, or dropped and collected while its GL context is current,
+    must not blank this one's frames (its framebuffer was deleted under the wrong context)."""
+    import gc
+
+    a = make_env("gymnasium", ZOO["params"])
+    try:
+        before = a.reset("button-press-v3", 7, seed=0).images["image"]
+        b = make_env("gymnasium", ZOO["params"])
+        b.reset("button-press-v3", 7, seed=0)  # b's context is the current one now
+        a.reset("button-press-v3", 7, seed=0)
+        if drop == "close":
+            b.close()
+        del b
+        gc.collect()
+        after = a.reset("button-press-v3", 7, seed=0).images["image"]
+        assert after.mean() > 50  # not black
+        assert np.array_equal(after, before)
+        a.step(np.zeros(4, dtype=np.float32))
+        assert a.reset("button-press-v3", 7, seed=0).images["image"].mean() > 50
+    finally:
+        a.close()
+
+
 @pytest.mark.slow
 def test_the_recorder_writes_the_frames_an_evaluation_sees(tmp_path) -> None:
     from lerobot.datasets.lerobot_dataset import LeRobotDataset

@@ -33,6 +33,7 @@ from workers.envs.base import EnvObservation, TaskSpec
 from workers.envs.gym_env import DEFAULT_INSTRUCTION, GymnasiumEnv, env_io
 from workers.envs.mujoco.stability import mujoco_instability, raise_if_unstable
 from workers.io_spec import EnvIO
+from workers.rendering import own_gl_context, release_gl_context
 
 # the package each env type needs, as lerobot's extras name it (what the refusal says to install)
 PACKAGES = {
@@ -144,6 +145,11 @@ class _OneOfVector:
             return self.vec.envs[0].unwrapped
         except (AttributeError, IndexError):
             return None
+
+    @property
+    def unwrapped(self) -> Any | None:
+        """The one sub-env, unwrapped, as a Gymnasium wrapper's ``unwrapped`` reads."""
+        return self.sub_env
 
     def attr(self, name: str) -> Any:
         """The sub-env's attribute ``name`` (None where it has none), without calling it."""
@@ -289,6 +295,7 @@ class LerobotEnvSuite(GymnasiumEnv):
             raise ValueError(f"task_id={task_id!r} unknown; allowed: {sorted(self._specs)}")
         self._task = None
         self._env = self._vecs[task_id]
+        own_gl_context(self._env)
         with self._missing_package(self.env_type):  # types that import their simulator here
             obs, _ = self._env.reset(seed=int(seed) + int(episode_index))
         described = self._env.call("task_description")
@@ -307,9 +314,13 @@ class LerobotEnvSuite(GymnasiumEnv):
             raise_if_unstable(self._data, f"at step {self._steps} of {self.task.task_id}")
         return obs
 
+    def _held_envs(self) -> list[Any]:
+        return list(self._vecs.values())
+
     def close(self) -> None:
         for vec in self._vecs.values():
             physics = _dm_control_physics(vec)
+            release_gl_context(vec)
             vec.close()
             if physics is not None:
                 # dm_control (ALOHA) frees its rendering contexts only when the physics is
