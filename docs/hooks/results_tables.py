@@ -661,6 +661,56 @@ def portable_numerics(d: Data) -> str:
                  source("portable_numerics", d, f"measured on {mach}"))  # fmt: skip
 
 
+def isa_spread(d: Data) -> str:
+    """isa_spread.json: the default's headline under several instruction-set pins, against one
+    run's sampling interval."""
+    rows = []
+    for name, r in d["pins"].items():
+        h = r["headline"]
+        pins = ", ".join(f"`{k}={v}`" for k, v in r["env"].items())
+        pins = ", ".join(filter(None, [pins, *(f"`{o}`" for o in r["overrides"])])) or "none"
+        rows.append(
+            [
+                name,
+                pins,
+                "; ".join(r["hardware_seen"]),
+                f"{100 * h['diff']:+.1f} [{100 * h['ci_low']:+.1f}, {100 * h['ci_high']:+.1f}]",
+                num(h["p_value"]),
+                f"{h['only_cell']} / {h['only_baseline']}",
+                f"{r['rows_identical_to_native']} of {r['episodes']}",
+                r["step_rows"],
+                r["wall_seconds"],
+            ]
+        )
+    runs = table(
+        [
+            "pins",
+            "set",
+            "hardware class the actors recorded",
+            "E − diagnose (pp, 95% CI)",
+            "p (McNemar)",
+            "only E / only diagnose",
+            "rows = native",
+            "step rows",
+            "wall (s)",
+        ],
+        rows,
+    )
+    s = d["summary"]
+    summary = key_values(
+        [
+            ("headline across pins (pp)", f"{100 * s['headline_min']:+.1f} to {100 * s['headline_max']:+.1f}"),
+            ("spread across pins (pp)", f"{100 * s['headline_spread']:.1f}"),
+            ("one run's 95% CI width (pp, mean)", f"{100 * s['ci_width_mean']:.1f}"),
+            ("spread / CI width", num(s["spread_over_ci_width"])),
+        ]
+    )  # fmt: skip
+    note = (
+        f"`{d['config']}` with {', '.join(f'`{o}`' for o in d['overrides'])}, each pin a fresh run"
+    )
+    return block(runs, summary, source("isa_spread", d, note))
+
+
 def zoo_tabletop(d: Data) -> str:
     """zoo_tabletop.json: per member, its training record and its success per task and cell
     on the zoo preset, with Wilson intervals, its diagnose cell's effects and E vs diagnose."""
@@ -831,6 +881,7 @@ RENDERERS: dict[str, Callable[[Data], str]] = {
         portable_numerics,
         zoo_tabletop,
         zoo_metaworld,
+        isa_spread,
     )
 }
 
