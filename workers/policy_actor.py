@@ -4,7 +4,10 @@ simulator side's proxy to them.
 A policy actor (a threaded Ray actor around :class:`workers.policy_service.PolicyWorker`)
 queues requests as they arrive; a batcher thread takes the first one waiting, gathers more for
 up to ``batch_wait_ms`` or until ``max_batch``, and runs one forward, while requests keep
-queueing, so the next batch starts at once. Ray restarts a policy
+queueing, so the next batch starts at once. It stops gathering early once every client it has
+heard from recently has a request in the batch: a client is one closed loop (an episode thread
+that waits for its answer before it asks again), so no further request can come, and waiting
+out ``batch_wait_ms`` would only delay the forward (a lone client pays no batch wait at all). Ray restarts a policy
 actor that dies (``max_restarts``) and retries the calls it held (``max_task_retries``): a
 request is a pure function of its content, so a retry gives the same answer.
 
@@ -55,6 +58,7 @@ class BatchingPolicyActor:
         self.max_batch = max_batch
         self.wait_s = batch_wait_ms / 1e3
         self._queue: queue.SimpleQueue[_Pending] = queue.SimpleQueue()
+        self._last_seen: dict[str, float] = {}  # client -> monotonic time of its last request
         self._batch_sizes: list[int] = []
         self._served: list[float] = []
         self._busy_s = 0.0
@@ -78,9 +82,13 @@ class BatchingPolicyActor:
             "fit": self.worker.fit or 0,
         }
 
-    def infer(self, request: InferRequest) -> IDRStep:
+    def infer(self, request: InferRequest, client: str | None = None) -> IDRStep:
+        """One request; ``client`` names its closed loop (one request at a time), None for a
+        caller that does not say (the batch then waits out ``batch_wait_ms``)."""
         t_in = time.perf_counter()
-        pending = _Pending(request)
+        pending = _Pending(request, client)
+        if client is not None:
+            self._last_seen[client] = time.monotonic()
         self._queue.put(pending)
         pending.done.wait()
         if pending.error is not None:
@@ -89,11 +97,22 @@ class BatchingPolicyActor:
         self._served.append(time.perf_counter() - t_in)
         return pending.answer
 
+    def _clients(self, batch: list[_Pending]) -> int:
+        """How many requests this batch can still expect: the clients heard from within
+        ``CLIENT_ACTIVE_S``, or ``max_batch`` when a request in it names no client."""
+        if any(p.client is None for p in batch):
+            return self.max_batch
+        since = time.monotonic() - CLIENT_ACTIVE_S
+        for client, seen in list(self._last_seen.items()):
+            if seen < since:  # finished, or gone: no longer waited for
+                self._last_seen.pop(client, None)
+        return max(1, len(self._last_seen))
+
     def _batcher(self) -> None:
         while True:
             batch = [self._queue.get()]
             deadline = time.monotonic() + self.wait_s
-            while len(batch) < self.max_batch:
+            while len(batch) < min(self.max_batch, self._clients(batch)):
                 left = deadline - time.monotonic()
                 try:
                     batch.append(
@@ -117,13 +136,18 @@ class BatchingPolicyActor:
                 p.done.set()
 
 
+#: a client silent for longer (an episode worker done, or gone) is no longer waited for
+CLIENT_ACTIVE_S = 5.0
+
+
 class _Pending:
     """A request waiting for its forward."""
 
-    __slots__ = ("answer", "done", "error", "request")
+    __slots__ = ("answer", "client", "done", "error", "request")
 
-    def __init__(self, request: InferRequest) -> None:
+    def __init__(self, request: InferRequest, client: str | None) -> None:
         self.request = request
+        self.client = client
         self.done = threading.Event()
         self.answer: IDRStep | None = None
         self.error: BaseException | None = None
@@ -170,8 +194,11 @@ class PolicyServiceClient:
     """The IDRWrapper interface over a policy actor (see the module docstring)."""
 
     def __init__(self, handle: Any, info: dict[str, Any]) -> None:
+        import uuid
+
         self.handle = handle
         self.info = info
+        self._id = uuid.uuid4().hex[:12]
         self.cfg = RefinerConfig()
         self.intervention = InterventionConfig()
         self.batched = bool(info.get("batched"))
@@ -189,7 +216,13 @@ class PolicyServiceClient:
     def infer(self, obs: Observation, step_seed: int = 0) -> IDRStep:
         import ray
 
-        return ray.get(self.handle.infer.remote(self.request(obs, step_seed)))
+        return ray.get(self.handle.infer.remote(self.request(obs, step_seed), self.client_id))
+
+    @property
+    def client_id(self) -> str:
+        """This caller's closed loop: the client and the thread asking (an episode worker may
+        run several episodes, each in a thread of its own, through one client)."""
+        return f"{self._id}:{threading.get_ident()}"
 
     def request(self, obs: Observation, step_seed: int = 0) -> InferRequest:
         """What ``infer`` sends: the observation as plain numpy (images as the uint8 they were

@@ -50,3 +50,47 @@ def test_concurrent_requests_share_forwards_and_get_their_own_answers(ray_local)
     again = remote.infer(observations[3], 103)
     assert np.array_equal(again.action, answers[3].action)
     ray_local.kill(actor)
+
+
+def _requests(n: int) -> tuple[PolicyServiceClient, list]:
+    env = FakeMarkerEnv()
+    client = PolicyServiceClient(None, {})
+    client.set_config(RefinerConfig(mode="E"))
+    obs = [to_policy_observation(env.reset("reach", e, 0), env.instruction) for e in range(n)]
+    return client, [client.request(o, i) for i, o in enumerate(obs)]
+
+
+def test_a_batch_goes_once_every_recent_client_has_a_request_in_it():
+    """The batch wait (here 60 s) is cut short once each client heard from has asked: a lone
+    client is answered at once, three closed loops share one forward; a request naming no
+    client still waits the batch out (up to max_batch)."""
+    import threading
+    import time
+
+    from workers.policy_actor import BatchingPolicyActor
+
+    actor = BatchingPolicyActor("fake_marker", {"chunk_len": 4}, None, 16, 60_000.0)
+    _, reqs = _requests(3)
+    answers: dict[int, object] = {}
+
+    def ask(i: int, client: str | None) -> None:
+        answers[i] = actor.infer(reqs[i], client)
+
+    lone = threading.Thread(target=ask, args=(0, "a"))
+    lone.start()
+    lone.join(timeout=20)
+    assert not lone.is_alive() and actor.stats()["forwards"] == 1
+    actor._last_seen.clear()  # "a" gone: three new clients, one request each
+    for c in ("x", "y", "z"):
+        actor._last_seen[c] = time.monotonic()
+    threads = [threading.Thread(target=ask, args=(i, c)) for i, c in enumerate("xyz")]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=20)
+    assert not any(t.is_alive() for t in threads)
+    assert actor.stats()["forwards"] == 2 and actor.stats()["requests"] == 4  # one forward of 3
+    anonymous = threading.Thread(target=ask, args=(1, None), daemon=True)
+    anonymous.start()
+    anonymous.join(timeout=2)
+    assert anonymous.is_alive()  # no client named: it waits for others, up to the batch wait
