@@ -24,7 +24,9 @@ know, a model that cannot be built, a B that does not fit in memory: each record
 ``torch.compile`` with the ``eager`` backend: traced by dynamo, no code generated), in seconds: CI runs it, so a timed path that goes away fails there.
 
 Usage (device): ``python benchmarks/bench_gpu_supply.py --out benchmarks/results/gpu_supply.json``
-(defaults: pi05, pi0, smolvla; B = 1..32; eager and compiled; about 4-5 minutes on an H200).
+(defaults: pi05, pi0, smolvla; B = 1..32; eager and compiled. On an H200 pi0.5's eager pass
+took about 90 s and compiling six shapes more than 440 s: pass ``--compile-batches 1,32`` and
+``--budget-s`` inside a lease.)
 """
 
 from __future__ import annotations
@@ -211,7 +213,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--compile-mode", default="default", help="torch.compile mode ('' : eager only)"
     )
+    ap.add_argument(
+        "--compile-batches", default=None, help="B values compiled (default: all of --batches)"
+    )
     ap.add_argument("--smolvla-vlm", default=None, help="local SmolVLM2 config + processor dir")
+    ap.add_argument(
+        "--budget-s",
+        type=float,
+        default=None,
+        help="start no model or mode after this many seconds (a device lease's window); what "
+        "was not started is recorded as skipped with this reason",
+    )
     ap.add_argument("--dry", action="store_true", help="CPU, toy sizes, B = 1, 2: a CI check")
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
@@ -245,6 +257,10 @@ def main(argv: list[str] | None = None) -> int:
         results["models"][name] = entry
         for mode, how in modes.items():
             t0 = time.perf_counter()
+            if args.budget_s is not None and t0 - t_start > args.budget_s:
+                entry[mode] = {"skipped": f"not started: --budget-s {args.budget_s:g} s spent"}
+                save()
+                continue
             try:
                 bb = build(name, device, args.dry, how, args.smolvla_vlm)
                 entry["params_millions"] = bb.n_params / 1e6
@@ -274,6 +290,8 @@ def main(argv: list[str] | None = None) -> int:
                     torch.cuda.empty_cache()
                 save()
     try:
+        if args.budget_s is not None and time.perf_counter() - t_start > args.budget_s:
+            raise TimeoutError(f"not started: --budget-s {args.budget_s:g} s spent")
         with tempfile.TemporaryDirectory() as tmp:
             results["plugin_latency_B1"] = plugin_latency(device, args.rounds * 2, Path(tmp))
     except Exception as e:

@@ -711,6 +711,68 @@ def isa_spread(d: Data) -> str:
     return block(runs, summary, source("isa_spread", d, note))
 
 
+# per-core simulator rates the GPU supply prediction divides by (env steps/s, lazy rendering,
+# OSMesa, this machine: docs/gpu-supply.md names their sources)
+SIM_RATES_PER_CORE = {"LIBERO": 19.0, "CALVIN": 23.0}
+
+
+def gpu_supply(d: Data) -> str:
+    """gpu_supply.json: μ(B) per model and mode on a device, without and with IDR's triple, and
+    what one device feeds at its best B (cores of each simulator at k = 10, vla-eval's 0.8 rule;
+    through the shared service with its per-request overhead from serving.json)."""
+    parts, fed = [], []
+    overhead_ms = None
+    serving_json = RESULTS / "serving.json"
+    if serving_json.is_file():
+        ours = json.loads(serving_json.read_text())["models"]["closed_form"]["ours"]["rows"]
+        overhead_ms = next(r["overhead_ms"] for r in ours if r["clients"] == 1)
+    for model, e in d["models"].items():
+        if "skipped" in e:
+            parts.append(f"**{model}**: skipped ({e['skipped']})")
+            continue
+        for mode in ("eager", "compiled"):
+            m = e.get(mode)
+            if m is None:
+                parts.append(f"**{model}, {mode}**: not in this run")
+                continue
+            if "skipped" in m:
+                parts.append(f"**{model}, {mode}**: skipped ({m['skipped']})")
+                continue
+            rows = []
+            for b, r in m["per_batch"].items():
+                base, idr = r["base"], r["idr"]
+                if "ms" not in base or "ms" not in idr:
+                    rows.append([int(b), base.get("skipped", "-"), "-", idr.get("skipped", "-"),
+                                 "-", "-", "-"])  # fmt: skip
+                    continue
+                rows.append([int(b), base["ms"], base["mu_inf_per_s"], idr["ms"],
+                             idr["mu_inf_per_s"], f"{num(r['idr_vs_base'])}x",
+                             num(idr.get("peak_mem_gib"))])  # fmt: skip
+            head = f"**{model}, {mode}** ({num(e['params_millions'])} M parameters"
+            head += f", compiled in {num(m['compile_s'])} s)" if "compile_s" in m else ")"
+            parts.append(head)
+            parts.append(table(["B", "base ms", "μ base (inf/s)", "IDR ms", "μ_IDR (inf/s)",
+                                "IDR / base", "peak GiB (IDR)"], rows))  # fmt: skip
+            best = max(
+                (r for r in m["per_batch"].values() if "mu_inf_per_s" in r["idr"]),
+                key=lambda r: r["idr"]["mu_inf_per_s"],
+                default=None,
+            )
+            if best is None:
+                continue
+            b, mu, t_ms = best["batch"], best["idr"]["mu_inf_per_s"], best["idr"]["ms"]
+            cores = [num(0.8 * 10 * mu / rate) for rate in SIM_RATES_PER_CORE.values()]
+            service = "-" if overhead_ms is None else num(b / ((t_ms + b * overhead_ms) / 1e3))
+            fed.append([f"{model} {mode}", b, mu, 10 * mu, *cores, service])
+    if fed:
+        header = ["model", "B at max μ_IDR", "μ_IDR (inf/s)", "env steps/s at k = 10",
+                  *(f"{n} cores fed" for n in SIM_RATES_PER_CORE),
+                  "μ through the shared service (inf/s)"]  # fmt: skip
+        parts.append(table(header, fed))
+    note = f"{d['compile_mode'] or 'no'} compile mode, total {num(d['total_s'])} s"
+    return block(*parts, source("gpu_supply", d, note))
+
+
 def zoo_tabletop(d: Data) -> str:
     """zoo_tabletop.json: per member, its training record and its success per task and cell
     on the zoo preset, with Wilson intervals, its diagnose cell's effects and E vs diagnose."""
@@ -882,6 +944,7 @@ RENDERERS: dict[str, Callable[[Data], str]] = {
         zoo_tabletop,
         zoo_metaworld,
         isa_spread,
+        gpu_supply,
     )
 }
 

@@ -47,3 +47,27 @@ def test_dry_run_writes_the_supply_json(tmp_path) -> None:
     # (two processes on two cores can make either side slower)
     assert plugin["E"]["ms"] > 0 and plugin["baseline"]["ms"] > 0
     assert plugin["idr_vs_base"] == pytest.approx(plugin["E"]["ms"] / plugin["baseline"]["ms"])
+
+
+def test_a_spent_budget_starts_nothing_and_says_so(tmp_path) -> None:
+    """A device lease ends at a fixed time: past ``--budget-s`` no model or mode is started, and
+    each is recorded as skipped with that reason rather than missing from the JSON."""
+    out = tmp_path / "supply.json"
+    cmd = [
+        sys.executable,
+        str(ROOT / "benchmarks" / "bench_gpu_supply.py"),
+        "--dry",
+        "--models",
+        "pi0,pi05",
+        "--budget-s",
+        "0",
+        "--out",
+        str(out),
+    ]
+    run = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    r = json.loads(out.read_text())
+    for name in ("pi0", "pi05"):
+        for mode in ("eager", "compiled"):
+            assert r["models"][name][mode] == {"skipped": "not started: --budget-s 0 s spent"}
+    assert r["plugin_latency_B1"]["skipped"].endswith("--budget-s 0 s spent")
