@@ -7,7 +7,9 @@ up to ``batch_wait_ms`` or until ``max_batch``, and runs one forward, while requ
 queueing, so the next batch starts at once. It stops gathering early once every client it has
 heard from recently has a request in the batch: a client is one closed loop (an episode thread
 that waits for its answer before it asks again), so no further request can come, and waiting
-out ``batch_wait_ms`` would only delay the forward (a lone client pays no batch wait at all). Ray restarts a policy
+out ``batch_wait_ms`` would only delay the forward. A lone client's request, with nothing
+queued and no forward running, is run in the Ray thread that received it: no hand-off to the
+batcher and back (two thread wake-ups), the same forward. Ray restarts a policy
 actor that dies (``max_restarts``) and retries the calls it held (``max_task_retries``): a
 request is a pure function of its content, so a retry gives the same answer.
 
@@ -62,6 +64,8 @@ class BatchingPolicyActor:
         self._batch_sizes: list[int] = []
         self._served: list[float] = []
         self._busy_s = 0.0
+        # one forward at a time: the batcher's, or a lone client's run in its own Ray thread
+        self._forward = threading.Lock()
         threading.Thread(target=self._batcher, name="batcher", daemon=True).start()
 
     def describe(self) -> dict[str, Any]:
@@ -89,7 +93,14 @@ class BatchingPolicyActor:
         pending = _Pending(request, client)
         if client is not None:
             self._last_seen[client] = time.monotonic()
-        self._queue.put(pending)
+            if self._clients([pending]) == 1 and self._forward.acquire(blocking=False):
+                try:  # the only client, nothing queued, no forward running: run it here
+                    if self._queue.empty():
+                        self._run([pending])
+                finally:
+                    self._forward.release()
+        if not pending.done.is_set():
+            self._queue.put(pending)
         pending.done.wait()
         if pending.error is not None:
             raise pending.error
@@ -120,20 +131,26 @@ class BatchingPolicyActor:
                     )
                 except queue.Empty:
                     break
-            t0 = time.perf_counter()
-            try:  # a forward out of memory is split (PolicyWorker): errors are per request
-                answers = self.worker.infer_each([p.request for p in batch])
-            except Exception as exc:  # the whole batch fails alike (each episode an error row)
-                answers = [exc] * len(batch)
-            finally:
-                self._busy_s += time.perf_counter() - t0
-            self._batch_sizes.append(len(batch))
-            for p, answer in zip(batch, answers, strict=True):
-                if isinstance(answer, BaseException):
-                    p.error = answer
-                else:
-                    p.answer = answer
-                p.done.set()
+            with self._forward:
+                self._run(batch)
+
+    def _run(self, batch: list[_Pending]) -> None:
+        """One forward of ``batch`` (the caller holds ``_forward``); each request gets its answer
+        or its error."""
+        t0 = time.perf_counter()
+        try:  # a forward out of memory is split (PolicyWorker): errors are per request
+            answers = self.worker.infer_each([p.request for p in batch])
+        except Exception as exc:  # the whole batch fails alike (each episode an error row)
+            answers = [exc] * len(batch)
+        finally:
+            self._busy_s += time.perf_counter() - t0
+        self._batch_sizes.append(len(batch))
+        for p, answer in zip(batch, answers, strict=True):
+            if isinstance(answer, BaseException):
+                p.error = answer
+            else:
+                p.answer = answer
+            p.done.set()
 
 
 #: a client silent for longer (an episode worker done, or gone) is no longer waited for

@@ -94,3 +94,40 @@ def test_a_batch_goes_once_every_recent_client_has_a_request_in_it():
     anonymous.start()
     anonymous.join(timeout=2)
     assert anonymous.is_alive()  # no client named: it waits for others, up to the batch wait
+
+
+def test_a_lone_clients_request_runs_in_its_thread_unless_a_forward_is_running():
+    """A lone client with nothing queued is served in the Ray thread that received its request
+    (no batcher hand-off), with the answer the batcher gives the same request; while a forward
+    runs, its request waits and goes through the batcher."""
+    import threading
+
+    import numpy as np
+
+    from workers.policy_actor import BatchingPolicyActor
+
+    actor = BatchingPolicyActor("fake_marker", {"chunk_len": 4}, None, 16, 1.0)
+    ran_in: list[str] = []
+    infer_each = actor.worker.infer_each
+
+    def traced(requests: list) -> list:
+        ran_in.append(threading.current_thread().name)
+        return infer_each(requests)
+
+    actor.worker.infer_each = traced  # type: ignore[method-assign]
+    _, reqs = _requests(1)
+    here = actor.infer(reqs[0], "a")
+    assert ran_in == [threading.current_thread().name]
+
+    answers: list = []
+    actor._forward.acquire()  # a forward in progress
+    asker = threading.Thread(target=lambda: answers.append(actor.infer(reqs[0], "a")))
+    asker.start()
+    asker.join(timeout=0.5)
+    assert asker.is_alive() and len(ran_in) == 1  # it waits for the running forward
+    actor._forward.release()
+    asker.join(timeout=20)
+    assert not asker.is_alive() and ran_in[-1] == "batcher"
+    (there,) = answers
+    for field in ("action", "a_base", "a_no_img", "a_no_prop"):
+        np.testing.assert_array_equal(np.asarray(getattr(here, field)), getattr(there, field))
