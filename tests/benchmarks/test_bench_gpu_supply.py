@@ -14,21 +14,20 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 
 
+def _dry(tmp_path: Path, *args: str) -> dict:
+    """The benchmark's dry run with ``args``; its JSON."""
+    out = tmp_path / "supply.json"
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "bench_gpu_supply.py"), "--dry", *args]
+    run = subprocess.run(
+        [*cmd, "--out", str(out)], cwd=tmp_path, capture_output=True, text=True, timeout=600
+    )
+    assert run.returncode == 0, run.stderr[-3000:]
+    return json.loads(out.read_text())
+
+
 @pytest.mark.slow
 def test_dry_run_writes_the_supply_json(tmp_path) -> None:
-    out = tmp_path / "supply.json"
-    cmd = [
-        sys.executable,
-        str(ROOT / "benchmarks" / "bench_gpu_supply.py"),
-        "--dry",
-        "--models",
-        "pi0,smolvla,not_a_model",
-        "--out",
-        str(out),
-    ]
-    run = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
-    assert run.returncode == 0, run.stderr[-3000:]
-    r = json.loads(out.read_text())
+    r = _dry(tmp_path, "--models", "pi0,smolvla,not_a_model")
     assert r["dry"] and r["batches"] == [1, 2] and r["actions_per_inference"] == [5, 10]
     pi0 = r["models"]["pi0"]
     for mode, sizes in (("eager", ["1", "2"]), ("compiled", ["1"])):
@@ -52,21 +51,7 @@ def test_dry_run_writes_the_supply_json(tmp_path) -> None:
 def test_a_spent_budget_starts_nothing_and_says_so(tmp_path) -> None:
     """A device lease ends at a fixed time: past ``--budget-s`` no model or mode is started, and
     each is recorded as skipped with that reason rather than missing from the JSON."""
-    out = tmp_path / "supply.json"
-    cmd = [
-        sys.executable,
-        str(ROOT / "benchmarks" / "bench_gpu_supply.py"),
-        "--dry",
-        "--models",
-        "pi0,pi05",
-        "--budget-s",
-        "0",
-        "--out",
-        str(out),
-    ]
-    run = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=300)
-    assert run.returncode == 0, run.stderr[-3000:]
-    r = json.loads(out.read_text())
+    r = _dry(tmp_path, "--models", "pi0,pi05", "--budget-s", "0")
     for name in ("pi0", "pi05"):
         for mode in ("eager", "compiled"):
             assert r["models"][name][mode] == {"skipped": "not started: --budget-s 0 s spent"}
