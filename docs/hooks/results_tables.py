@@ -885,6 +885,20 @@ def serving(d: Data) -> str:
                         ),
                         ("policy actor: the forward (ms)", bd["actor_forward_ms"]),
                     ]
+                    + (
+                        [
+                            (
+                                "a bare Ray call to an actor busy for the forward's time (ms)",
+                                bd["ray_floor_busy_ms"],
+                            ),
+                            (
+                                "ours / that call",
+                                f"{num(bd['round_trip_ms'] / bd['ray_floor_busy_ms'])}x",
+                            ),
+                        ]
+                        if "ray_floor_busy_ms" in bd
+                        else []
+                    )
                 )
             )
     tried_rows = []
