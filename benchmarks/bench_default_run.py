@@ -99,6 +99,7 @@ def main() -> None:
     from pipeline.results.store import RunStore
     from pipeline.tracking.tracker import Tracker
     from workers.actor import EpisodeWorker
+    from workers.hardware import machine_record
 
     cfg = load_config(args.config, [*args.overrides, f"episodes_per_task={args.episodes}"])
     tmp = Path(tempfile.mkdtemp(prefix="bench_default_"))
@@ -170,6 +171,7 @@ def main() -> None:
         },
         "logging_share_of_episode_time": (store_s + mlflow_s) / episode_seconds,
         "note": "inline, one process, torch 1 thread; shares are of the summed episode time",
+        "machine": machine_record(),
     }
     if args.run_dir is not None and (args.run_dir / "episodes").is_dir():
         out["run"] = run_dir_throughput(args.run_dir)
