@@ -249,6 +249,12 @@ def main(argv: list[str] | None = None) -> int:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(results, indent=2) + "\n")
 
+    def spent() -> str | None:
+        """Why nothing more may start (``--budget-s`` spent), or None."""
+        if args.budget_s is not None and time.perf_counter() - t_start > args.budget_s:
+            return f"not started: --budget-s {args.budget_s:g} s spent"
+        return None
+
     # "eager", then "compiled" (torch.compile with --compile-mode; the eager backend when dry)
     modes = {"eager": None, **({"compiled": args.compile_mode} if args.compile_mode else {})}
     results["compile_mode"] = args.compile_mode or None
@@ -256,11 +262,11 @@ def main(argv: list[str] | None = None) -> int:
         entry: dict[str, Any] = {}
         results["models"][name] = entry
         for mode, how in modes.items():
-            t0 = time.perf_counter()
-            if args.budget_s is not None and t0 - t_start > args.budget_s:
-                entry[mode] = {"skipped": f"not started: --budget-s {args.budget_s:g} s spent"}
+            if reason := spent():
+                entry[mode] = {"skipped": reason}
                 save()
                 continue
+            t0 = time.perf_counter()
             try:
                 bb = build(name, device, args.dry, how, args.smolvla_vlm)
                 entry["params_millions"] = bb.n_params / 1e6
@@ -290,8 +296,8 @@ def main(argv: list[str] | None = None) -> int:
                     torch.cuda.empty_cache()
                 save()
     try:
-        if args.budget_s is not None and time.perf_counter() - t_start > args.budget_s:
-            raise TimeoutError(f"not started: --budget-s {args.budget_s:g} s spent")
+        if reason := spent():
+            raise TimeoutError(reason)
         with tempfile.TemporaryDirectory() as tmp:
             results["plugin_latency_B1"] = plugin_latency(device, args.rounds * 2, Path(tmp))
     except Exception as e:

@@ -399,13 +399,7 @@ class Server:
         elif path == "ray_floor":
             import ray
 
-            from workers.policy_service import PolicyWorker, to_numpy_step
-
-            answer = to_numpy_step(
-                PolicyWorker(m["kind"], m["params"], threads=1).infer_many(
-                    [wire_request(raw_observations(model, 0)[0], 0)]
-                )[0]
-            )
+            answer = Echo.answer_to(m, wire_request(raw_observations(model, 0)[0], 0))
             cls = ray.remote(num_cpus=1, max_concurrency=256)(Echo)
             self.actor = cls.options(name=f"echo_{model}", namespace=NAMESPACE).remote(answer)
             ray.get(self.actor.ping.remote())
@@ -489,6 +483,14 @@ class Echo:
     def __init__(self, answer: Any, busy_ms: float = 0.0) -> None:
         self.answer = answer
         self.busy_s = busy_ms / 1e3
+
+    @staticmethod
+    def answer_to(model: dict[str, Any], request: Any) -> Any:
+        """The step ``model`` (a ``MODELS`` entry) answers ``request`` with, as it crosses back."""
+        from workers.policy_service import PolicyWorker, to_numpy_step
+
+        worker = PolicyWorker(model["kind"], model["params"], threads=1)
+        return to_numpy_step(worker.infer_many([request])[0])
 
     def ping(self) -> None:
         pass
@@ -601,12 +603,9 @@ def breakdown(model: str, args: argparse.Namespace, calls: int = 300) -> dict[st
     # the floor with the same compute: a bare Ray call to an actor that holds its thread for the
     # forward's time, so what is left of ours beyond it is ours, not what Ray costs around a
     # busy actor on shared cores
-    from workers.policy_service import PolicyWorker, to_numpy_step
-
     wired = client.request(obs[0], 0)
     busy = ray.remote(num_cpus=0, max_concurrency=256)(Echo).remote(
-        to_numpy_step(PolicyWorker(m["kind"], m["params"], threads=1).infer_many([wired])[0]),
-        forward,
+        Echo.answer_to(m, wired), forward
     )
     for _ in range(10):
         ray.get(busy.infer.remote(wired, client.client_id))
