@@ -51,6 +51,7 @@ from pipeline.errors import ConfigError, RunError
 log = logging.getLogger("idr_eval.slurm")
 NODE_WAIT_S = 120.0  # for every Ray node of the allocation to register
 STOP_WAIT_S = 60.0  # for the driver to flush and exit after a stop signal
+STOP_MARGIN_S = 5.0  # of Slurm's KillWait kept for the launcher's own stop event and Ray's stop
 EVENTS = "slurm.jsonl"  # in the run dir: one line per start and stop of the launcher
 
 
@@ -123,6 +124,23 @@ class Allocation:
     @property
     def total_gpus(self) -> int:
         return sum(self.gpus)
+
+
+def kill_wait_s() -> float | None:
+    """Slurm's KillWait: the seconds between a job's TERM and its KILL (None where unreadable)."""
+    with contextlib.suppress(ConfigError):
+        m = re.search(r"^KillWait\s*=\s*(\d+)", _scontrol("show", "config"), re.MULTILINE)
+        if m:
+            return float(m.group(1))
+    return None
+
+
+def stop_wait_s(kill_wait: float | None) -> float:
+    """How long the driver gets for its clean stop: STOP_WAIT_S, cut to end before Slurm's KILL
+    would end the launcher too (which would then leave no stop event and no Ray logs)."""
+    if kill_wait is None:
+        return STOP_WAIT_S
+    return max(1.0, min(STOP_WAIT_S, kill_wait - STOP_MARGIN_S))
 
 
 def hostnames(nodelist: str) -> list[str]:
@@ -476,15 +494,20 @@ def _launch(
     log.info("Ray on %d node(s) at %s in %.1f s", len(alloc.nodes), ray.address, time.time() - t0)
     events.emit("ray_up", address=ray.address)
     rc = 128 + (_Stop.signum or 0)
+    killed = False
     try:
         if _Stop.signum is None:  # not stopped while Ray was starting
-            rc = _drive(config, run_dir, overrides, driver_args, ray.address, env, events)
+            wait_s = stop_wait_s(kill_wait_s())
+            rc, killed = _drive(
+                config, run_dir, overrides, driver_args, ray.address, env, events, wait_s
+            )
         requeued = _Stop.requeue and rc != 0
         events.emit(
             "stop",
             rc=rc,
             signal=signal.Signals(_Stop.signum).name if _Stop.signum else None,
             requeued=requeued,
+            driver_killed=killed,
         )
     finally:
         ray.stop()
@@ -503,8 +526,11 @@ def _drive(
     address: str,
     env: dict[str, str],
     events: EventLog,
-) -> int:
-    """``idr-eval run`` against this job's Ray; a stop signal becomes its clean stop (TERM)."""
+    wait_s: float,
+) -> tuple[int, bool]:
+    """``idr-eval run`` against this job's Ray; a stop signal becomes its clean stop (TERM),
+    and a driver not done after ``wait_s`` is killed. Returns its exit code and whether it was
+    killed."""
     cmd = [
         str(Path(sys.executable).with_name("idr-eval")),
         "run",
@@ -517,13 +543,16 @@ def _drive(
     ]
     driver = subprocess.Popen(cmd, env={**env, "RAY_ADDRESS": address})
     stop_deadline: float | None = None
+    killed = False
     while True:
         try:
-            return driver.wait(timeout=0.5)
+            return driver.wait(timeout=0.5), killed
         except subprocess.TimeoutExpired:
             events.flush()  # once the driver has made the run dir
         if _Stop.signum is not None and stop_deadline is None:
             driver.send_signal(signal.SIGTERM)  # flush, MLflow KILLED, exit 143
-            stop_deadline = time.monotonic() + STOP_WAIT_S
-        if stop_deadline is not None and time.monotonic() > stop_deadline:
+            stop_deadline = time.monotonic() + wait_s
+        if stop_deadline is not None and time.monotonic() > stop_deadline and not killed:
+            log.warning("the driver did not stop within %.0f s of the signal: killing it", wait_s)
             driver.kill()
+            killed = True

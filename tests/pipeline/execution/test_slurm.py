@@ -22,7 +22,15 @@ import pytest
 
 from pipeline.cli import main
 from pipeline.errors import ConfigError
-from pipeline.execution.slurm import Allocation, check_fits, expand_counts, gres_gpus
+from pipeline.execution.slurm import (
+    STOP_WAIT_S,
+    Allocation,
+    check_fits,
+    expand_counts,
+    gres_gpus,
+    kill_wait_s,
+    stop_wait_s,
+)
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from slurmcluster import SlurmCluster, unavailable
@@ -97,7 +105,7 @@ slurm_only = pytest.mark.skipif(bool(unavailable()), reason=str(unavailable()))
 @pytest.fixture(scope="module")
 def slurm(tmp_path_factory):
     private = tmp_path_factory.mktemp("node-local")
-    with SlurmCluster(nodes=2, cpus=2, gpus=1, private={"n2": private}, kill_wait_s=20) as sc:
+    with SlurmCluster(nodes=2, cpus=2, gpus=1, private={"n2": private}, kill_wait_s=30) as sc:
         sc.private_path = private
         yield sc
 
@@ -236,13 +244,30 @@ def test_a_grid_survives_requeue_walltime_scancel_and_a_lost_node(slurm, tmp_pat
     starts = [(e["job"], e["restarts"]) for e in events if e["event"] == "start"]
     assert starts == [(job, 0), (job, 1), (job, 2), (job2, 0)]
     assert all(e["gpus"] == [1, 1] for e in events if e["event"] == "start")
-    stops = [(e["signal"], e["requeued"], e["rc"]) for e in events if e["event"] == "stop"]
-    assert stops == [
-        ("SIGTERM", False, 143),
-        ("SIGUSR1", True, 143),
-        ("SIGTERM", False, 143),
-        (None, False, 0),
+    stops = [e for e in events if e["event"] == "stop"]
+    # every start leaves its stop: the driver gets a clean stop that ends before Slurm's KILL
+    assert [(e["signal"], e["requeued"]) for e in stops] == [
+        ("SIGTERM", False),
+        ("SIGUSR1", True),
+        ("SIGTERM", False),
+        (None, False),
     ]
+    assert (stops[-1]["rc"], stops[-1]["driver_killed"]) == (0, False)
+    # a driver that stopped in time exits 143 (TERM); one killed at the deadline says so
+    assert all(e["rc"] == 143 for e in stops[:-1] if not e["driver_killed"])
+
+
+def test_the_drivers_clean_stop_ends_before_slurms_kill() -> None:
+    assert stop_wait_s(None) == STOP_WAIT_S  # KillWait unreadable: the launcher's own limit
+    assert stop_wait_s(30.0) == 25.0  # Slurm's default KillWait, 5 s kept for the stop event
+    assert stop_wait_s(600.0) == STOP_WAIT_S
+    assert stop_wait_s(2.0) == 1.0
+
+
+@slurm_only
+def test_kill_wait_is_read_from_the_controller(slurm, monkeypatch) -> None:
+    monkeypatch.setenv("SLURM_CONF", slurm.env()["SLURM_CONF"])
+    assert kill_wait_s() == slurm.kill_wait_s
 
 
 @slurm_only
