@@ -276,9 +276,24 @@ def last_checkpoint(out: Path) -> Path | None:
     return last if (last / "pretrained_model" / "config.json").is_file() else None
 
 
+def lerobot_train() -> str:
+    """lerobot's trainer beside this interpreter (a venv), else the one on PATH (a
+    ``pip install --target`` folder's ``bin``)."""
+    beside = Path(sys.executable).with_name("lerobot-train")
+    if beside.is_file():
+        return str(beside)
+    found = shutil.which("lerobot-train")
+    if found is None:
+        raise SystemExit(
+            "lerobot-train is neither beside this Python nor on PATH: install lerobot "
+            "(`make setup`), or put the folder holding lerobot-train on PATH"
+        )
+    return found
+
+
 def train_command(name: str, member: Member, args: argparse.Namespace) -> list[str]:
     out = run_dir(name, args.seed, args.runs)
-    exe = str(Path(sys.executable).with_name("lerobot-train"))
+    exe = lerobot_train()
     last = last_checkpoint(out)
     if last is not None:
         # lerobot resumes from the saved train config (policy, optimizer, step, data order)
@@ -323,6 +338,15 @@ def offline_env(threads: int) -> dict[str, str]:
     return env
 
 
+def device_name(device: str) -> str:
+    """The accelerator a session trained on, by name (``cpu`` where none)."""
+    if not device.startswith("cuda"):
+        return device
+    import torch
+
+    return torch.cuda.get_device_name(torch.device(device)) if torch.cuda.is_available() else device
+
+
 def cmd_train(args: argparse.Namespace) -> None:
     member = _member(args.name)
     check_features(args.name, args.benchmark, args.dataset)
@@ -338,7 +362,17 @@ def cmd_train(args: argparse.Namespace) -> None:
     # checkpoint is where the next `train` resumes
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda signum, _frame: child.send_signal(signum))
-    rc = child.wait()
+    try:
+        rc = child.wait(timeout=args.time_limit_s)
+    except subprocess.TimeoutExpired:
+        # the session's time is up: stop as a SIGTERM would; the last saved checkpoint stays
+        print(f"--time-limit-s {args.time_limit_s:g} reached: stopping lerobot-train", flush=True)
+        child.send_signal(signal.SIGINT)
+        try:
+            rc = child.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            child.kill()
+            rc = child.wait()
     # wall time accumulates over resumed sessions (the model card states the total)
     log = out / "zoo_sessions.jsonl"
     if out.exists():
@@ -349,6 +383,7 @@ def cmd_train(args: argparse.Namespace) -> None:
                         "seconds": round(time.perf_counter() - t0, 1),
                         "rc": rc,
                         "cpu": cpu_model(),
+                        "device": device_name(args.device),
                         "threads": args.threads,
                         "command": cmd,
                     }
@@ -392,6 +427,7 @@ def cmd_export(args: argparse.Namespace) -> None:
         "train_seconds": round(sum(s["seconds"] for s in sessions), 1),
         "sessions": len(sessions),
         "machines": sorted({s["cpu"] for s in sessions}),
+        "devices": sorted({s.get("device", "cpu") for s in sessions}),
         "threads": sorted({s["threads"] for s in sessions}),
         "dataset": json.loads(parts.read_text()) if parts.is_file() else str(args.dataset),
         "trainer": "lerobot-train (lerobot 0.6.1) via python -m training.zoo train",
@@ -440,6 +476,13 @@ def main(argv: list[str] | None = None) -> None:
     t.add_argument("--threads", type=int, default=2)
     t.add_argument("--num-workers", type=int, default=0)
     t.add_argument("--runs", type=Path, default=None, help="where lerobot-train's runs go")
+    t.add_argument(
+        "--time-limit-s",
+        type=float,
+        default=None,
+        help="stop lerobot-train after this many seconds (its last checkpoint is kept; "
+        "`train` again resumes from it)",
+    )
     t.set_defaults(func=cmd_train)
     e = sub.add_parser("export", help="copy the last checkpoint to checkpoints/zoo/[BENCH/]NAME")
     e.add_argument("name")

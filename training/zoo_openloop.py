@@ -21,7 +21,9 @@ from pathlib import Path
 import numpy as np
 
 
-def open_loop_error(checkpoint: Path, dataset: Path, frames: int = 100, seed: int = 0) -> dict:
+def open_loop_error(
+    checkpoint: Path, dataset: Path, frames: int = 100, seed: int = 0, keep_actions: bool = False
+) -> dict:
     import torch
     from lerobot.configs.policies import PreTrainedConfig
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -37,16 +39,18 @@ def open_loop_error(checkpoint: Path, dataset: Path, frames: int = 100, seed: in
     mean, std = np.asarray(stats["mean"]), np.asarray(stats["std"])
     varies = std > 1e-6
     rng = np.random.default_rng(seed)
-    errors, baseline = [], []
-    for i in rng.choice(len(ds), size=min(frames, len(ds)), replace=False):
+    errors, baseline, actions = [], [], []
+    for n, i in enumerate(rng.choice(len(ds), size=min(frames, len(ds)), replace=False)):
         frame = ds[int(i)]
         obs = {k: v.unsqueeze(0) for k, v in frame.items() if k.startswith("observation.")}
         obs["task"] = [frame["task"]]
         policy.reset()
+        torch.manual_seed(seed + n)  # a sampling head draws the same noise for every checkpoint
         with torch.no_grad():
             action = post(policy.select_action(pre(obs))).squeeze(0).numpy()
         truth = frame["action"].numpy()
         errors.append(np.abs(action - truth)[varies] / std[varies])
+        actions.append(action[varies] / std[varies])
         baseline.append(np.abs(mean - truth)[varies] / std[varies])
     err, base = np.mean(errors, axis=0), np.mean(baseline, axis=0)
     return {
@@ -57,6 +61,7 @@ def open_loop_error(checkpoint: Path, dataset: Path, frames: int = 100, seed: in
         "mae_in_std": [round(float(x), 3) for x in err],
         "mean_action_mae_in_std": [round(float(x), 3) for x in base],
         "ratio_to_mean_action": round(float(err.mean() / base.mean()), 3),
+        **({"actions_in_std": np.asarray(actions).tolist()} if keep_actions else {}),
     }
 
 
