@@ -17,7 +17,11 @@ from datetime import date
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PRESETS = {"tabletop": "conf/zoo/tabletop.yaml", "metaworld": "conf/zoo/metaworld.yaml"}
+PRESETS = {
+    "tabletop": "conf/zoo/tabletop.yaml",
+    "tabletop_pos": "conf/zoo/tabletop.yaml with env.params.state_dims=[0,1,2,6,7]",
+    "metaworld": "conf/zoo/metaworld.yaml",
+}
 
 
 def results_file(benchmark: str) -> Path:
@@ -78,7 +82,9 @@ def member_entry(name: str, run_dir: Path, benchmark: str = "tabletop") -> dict:
                 "machines",
                 "threads",
             )
-        },
+        }
+        # where a GPU trained it, and the float16 carry's measured effect (training/zoo_carry.py)
+        | {k: meta[k] for k in ("devices", "carried") if k in meta},
         "eval": {
             "run_dir": run_dir.name,
             "episodes_per_task": int(episodes.groupby(["cell_id", "task_id"]).size().max()),

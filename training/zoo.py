@@ -365,11 +365,12 @@ def cmd_train(args: argparse.Namespace) -> None:
     try:
         rc = child.wait(timeout=args.time_limit_s)
     except subprocess.TimeoutExpired:
-        # the session's time is up: stop as a SIGTERM would; the last saved checkpoint stays
+        # the session's time is up: the last saved checkpoint stays, and is where `train` resumes
+        # (TERM, not INT: lerobot-train went on for a minute after an INT on a CUDA machine)
         print(f"--time-limit-s {args.time_limit_s:g} reached: stopping lerobot-train", flush=True)
-        child.send_signal(signal.SIGINT)
+        child.terminate()
         try:
-            rc = child.wait(timeout=60)
+            rc = child.wait(timeout=30)
         except subprocess.TimeoutExpired:
             child.kill()
             rc = child.wait()

@@ -784,6 +784,16 @@ def zoo_metaworld(d: Data) -> str:
     return _zoo_card(d, "zoo_metaworld")
 
 
+def carried(c: dict | None) -> str:
+    """How a checkpoint came from the machine that trained it (training/zoo_carry.py)."""
+    if not c:
+        return "as trained"
+    return (
+        f"{c['weights_dtype']}: max action change {c['max_abs_action_diff_in_std']:.1e} std "
+        f"({c['frames']} frames)"
+    )
+
+
 def _zoo_card(d: Data, name: str) -> str:
     train_rows, task_rows, effect_rows = [], [], []
     for member, m in d["members"].items():
@@ -798,7 +808,10 @@ def _zoo_card(d: Data, name: str) -> str:
                 t["batch_size"],
                 t["seed"],
                 f"{t['train_seconds'] / 60:.0f} min",
-                ", ".join(t["machines"]) + f" ({'/'.join(map(str, t['threads']))} threads)",
+                ", ".join(t["machines"])
+                + f" ({'/'.join(map(str, t['threads']))} threads)"
+                + "".join(f", {g}" for g in t.get("devices", []) if g != "cpu"),
+                carried(t.get("carried")),
             ]
         )
         for r in m["tasks"]:
@@ -820,7 +833,7 @@ def _zoo_card(d: Data, name: str) -> str:
     return block(
         table(
             ["member", "type", "instruction", "parameters", "steps", "batch", "seed",
-             "training (wall)", "trained on"],
+             "training (wall)", "trained on", "weights carried"],
             train_rows,
         ),
         table(["member", "cell", "task", "successes", "success % [95% Wilson]"], task_rows),
