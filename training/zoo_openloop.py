@@ -33,7 +33,11 @@ def open_loop_error(
 
     cfg = PreTrainedConfig.from_pretrained(checkpoint)
     policy = get_policy_class(cfg.type).from_pretrained(checkpoint).eval()
-    pre, post = make_pre_post_processors(cfg, pretrained_path=str(checkpoint))
+    pre, post = make_pre_post_processors(
+        cfg,
+        pretrained_path=str(checkpoint),
+        preprocessor_overrides={"device_processor": {"device": str(policy.config.device)}},
+    )
     ds = LeRobotDataset("local/openloop", root=dataset)
     stats = ds.meta.stats["action"]
     mean, std = np.asarray(stats["mean"]), np.asarray(stats["std"])

@@ -54,6 +54,22 @@ def test_act_loads_with_processors_and_predicts_chunks(ckpts) -> None:
     assert out.dtype == torch.float32
 
 
+def test_a_checkpoint_trained_on_a_gpu_runs_on_the_cpu(ckpts, tmp_path) -> None:
+    """Saved on a CUDA machine, a checkpoint's config and device step name cuda: the device
+    step runs where the policy runs, as lerobot-eval overrides it."""
+    import shutil
+
+    gpu = tmp_path / "act_gpu"
+    shutil.copytree(ckpts["act"], gpu)
+    for name in ("config.json", "policy_preprocessor.json"):
+        text = (gpu / name).read_text()
+        (gpu / name).write_text(re.sub(r'"device": "cpu"', '"device": "cuda"', text))
+    assert '"device": "cuda"' in (gpu / "policy_preprocessor.json").read_text()
+    bb = _backbone(gpu)
+    assert str(bb.device) == "cpu"
+    assert torch.equal(bb.predict_chunk(_obs(2)), _backbone(ckpts["act"]).predict_chunk(_obs(2)))
+
+
 @pytest.mark.parametrize("name", ["act", "diffusion"])
 def test_batched_equals_sequential(ckpts, name) -> None:
     bb = _backbone(ckpts[name])

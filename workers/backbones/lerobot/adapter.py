@@ -238,9 +238,9 @@ class LerobotBackbone:
         self.policy = (
             get_policy_class(cfg.type).from_pretrained(path, config=cfg).to(self.device).eval()
         )
-        overrides = (
-            {} if self.device.type == "cpu" else {"device_processor": {"device": str(self.device)}}
-        )
+        # the device step runs where the policy runs, whatever device it was trained on (a
+        # checkpoint saved on a GPU names cuda), as lerobot-eval overrides it
+        overrides = {"device_processor": {"device": str(self.device)}}
         self.pre, self.post = make_pre_post_processors(
             cfg, pretrained_path=path, preprocessor_overrides=overrides
         )
