@@ -1,10 +1,10 @@
 """A zoo dataset with its cameras encoded as AV1 video, small enough to carry to a GPU machine.
 
-The zoo's datasets store every frame as a PNG (about 2 KB per 96 px camera frame: 140 MB for the
-tabletop's 30,636 frames of two cameras). lerobot's own conversion
+The zoo's datasets store every frame as a PNG (about 7.7 KB per 96 px camera frame: 471 MB for
+the tabletop's 30,636 frames of two cameras). lerobot's own conversion
 (``convert_image_to_video_dataset``, what ``lerobot-edit-dataset --operation.type
-convert_image_to_video`` runs) encodes them as AV1 at about 0.27 KB per frame with a keyframe
-every 40 frames. Two things it leaves out are put back: the cameras' entries in
+convert_image_to_video`` runs) encodes them as AV1 at about 0.26 KB per frame (16 MB) with a
+keyframe every 40 frames. Two things it leaves out are put back: the cameras' entries in
 ``meta/stats.json`` (lerobot-train reads them; the members normalize images with ImageNet's
 statistics, which lerobot writes over them, so the checkpoint's normalizer is the same either
 way) and ``meta/zoo_parts.json`` (the model card's list of parts).
