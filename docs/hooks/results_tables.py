@@ -784,6 +784,45 @@ def zoo_metaworld(d: Data) -> str:
     return _zoo_card(d, "zoo_metaworld")
 
 
+def zoo_tabletop_pos(d: Data) -> str:
+    """zoo_tabletop_pos.json: the same card for lerobot's architectures trained on the tabletop
+    state without its orientation dims (and evaluated on the same dims)."""
+    return _zoo_card(d, "zoo_tabletop_pos")
+
+
+def paper_observations(d: Data) -> str:
+    """paper_observations.json (a copy of the study's observations.json): per arch@env, R_img
+    with its interval, E_img and E_prop, diagnose's success and E − diagnose; R_img against
+    IDR's gain across the runs."""
+
+    def pct(lo_hi: list[float]) -> str:
+        return f"[{100 * lo_hi[0]:.0f}, {100 * lo_hi[1]:.0f}]"
+
+    rows = []
+    for r in d["runs"]:
+        ok = r["success"]["diagnose"]
+        g = r["gain_E"]
+        rows.append(
+            [f"{r['arch']} @ {r['env']}", f"{r['r_img']:.2f} [{r['r_img_ci95'][0]:.2f}, "
+             f"{r['r_img_ci95'][1]:.2f}]", num(r["e_img"]), num(r["e_prop"]),
+             f"{100 * ok['rate']:.0f}% {pct(ok['ci95'])} (n={ok['n']})",
+             f"{100 * g['diff']:+.1f} pp [{100 * g['ci95'][0]:+.1f}, {100 * g['ci95'][1]:+.1f}], "
+             f"p = {g['mcnemar_p']:.2g}"]
+        )  # fmt: skip
+    c = d["rimg_vs_gain"]
+    note = (
+        f"R_img against E − diagnose over {c['n']} runs: Spearman ρ = {c['rho']:+.2f}, "
+        f"permutation p = {c['p']:.2g} ({c['finding']})"
+    )
+    header = ["arch @ env", "R_img (95% CI)", "E_img", "E_prop", "diagnose success (95% CI)",
+              "E − diagnose (95% CI, McNemar p)"]  # fmt: skip
+    return block(
+        table(header, rows),
+        note,
+        source("paper_observations", d),
+    )
+
+
 def carried(c: dict | None) -> str:
     """How a checkpoint came from the machine that trained it (training/zoo_carry.py)."""
     if not c:
@@ -970,6 +1009,8 @@ RENDERERS: dict[str, Callable[[Data], str]] = {
         portable_numerics,
         zoo_tabletop,
         zoo_metaworld,
+        zoo_tabletop_pos,
+        paper_observations,
         isa_spread,
         gpu_supply,
     )
