@@ -24,8 +24,8 @@ PRESETS = {
 }
 
 
-def results_file(benchmark: str) -> Path:
-    return ROOT / "benchmarks" / "results" / f"zoo_{benchmark}.json"
+def results_file(benchmark: str, name: str | None = None) -> Path:
+    return ROOT / "benchmarks" / "results" / f"{name or f'zoo_{benchmark}'}.json"
 
 
 def member_entry(name: str, run_dir: Path, benchmark: str = "tabletop") -> dict:
@@ -101,13 +101,19 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("runs", nargs="+", help="MEMBER=RUN_DIR")
     ap.add_argument("--benchmark", choices=sorted(PRESETS), default="tabletop")
+    ap.add_argument(
+        "--results",
+        default=None,
+        help="the results file's name (default zoo_BENCHMARK): a card of another evaluation",
+    )
+    ap.add_argument("--preset", default=None, help="the evaluation, when not the zoo preset")
     args = ap.parse_args()
-    results = results_file(args.benchmark)
+    results = results_file(args.benchmark, args.results)
     old = json.loads(results.read_text()) if results.is_file() else {"members": {}}
     for item in args.runs:
         name, _, run = item.partition("=")
         old["members"][name] = member_entry(name, Path(run), args.benchmark)
-    old["preset"] = PRESETS[args.benchmark]
+    old["preset"] = args.preset or PRESETS[args.benchmark]
     results.write_text(json.dumps(old, indent=2) + "\n")
     print(json.dumps(old, indent=2)[:3000])
 

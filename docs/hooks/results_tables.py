@@ -790,6 +790,12 @@ def zoo_tabletop_pos(d: Data) -> str:
     return _zoo_card(d, "zoo_tabletop_pos")
 
 
+def zoo_act_vision(d: Data) -> str:
+    """zoo_act_vision.json: the tabletop_pos ACT on pick_color with and without images, 40
+    episodes each (the card's layout)."""
+    return _zoo_card(d, "zoo_act_vision")
+
+
 def paper_observations(d: Data) -> str:
     """paper_observations.json (a copy of the study's observations.json): per arch@env, R_img
     with its interval, E_img and E_prop, diagnose's success and E − diagnose; R_img against
@@ -1010,6 +1016,7 @@ RENDERERS: dict[str, Callable[[Data], str]] = {
         zoo_tabletop,
         zoo_metaworld,
         zoo_tabletop_pos,
+        zoo_act_vision,
         paper_observations,
         isa_spread,
         gpu_supply,
