@@ -78,8 +78,8 @@ def rounding(full: Path, half: Path, dataset: Path, frames: int) -> dict:
         "frames": a["frames"],
         "max_abs_action_diff_in_std": float(diff.max()),
         "mean_abs_action_diff_in_std": float(diff.mean()),
-        "open_loop_float32": a,
-        "open_loop_float16": b,
+        "open_loop_float32": a["mae_in_std"],
+        "open_loop_float16": b["mae_in_std"],
     }
 
 
@@ -105,9 +105,7 @@ def unpack(parts: list[Path], dest: Path) -> Path:
     meta_path = dest / "train_meta.json"
     if meta_path.is_file():
         meta = json.loads(meta_path.read_text())
-        meta["carried"] = {k: v for k, v in carry.items() if not k.startswith("open_loop_")} | {
-            k: carry[k]["mae_in_std"] for k in carry if k.startswith("open_loop_")
-        }
+        meta["carried"] = carry
         meta_path.write_text(json.dumps(meta, indent=2) + "\n")
     return dest
 

@@ -27,17 +27,12 @@ def open_loop_error(
     import torch
     from lerobot.configs.policies import PreTrainedConfig
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
-    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
-
-    import lerobot_policy_idr  # noqa: F401  (registers tiny_vla)
+    from lerobot.policies.factory import get_policy_class
+    from lerobot_policy_idr.processor_idr import load_base_processors  # (registers tiny_vla)
 
     cfg = PreTrainedConfig.from_pretrained(checkpoint)
     policy = get_policy_class(cfg.type).from_pretrained(checkpoint).eval()
-    pre, post = make_pre_post_processors(
-        cfg,
-        pretrained_path=str(checkpoint),
-        preprocessor_overrides={"device_processor": {"device": str(policy.config.device)}},
-    )
+    pre, post = load_base_processors(checkpoint, str(policy.config.device))
     ds = LeRobotDataset("local/openloop", root=dataset)
     stats = ds.meta.stats["action"]
     mean, std = np.asarray(stats["mean"]), np.asarray(stats["std"])

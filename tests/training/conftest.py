@@ -30,7 +30,7 @@ def synthetic_tabletop(tmp_path_factory) -> Path:
             for c, cam in enumerate(cams):
                 cx, cy = 20 + 2 * t + 10 * ep, 40 + 15 * c
                 blob = np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / 120.0)
-                img = np.stack([blob, 0.5 * blob + 0.2, 0.3 + 0.0 * blob], -1)
+                img = np.stack([blob, 0.5 * blob + 0.2, np.full_like(blob, 0.3)], -1)
                 frame[f"observation.images.{cam}"] = (255 * img).astype(np.uint8)
             frame["observation.state"] = rng.normal(size=8).astype(np.float32)
             frame["action"] = rng.normal(size=7).astype(np.float32)
