@@ -3,6 +3,8 @@ recorded as a timeout error row; the run finishes."""
 
 from __future__ import annotations
 
+import signal
+import threading
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -37,6 +39,27 @@ def test_alarm_interrupts_a_hung_backbone_call() -> None:
     with pytest.raises(EpisodeTimeout), alarm(0.3):
         backbone.predict_chunk(SimpleNamespace(batch_size=1))  # never returns
     assert time.monotonic() - t0 < 5
+
+
+def test_alarm_reaches_the_main_thread_when_another_thread_could_take_the_signal() -> None:
+    """A thread that does not block SIGALRM (a library's worker thread) while the main thread
+    blocks it: a process-wide timer's signal goes to that thread and the main thread's hung
+    call is never interrupted. The alarm must still cut the call off in the main thread."""
+    stop = threading.Event()
+    other = threading.Thread(target=stop.wait, daemon=True)
+    other.start()  # started before the mask below, so it keeps SIGALRM unblocked
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGALRM})
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(EpisodeTimeout), alarm(0.3):
+            time.sleep(20)  # a hung call; 20 s, not forever, so a regression fails, not hangs
+        assert time.monotonic() - t0 < 5
+        # the main thread's mask is as the caller left it
+        assert signal.SIGALRM in signal.pthread_sigmask(signal.SIG_BLOCK, set())
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+        stop.set()
+        other.join()
 
 
 @pytest.mark.parametrize(
