@@ -91,11 +91,11 @@ def main() -> None:
         for env in fakes:
             t0, n = time.perf_counter(), 0
             for _ in range(args.rounds):
-                env.reset("reach_chain", 0, 0)
+                obs = env.reset("reach_chain", 0, 0)
                 for a in fake_actions:
-                    if env.done:
-                        env.reset("reach_chain", 0, 0)
-                    env.step(a)
+                    if obs.status.done:
+                        obs = env.reset("reach_chain", 0, 0)
+                    obs = env.step(a)
                     n += 1
             fake_ms.append((time.perf_counter() - t0) / n * 1e3)
     finally:

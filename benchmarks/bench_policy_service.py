@@ -193,7 +193,8 @@ def round_trip(calls: int) -> dict[str, float]:
     remote = PolicyServiceClient(actor, ray.get(actor.describe.remote()))
     local = IDRWrapper(FakeMarkerBackbone(chunk_len=4))
     env = FakeMarkerEnv()
-    obs = to_policy_observation(env.reset("reach", 0, 0), env.instruction)
+    first = env.reset("reach", 0, 0)
+    obs = to_policy_observation(first, first.status.instruction)
     times: dict[str, list[float]] = {"local": [], "remote": []}
     for policy, key in ((local, "local"), (remote, "remote")):
         policy.set_config(RefinerConfig(mode="E"))

@@ -38,9 +38,9 @@ def rollout(env: Any, backbone: Any, episode: int, seed: int, replan: int) -> di
     backbone.reset()
     carry: list[tuple[float, list[float], list[float], float]] = []
     queue: list[np.ndarray] = []
-    while not env.done:
+    while not obs.status.done:
         if not queue:
-            batch = to_policy_observation(obs, env.instruction, backbone.cameras)
+            batch = to_policy_observation(obs, obs.status.instruction, backbone.cameras)
             queue = list(backbone.predict_chunk(batch)[0, :replan].numpy())
             priv = obs.privileged
             top, bottom = priv["targets"]
@@ -54,7 +54,7 @@ def rollout(env: Any, backbone: Any, episode: int, seed: int, replan: int) -> di
                 label = expert_action(priv)
                 carry.append((d_cm, queue[0][:2].tolist(), label[:2].tolist(), d_other))
         obs = env.step(queue.pop(0))
-    return {"success": bool(env.success), "steps": env.steps, "carry": carry}
+    return {"success": bool(obs.status.success), "steps": obs.status.steps, "carry": carry}
 
 
 def summarize(episodes: list[dict[str, Any]]) -> dict[str, Any]:

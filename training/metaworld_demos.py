@@ -106,7 +106,7 @@ def record(
                 obs = env.reset(task, first_episode + tried, seed)
                 tried += 1
                 buffer = []
-                while not env.done:
+                while not obs.status.done:
                     action = np.clip(expert.get_action(env.raw_observation["state"]), -1, 1)
                     action = action.astype(np.float32)
                     buffer.append(
@@ -114,11 +114,11 @@ def record(
                             "observation.image": obs.images[cam],
                             "observation.state": obs.state.astype(np.float32),
                             "action": action,
-                            "task": env.instruction,
+                            "task": obs.status.instruction,
                         }
                     )
                     obs = env.step(action)
-                if not env.success:
+                if not obs.status.success:
                     if tried > 2 * episodes + 10:
                         raise RuntimeError(f"expert failed too often on {task}: {kept}/{tried}")
                     continue

@@ -119,24 +119,30 @@ def record(
                 buffer, queue = [], []
                 if driver is not None:
                     driver.reset()
-                while not env.done:
+                while not obs.status.done:
                     action = expert_action(obs.privileged, place_tol).astype(np.float32)
                     frame = {CAMERA_KEYS[c]: obs.images[c] for c in cameras}
                     frame.update(
-                        {"observation.state": obs.state, "action": action, "task": env.instruction}
+                        {
+                            "observation.state": obs.state,
+                            "action": action,
+                            "task": obs.status.instruction,
+                        }
                     )
                     buffer.append(frame)
                     executed = action.copy()
                     if driver is not None:
                         if not queue:
-                            batch = to_policy_observation(obs, env.instruction, driver.cameras)
+                            batch = to_policy_observation(
+                                obs, obs.status.instruction, driver.cameras
+                            )
                             chunk = driver.predict_chunk(batch)[0, :replan_steps]
                             queue = list(chunk.numpy().astype(np.float32))
                         executed = queue.pop(0)
                     if noise:
                         executed[:3] = np.clip(executed[:3] + rng.normal(0, noise, 3), -1, 1)
                     obs = env.step(executed)
-                if driver is None and not env.success:
+                if driver is None and not obs.status.success:
                     continue
                 for frame in buffer:
                     ds.add_frame(frame)

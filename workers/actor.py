@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from workers.backbones.base import backbone_member
-from workers.envs.base import episode_info, suite_info
+from workers.envs.base import EpisodeStatus, episode_status, suite_info
 from workers.envs.server.client import EnvServerError
 from workers.episode import EpisodeResult, EpisodeRow, EpisodeSpec, StepRow, WorkerSpec
 
@@ -64,6 +64,7 @@ class _Rollout:
     """What an episode's rollout has gathered so far."""
 
     obs: Any  # the env's last observation
+    status: Any = None  # its EpisodeStatus (workers.envs.base)
     steps: list[StepRow] = field(default_factory=list)  # one row per inference
     success_step: int | None = None  # the first step at which the env said success
     crn: Any = None  # the last inference's common-random-numbers flag
@@ -190,17 +191,18 @@ class EpisodeWorker:
         policy.set_config(spec.idr, spec.intervention)
         policy.reset()
         ep = _Rollout(obs=env.reset(spec.task_id, spec.episode_index, spec.seed))
+        ep.status = episode_status(env, ep.obs)
         ep.video = self._video(spec, env)
         if ep.video is not None:
             ep.video.add(ep.obs)
-        instruction = env.instruction  # the episode's first (CALVIN: one per subtask)
+        instruction = ep.status.instruction  # the episode's first (CALVIN: one per subtask)
         info = suite_info(env)
-        while not env.done:
+        while not ep.status.done:
             chunk = self._infer(policy, env, spec, ep, info.gripper_index)
             self._execute(policy, env, chunk, ep, info.policy_reset_per_subtask)
         if ep.video is not None:
             ep.video.write()
-        return ep.steps, self._outcome(spec, env, instruction, ep)
+        return ep.steps, self._outcome(spec, env.control_hz, instruction, ep)
 
     def _video(self, spec: EpisodeSpec, env: Any) -> Any:
         """The episode's video recorder, for the first ``video_episodes`` of a task and cell."""
@@ -224,7 +226,7 @@ class EpisodeWorker:
 
         k = len(ep.steps)  # one row per inference
         out = policy.infer(
-            to_policy_observation(ep.obs, env.instruction, self.cameras),
+            to_policy_observation(ep.obs, ep.status.instruction, self.cameras),
             step_seed(spec.seed, spec.task_id, spec.episode_index, k),
         )
         ep.crn = out.crn
@@ -238,7 +240,7 @@ class EpisodeWorker:
                 task_id=spec.task_id,
                 episode_index=spec.episode_index,
                 inference_index=k,
-                step=env.steps,
+                step=ep.status.steps,
                 **{name: float(d[name][0]) for name in DIAGNOSTICS if name in d},
                 action_base=base[0].tolist(),
                 action_final=chunk[0].tolist(),
@@ -253,30 +255,32 @@ class EpisodeWorker:
     ) -> None:
         """The first ``replan_steps`` actions of ``chunk``, open loop, until the env is done or
         (``per_subtask``) a subtask is: then the policy is reset and the rest dropped."""
-        subtasks_before = env.subtasks_done
+        subtasks_before = ep.status.subtasks_done
         for action in chunk[: self.spec.replan_steps]:
             if not np.isfinite(action).all():
                 raise NonFiniteActionError(
-                    f"non-finite action at step {env.steps}: {action.tolist()}; not sent to the env"
+                    f"non-finite action at step {ep.status.steps}: {action.tolist()}; "
+                    "not sent to the env"
                 )
             ep.obs = env.step(action)
+            ep.status = st = episode_status(env, ep.obs)
             if ep.video is not None:
                 ep.video.add(ep.obs)
             if not np.isfinite(ep.obs.state).all():
                 raise NonFiniteStateError(
-                    f"non-finite state after step {env.steps}: {np.asarray(ep.obs.state).tolist()}; "
+                    f"non-finite state after step {st.steps}: {np.asarray(ep.obs.state).tolist()}; "
                     "the simulation diverged"
                 )
-            if ep.success_step is None and env.success:
-                ep.success_step = env.steps
-            if env.done:
+            if ep.success_step is None and st.success:
+                ep.success_step = st.steps
+            if st.done:
                 break
-            if per_subtask and env.subtasks_done != subtasks_before:
+            if per_subtask and st.subtasks_done != subtasks_before:
                 policy.reset()  # the next subtask is a rollout of its own (CALVIN)
                 break
 
     def _outcome(
-        self, spec: EpisodeSpec, env: Any, instruction: str, ep: _Rollout
+        self, spec: EpisodeSpec, control_hz: float, instruction: str, ep: _Rollout
     ) -> dict[str, Any]:
         """The episode's outcome columns, once the env is done."""
 
@@ -284,16 +288,17 @@ class EpisodeWorker:
             vals = [v for s in ep.steps if (v := getattr(s, name)) is not None]
             return float(np.mean(vals)) if vals else None
 
-        init_state_id = episode_info(env).init_state_id or f"{spec.seed}/{spec.episode_index}"
+        st = ep.status
+        init_state_id = st.info.init_state_id or f"{spec.seed}/{spec.episode_index}"
         return {
             "instruction": instruction,
             "init_state_id": str(init_state_id),
-            "success": bool(env.success),
-            "steps": env.steps,
+            "success": bool(st.success),
+            "steps": st.steps,
             "success_step": ep.success_step,
-            "subtasks_done": env.subtasks_done,
-            **episode_failure(env, self.tasks[spec.task_id].max_steps),
-            "sim_seconds": env.steps / env.control_hz,
+            "subtasks_done": st.subtasks_done,
+            **episode_failure(st, self.tasks[spec.task_id].max_steps),
+            "sim_seconds": st.steps / control_hz,
             "inference_ms_mean": mean("inference_ms"),
             # in diagnose mode: the rate of the gate the full method would have applied
             "gate_rate": mean("gate"),
@@ -311,18 +316,21 @@ class EpisodeWorker:
             env.close()
 
 
-def episode_failure(env: Any, max_steps: int) -> dict[str, str | None]:
+def episode_failure(status: EpisodeStatus, max_steps: int) -> dict[str, str | None]:
     """Why a finished episode failed: the env's own cause where it ends episodes early
     (``failure_cause`` / ``failure_reason``, e.g. the tabletop chain's wrong_order), else
     ``timeout`` (the step budget ran out). Both None for a success."""
-    if env.success:
+    if status.success:
         return {"failure": None, "failure_detail": None}
-    episode = episode_info(env)
+    episode = status.info
     if episode.failure_cause:
         return {"failure": str(episode.failure_cause), "failure_detail": episode.failure_reason}
-    if env.steps >= max_steps:
+    if status.steps >= max_steps:
         return {"failure": "timeout", "failure_detail": f"no success within {max_steps} steps"}
-    return {"failure": "ended", "failure_detail": f"the env ended the episode at step {env.steps}"}
+    return {
+        "failure": "ended",
+        "failure_detail": f"the env ended the episode at step {status.steps}",
+    }
 
 
 def remote_worker_class(

@@ -11,7 +11,6 @@ from __future__ import annotations
 import difflib
 import importlib
 import inspect
-import typing
 import warnings
 from typing import Any
 
@@ -70,43 +69,3 @@ def _entry_point(spec: str, field: str) -> Any:
     if not inspect.isclass(obj):
         raise ValueError(f"{field}={spec!r} is not a class")
     return obj
-
-
-def check_params_bind(where: str, cls: Any, params: dict[str, Any]) -> None:
-    """Refuse params the class's constructor does not take, naming the ones it does, and
-    values that do not fit the constructor's type hints (a YAML list for a tuple is fine)."""
-    sig = inspect.signature(cls)
-    try:
-        bound = sig.bind(**params)
-    except TypeError as e:
-        accepted = [n for n in sig.parameters if n != "self"]
-        named = set(accepted) | {n for n, p in sig.parameters.items() if p.kind is p.VAR_KEYWORD}
-        unknown = [k for k in params if k not in named]
-        hints = []
-        for k in unknown:
-            close = difflib.get_close_matches(k, accepted, n=1)
-            if close:
-                hints.append(f"{k!r}: did you mean {close[0]!r}?")
-        hint = f" ({'; '.join(hints)})" if hints else ""
-        raise ValueError(f"{where}: {e}{hint}; accepted parameters: {accepted}") from None
-    _check_types(where, cls, bound.arguments)
-
-
-def _check_types(where: str, cls: Any, values: dict[str, Any]) -> None:
-    from pydantic import TypeAdapter, ValidationError
-
-    try:
-        hints = typing.get_type_hints(cls.__init__)
-    except Exception:  # unresolvable hints: names were checked, types are left to the class
-        return
-    for name, value in values.items():
-        hint = hints.get(name)
-        if hint is None or hint is Any:
-            continue
-        try:
-            TypeAdapter(hint).validate_python(value)
-        except ValidationError as e:
-            msg = e.errors()[0]["msg"]
-            raise ValueError(f"{where}: {name}={value!r} is invalid: {msg}") from None
-        except Exception:  # a hint pydantic cannot check (an arbitrary class): skip it
-            continue

@@ -7,7 +7,7 @@ import time
 from dataclasses import replace
 
 from tests.doubles import faults
-from workers.envs.base import EnvObservation, TaskSpec
+from workers.envs.base import EnvObservation, TaskSpec, checked_action
 from workers.envs.fakes import FakeMarkerEnv
 
 
@@ -64,7 +64,7 @@ class FaultyMarkerEnv(FakeMarkerEnv):
 
     def _observe(self) -> EnvObservation:
         obs = super()._observe()
-        if self._nan_state and self.steps >= 2:
+        if self._nan_state and self._clock.steps >= 2:
             obs.state[:] = float("nan")
         return obs
 
@@ -127,11 +127,11 @@ class ServerFaultEnv(FakeMarkerEnv):
         return self._logged(super().reset(task_id, episode_index, seed))
 
     def step(self, action):  # type: ignore[no-untyped-def]
-        if self._steps + 1 == self.exit_at_step and faults.should_fire(
+        if self._clock.steps + 1 == self.exit_at_step and faults.should_fire(
             "server_exit", self.episode, {self.episode}, self.once_dir
         ):
             os._exit(9)
-        if self._steps + 1 == self.hang_at_step and faults.should_fire(
+        if self._clock.steps + 1 == self.hang_at_step and faults.should_fire(
             "server_hang", self.episode, {self.episode}, self.once_dir
         ):
             faults.hang_forever()
@@ -179,3 +179,54 @@ class ChattyMarkerEnv(FakeMarkerEnv):
         print("chatty: python stdout line", flush=True)
         logging.getLogger("chatty_lib").warning("chatty: library warning")
         os.write(2, b"chatty: C-level stderr line\n")
+
+
+class PropertyMarkerEnv(FakeMarkerEnv):
+    """FakeMarkerEnv as a user's env written before the status record: its observations carry
+    no status, which it keeps as properties (``task``, ``instruction``, ``success``,
+    ``done``, ``subtasks_done``, ``steps``) and counts itself; read through the adapter
+    (``workers.envs.base.episode_status``)."""
+
+    def reset(self, task_id: str, episode_index: int, seed: int) -> EnvObservation:
+        obs = super().reset(task_id, episode_index, seed)
+        self._task, self._steps = self._clock.task, 0
+        return replace(obs, status=None)
+
+    def step(self, action):  # type: ignore[no-untyped-def]
+        a = checked_action(
+            action, self.action_dim, getattr(self, "_task", None) is not None, self.done
+        )
+        self._move(a)
+        self._steps += 1
+        return replace(self._observe(), status=None)
+
+    @property
+    def task(self) -> TaskSpec:
+        if getattr(self, "_task", None) is None:
+            raise RuntimeError("no task: call reset() first")
+        return self._task
+
+    @property
+    def instruction(self) -> str:
+        return self._INSTRUCTIONS[self.task.task_id]
+
+    @property
+    def success(self) -> bool:
+        return (
+            getattr(self, "_task", None) is not None
+            and self._done_count == self.task.subtasks_total
+        )
+
+    @property
+    def done(self) -> bool:
+        return self.success or (
+            getattr(self, "_task", None) is not None and self._steps >= self.task.max_steps
+        )
+
+    @property
+    def subtasks_done(self) -> int:
+        return self._done_count
+
+    @property
+    def steps(self) -> int:
+        return self._steps

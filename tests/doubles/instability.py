@@ -10,8 +10,8 @@ import numpy as np
 
 
 class InjectsInstability:
-    """Mixin over an env with ``steps``, ``done``, ``reset`` and ``step``; the env says where its
-    MuJoCo data is (``_physics_data``)."""
+    """Mixin over an env with an ``EpisodeClock`` (``_clock``), ``reset`` and ``step``; the env
+    says where its MuJoCo data is (``_physics_data``)."""
 
     _inject: tuple[int, int] = (-1, -1)
     _episode: int = -1
@@ -24,6 +24,7 @@ class InjectsInstability:
         return super().reset(task_id, episode_index, seed)  # type: ignore[misc]
 
     def step(self, action: np.ndarray) -> Any:
-        if self._inject == (self._episode, self.steps) and not self.done:  # type: ignore[attr-defined]
+        clock = self._clock  # type: ignore[attr-defined]
+        if self._inject == (self._episode, clock.steps) and not clock.done:
             self._physics_data().qvel[:] = np.nan
         return super().step(action)  # type: ignore[misc]

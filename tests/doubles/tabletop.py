@@ -19,4 +19,4 @@ class UnstableTabletopEnv(InjectsInstability, TabletopEnv):
         self._inject = tuple(inject_instability)  # type: ignore[assignment]
 
     def _physics_data(self) -> Any:
-        return self._scene(self.task.task_id).sim.data._data
+        return self._scene(self._ep.scene_key).sim.data._data

@@ -3,33 +3,34 @@
 from __future__ import annotations
 
 from pathlib import Path
-from types import SimpleNamespace
 
 import pytest
 
 from workers.actor import episode_failure
+from workers.envs.base import EpisodeInfo, EpisodeStatus
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 
 
-def fake_env(success: bool, steps: int, **extra) -> SimpleNamespace:
-    return SimpleNamespace(success=success, steps=steps, **extra)
+def last_status(success: bool, steps: int, **info) -> EpisodeStatus:
+    """The last status of an episode (the name kept from when status was read off the env)."""
+    return EpisodeStatus("t", "go", steps, success, True, int(success), EpisodeInfo(**info))
 
 
 @pytest.mark.parametrize(
     ("env", "expected"),
     [
-        (fake_env(True, 40), (None, None)),
-        (fake_env(False, 120), ("timeout", "no success within 120 steps")),
-        (fake_env(False, 30), ("ended", "the env ended the episode at step 30")),
+        (last_status(True, 40), (None, None)),
+        (last_status(False, 120), ("timeout", "no success within 120 steps")),
+        (last_status(False, 30), ("ended", "the env ended the episode at step 30")),
         (
-            fake_env(False, 57, failure_cause="wrong_order", failure_reason="red before blue"),
+            last_status(False, 57, failure_cause="wrong_order", failure_reason="red before blue"),
             ("wrong_order", "red before blue"),
         ),
         # an env that has the attribute but did not end the episode early: a timeout
-        (fake_env(False, 120, failure_cause=None, failure_reason=None), ("timeout", None)),
+        (last_status(False, 120, failure_cause=None, failure_reason=None), ("timeout", None)),
         # a success is never a failure, whatever the env says
-        (fake_env(True, 99, failure_cause="wrong_order"), (None, None)),
+        (last_status(True, 99, failure_cause="wrong_order"), (None, None)),
     ],
 )
 def test_episode_failure(env, expected) -> None:
@@ -88,6 +89,26 @@ def test_rollout_executes_replan_steps_of_each_chunk(task_id, episode) -> None:
         assert ep.success_step is not None and ep.success_step <= ep.steps
     assert ep.gate_rate == pytest.approx(np.mean([s.gate for s in steps]))
     assert ep.crn is True  # the fake head takes noise: the three passes shared one draw
+
+
+def test_a_user_env_with_status_properties_runs_as_the_record_env_does() -> None:
+    """An env named by entry point that keeps status as properties (written before the
+    record) gives the same episode rows, through the adapter."""
+    from workers.actor import EpisodeWorker
+    from workers.episode import WorkerSpec
+
+    rows = []
+    for entry in ("fake_marker", "tests.doubles.envs:PropertyMarkerEnv"):
+        params = {"chunk_len": 4, "noise_std": 0.05}
+        w = EpisodeWorker(WorkerSpec("fake_marker", params, entry, {}, 3))
+        try:
+            res = [w.run_episode(_spec(t, e)) for t, e in (("reach", 0), ("reach_chain", 1))]
+        finally:
+            w.close()
+        keep = ("success", "steps", "subtasks_done", "failure", "instruction", "init_state_id")
+        rows.append([({k: getattr(r.episode, k) for k in keep}, len(r.steps)) for r in res])
+        assert all(r.episode.error is None for r in res)
+    assert rows[0] == rows[1]
 
 
 def test_cells_see_common_random_numbers(tmp_path) -> None:

@@ -18,7 +18,8 @@ from workers.observation import to_policy_observation
 
 def _batch(n: int = 3, seed: int = 0) -> Observation:
     env = FakeMarkerEnv()
-    parts = [to_policy_observation(env.reset("reach", i, seed), env.instruction) for i in range(n)]
+    resets = [env.reset("reach", i, seed) for i in range(n)]
+    parts = [to_policy_observation(o, o.status.instruction) for o in resets]
     return Observation(
         images={"agentview": torch.cat([p.images["agentview"] for p in parts])},
         state=torch.cat([p.state for p in parts]),

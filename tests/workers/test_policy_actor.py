@@ -31,9 +31,8 @@ def test_concurrent_requests_share_forwards_and_get_their_own_answers(ray_local)
     actor = policy_actor_class(0.5, 0).remote("fake_marker", params, None, 16, 20.0)
     remote = PolicyServiceClient(actor, ray_local.get(actor.describe.remote()))
     env = FakeMarkerEnv()
-    observations = [
-        to_policy_observation(env.reset("reach", e, 0), env.instruction) for e in range(12)
-    ]
+    resets = [env.reset("reach", e, 0) for e in range(12)]
+    observations = [to_policy_observation(o, o.status.instruction) for o in resets]
     remote.set_config(RefinerConfig(mode="E"))
     # sent at once, each as the proxy sends it
     refs = [actor.infer.remote(remote.request(o, 100 + i)) for i, o in enumerate(observations)]
@@ -56,7 +55,8 @@ def _requests(n: int) -> tuple[PolicyServiceClient, list]:
     env = FakeMarkerEnv()
     client = PolicyServiceClient(None, {})
     client.set_config(RefinerConfig(mode="E"))
-    obs = [to_policy_observation(env.reset("reach", e, 0), env.instruction) for e in range(n)]
+    resets = [env.reset("reach", e, 0) for e in range(n)]
+    obs = [to_policy_observation(o, o.status.instruction) for o in resets]
     return client, [client.request(o, i) for i, o in enumerate(obs)]
 
 

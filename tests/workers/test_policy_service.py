@@ -30,7 +30,9 @@ def _requests(n: int) -> list[InferRequest]:
     for i in range(n):
         obs = env.reset("reach", i, 0)
         cfg, iv = cells[i % len(cells)]
-        out.append(InferRequest(to_policy_observation(obs, env.instruction), 1000 + i, cfg, iv))
+        out.append(
+            InferRequest(to_policy_observation(obs, obs.status.instruction), 1000 + i, cfg, iv)
+        )
     return out
 
 

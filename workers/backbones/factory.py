@@ -5,7 +5,8 @@ from __future__ import annotations
 from typing import Any
 
 from workers.backbones.base import Backbone
-from workers.registry import check_params_bind, load_class
+from workers.params_model import check_params
+from workers.registry import load_class
 
 BACKBONES: dict[str, str] = {
     "fake_marker": "workers.backbones.fakes:FakeMarkerBackbone",
@@ -29,7 +30,7 @@ def check_backbone(kind: str, params: dict[str, Any]) -> None:
     Params must bind to the backbone's constructor; a backbone class may also define
     ``check_params(params)`` for checks of its own (a checkpoint path that does not exist)."""
     cls = backbone_class(kind)
-    check_params_bind(f"backbone.params (backbone {kind!r})", cls, params)
+    check_params(f"backbone.params (backbone {kind!r})", cls, params)
     if hasattr(cls, "check_params"):
         cls.check_params(params)
 

@@ -3,15 +3,20 @@
 
 An env holds one simulated scene at a time. ``reset(task_id, episode_index, seed)`` puts it in
 the task's deterministic initial state for that episode (so every IDR cell of a grid sees the
-same scenes), ``step(action)`` advances one control step. Status is read from properties:
-``success``, ``done``, ``subtasks_done`` (for chains, CALVIN-style), ``instruction``.
+same scenes), ``step(action)`` advances one control step. Both return an :class:`EnvObservation`
+whose ``status`` is a frozen :class:`EpisodeStatus`: task id, instruction, steps, success, done,
+subtasks done (chains, CALVIN-style) and the episode's :class:`EpisodeInfo`, as Gymnasium's
+``step`` returns its status with the observation. Suites count steps and guard the call order
+with one helper, ``workers.envs.episode_clock.EpisodeClock``. A user's env that keeps status
+as properties (``task``, ``instruction``, ``success``, ``done``, ``subtasks_done``, ``steps``)
+works unchanged: :func:`episode_status` reads them into the record.
 
 Observations are what the env renders, before any policy convention: camera images as uint8
 (H, W, 3) arrays and the proprioceptive state as a float32 vector.
 
 Beyond the ``Env`` protocol an env may have optional members, in three groups (as Gymnasium
 keeps an env's ``metadata`` apart from the ``info`` its reset and step return). Each group is a
-frozen dataclass read through one accessor, which fills in the documented default of a member
+frozen dataclass read through one accessor (the episode's group comes with its status), which fills in the documented default of a member
 the env lacks (never read them with a getattr of one's own: every reader agrees, and
 ``check_env`` checks what the accessors return):
 
@@ -22,8 +27,8 @@ the env lacks (never read them with a getattr of one's own: every reader agrees,
 - ``suite_hooks(env_or_cls) -> SuiteHooks``: what the suite can do without an episode,
   callables or None (``suite_tasks``, ``check_runtime``, ``describe``, ``check_tasks``: class
   methods the driver's pre-flight calls; ``set_perturbation``: the env's, before a reset);
-- ``episode_info(env) -> EpisodeInfo``: what the current episode started from and, once done,
-  ended with (``init_state_id``, ``failure_cause``, ``failure_reason``).
+- ``EpisodeInfo`` (``EpisodeStatus.info``): what the current episode started from and, once
+  done, ended with (``init_state_id``, ``failure_cause``, ``failure_reason``).
 
 Each field's default and documentation: ``dataclasses.fields(SuiteInfo)`` (``metadata["doc"]``).
 """
@@ -127,13 +132,6 @@ class LazyState(Mapping[str, Any]):
     @property
     def computed(self) -> bool:
         return self._data is not None
-
-
-@dataclass
-class EnvObservation:
-    images: Mapping[str, np.ndarray]  # camera name -> uint8 (H, W, 3), maybe LazyImages
-    state: np.ndarray  # float32 (S,)
-    privileged: Mapping[str, Any] | None = None  # simulator state for scripted experts only
 
 
 # -- what an env may have beyond the Env protocol (see the module docstring) ----------------------
@@ -242,7 +240,7 @@ class SuiteHooks:
 @dataclass(frozen=True)
 class EpisodeInfo:
     """What the env's current episode started from and, once done, ended with. Read with
-    :func:`episode_info` after a reset."""
+    ``EpisodeStatus.info`` (:func:`episode_status`)."""
 
     init_state_id: str | None = field(
         default=None,
@@ -261,6 +259,46 @@ class EpisodeInfo:
     failure_reason: str | None = field(
         default=None, metadata={"doc": "str | None: the env's words for failure_cause"}
     )
+
+
+@dataclass(frozen=True)
+class EpisodeStatus:
+    """The episode after a reset or a step, as the env returns it (``EnvObservation.status``)."""
+
+    task_id: str
+    instruction: str  # the current one (CALVIN: the current subtask's)
+    steps: int  # control steps since the reset
+    success: bool
+    done: bool  # the episode is over: step() now raises
+    subtasks_done: int = 0  # chains; a one-step task: int(success)
+    info: EpisodeInfo = EpisodeInfo()
+
+    def to_wire(self) -> dict[str, Any]:
+        """A flat dict of plain values (the env server's reply)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "info"}
+        return {**out, **{f.name: getattr(self.info, f.name) for f in fields(EpisodeInfo)}}
+
+    @classmethod
+    def from_wire(cls, d: Mapping[str, Any]) -> EpisodeStatus:
+        info = EpisodeInfo(**{f.name: d.get(f.name) for f in fields(EpisodeInfo)})
+        return cls(
+            task_id=str(d["task_id"]),
+            instruction=str(d["instruction"]),
+            steps=int(d["steps"]),
+            success=bool(d["success"]),
+            done=bool(d["done"]),
+            subtasks_done=int(d["subtasks_done"]),
+            info=info,
+        )
+
+
+@dataclass
+class EnvObservation:
+    images: Mapping[str, np.ndarray]  # camera name -> uint8 (H, W, 3), maybe LazyImages
+    state: np.ndarray  # float32 (S,)
+    privileged: Mapping[str, Any] | None = None  # simulator state for scripted experts only
+    # the episode's status (None only from an env that keeps it as properties: episode_status)
+    status: EpisodeStatus | None = None
 
 
 def _read(obj: Any, group: type) -> Any:
@@ -284,9 +322,20 @@ def suite_hooks(env_or_cls: Any) -> SuiteHooks:
     return _read(env_or_cls, SuiteHooks)
 
 
-def episode_info(env: Any) -> EpisodeInfo:
-    """What ``env``'s current episode started from and ended with (see EpisodeInfo)."""
-    return _read(env, EpisodeInfo)
+def episode_status(env: Any, obs: EnvObservation) -> EpisodeStatus:
+    """The status ``obs`` carries; for an env that keeps status as properties (a user's env
+    written before the record), the record read from them (the adapter)."""
+    if obs.status is not None:
+        return obs.status
+    return EpisodeStatus(
+        task_id=env.task.task_id,
+        instruction=env.instruction,
+        steps=int(env.steps),
+        success=bool(env.success),
+        done=bool(env.done),
+        subtasks_done=int(env.subtasks_done),
+        info=_read(env, EpisodeInfo),
+    )
 
 
 def checked_action(action: Any, action_dim: int, started: bool, done: bool) -> np.ndarray:
@@ -306,8 +355,8 @@ def checked_action(action: Any, action_dim: int, started: bool, done: bool) -> n
 
 @runtime_checkable
 class Env(Protocol):
-    """The members every env has. It may also have those of SuiteInfo, SuiteHooks and
-    EpisodeInfo (read them with suite_info, suite_hooks and episode_info)."""
+    """The members every env has. It may also have those of SuiteInfo and SuiteHooks (read
+    them with suite_info and suite_hooks)."""
 
     suite: str
     control_hz: float  # control steps per simulated second
@@ -317,28 +366,11 @@ class Env(Protocol):
 
     def tasks(self) -> list[TaskSpec]: ...
 
-    def reset(self, task_id: str, episode_index: int, seed: int) -> EnvObservation: ...
+    def reset(self, task_id: str, episode_index: int, seed: int) -> EnvObservation:
+        """The task's initial state for this episode; ``status`` set (steps 0, not done)."""
 
     def step(self, action: np.ndarray) -> EnvObservation:
         """Apply one (action_dim,) action; raise ValueError for a wrong shape, RuntimeError
-        after the episode is done."""
-
-    @property
-    def task(self) -> TaskSpec: ...
-
-    @property
-    def instruction(self) -> str: ...
-
-    @property
-    def success(self) -> bool: ...
-
-    @property
-    def done(self) -> bool: ...
-
-    @property
-    def subtasks_done(self) -> int: ...
-
-    @property
-    def steps(self) -> int: ...
+        before reset or after the episode is done; ``status`` set."""
 
     def close(self) -> None: ...

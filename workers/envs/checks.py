@@ -12,9 +12,10 @@ from workers.envs.base import (
     Env,
     EnvObservation,
     EpisodeInfo,
+    EpisodeStatus,
     SuiteHooks,
     TaskSpec,
-    episode_info,
+    episode_status,
     suite_hooks,
     suite_info,
 )
@@ -47,7 +48,7 @@ def check_env(
     task_id = task_id or ids[0]
     obs0 = env.reset(task_id, 0, seed)
     check_status_after_reset(env, obs0, task_id)
-    check_optional_members(env)
+    check_optional_members(env, obs0)
     check_reset_is_deterministic(env, obs0, task_id, seed)
     check_wrong_action_shape_refused(env, task_id, seed)
     check_stepping(env, task_id, seed, n_steps)
@@ -99,27 +100,41 @@ def check_observation(env: Env, obs: EnvObservation, where: str) -> None:
     _require(bool(np.isfinite(s).all()), f"{where}: state has NaN or inf")
 
 
+def _status(env: Env, obs: EnvObservation, where: str) -> EpisodeStatus:
+    """The observation's status record (read from properties for an env that keeps them)."""
+    try:
+        st = episode_status(env, obs)
+    except AttributeError as exc:
+        raise EnvContractError(
+            f"{where}: the observation has no status (EnvObservation.status) and the env no "
+            f"status properties ({exc})"
+        ) from None
+    _require(isinstance(st, EpisodeStatus), f"{where}: status must be an EpisodeStatus")
+    return st
+
+
 def check_status_after_reset(env: Env, obs: EnvObservation, task_id: str) -> None:
     """The reset's observation, the task reset to, an instruction, a fresh episode."""
     check_observation(env, obs, "reset")
-    _require(env.task.task_id == task_id, "env.task does not match the task reset to")
+    st = _status(env, obs, "reset")
+    _require(st.task_id == task_id, "status.task_id does not match the task reset to")
     _require(
-        isinstance(env.instruction, str) and env.instruction.strip() != "", "instruction is empty"
+        isinstance(st.instruction, str) and st.instruction.strip() != "", "instruction is empty"
     )
-    _require(env.steps == 0 and not env.done, "after reset: steps must be 0 and done False")
-    _require(not env.success and env.subtasks_done == 0, "after reset: no success, no subtask done")
+    _require(st.steps == 0 and not st.done, "after reset: steps must be 0 and done False")
+    _require(not st.success and st.subtasks_done == 0, "after reset: no success, no subtask done")
 
 
-def check_optional_members(env: Env) -> None:
-    """The optional members an env has (base.SuiteInfo, SuiteHooks, EpisodeInfo), just after
-    a reset."""
+def check_optional_members(env: Env, obs: EnvObservation) -> None:
+    """The optional members an env has (base.SuiteInfo, SuiteHooks) and the episode's info,
+    just after a reset."""
     info = suite_info(env)
     g = info.gripper_index
     _require(
         g is None or (isinstance(g, int) and 0 <= g < env.action_dim),
         f"gripper_index must be None or an int in [0, action_dim={env.action_dim}), got {g!r}",
     )
-    check_episode_info_after_reset(episode_info(env))
+    check_episode_info_after_reset(_status(env, obs, "reset").info)
     check_hooks(suite_hooks(type(env)))
     backend = info.render_backend
     _require(
@@ -194,45 +209,50 @@ def check_stepping(env: Env, task_id: str, seed: int, n_steps: int) -> None:
 
 
 def _trajectory(env: Env, task_id: str, seed: int, actions: np.ndarray) -> list[np.ndarray]:
-    env.reset(task_id, 0, seed)
+    task = _task(env, task_id)
+    st = _status(env, env.reset(task_id, 0, seed), "reset")
     traj = []
     for i, a in enumerate(actions):
-        if env.done:
+        if st.done:
             break
         obs = env.step(a)
         check_observation(env, obs, f"step {i}")
-        check_status_after_step(env, i + 1)
+        st = _status(env, obs, f"step {i}")
+        check_status_after_step(st, task, i + 1)
         traj.append(obs.state.copy())
     return traj
 
 
-def check_status_after_step(env: Env, steps: int) -> None:
+def _task(env: Env, task_id: str) -> TaskSpec:
+    return next(t for t in env.tasks() if t.task_id == task_id)
+
+
+def check_status_after_step(st: EpisodeStatus, task: TaskSpec, steps: int) -> None:
     """Steps counted, subtasks in range, a bool success, no failure cause on a success."""
-    _require(env.steps == steps, f"steps must count control steps: {env.steps} != {steps}")
-    total = env.task.subtasks_total
-    _require(0 <= env.subtasks_done <= total, f"subtasks_done out of [0, {total}]")
-    _require(isinstance(env.success, bool | np.bool_), "success must be a bool")
+    _require(st.steps == steps, f"steps must count control steps: {st.steps} != {steps}")
+    total = task.subtasks_total
+    _require(0 <= st.subtasks_done <= total, f"subtasks_done out of [0, {total}]")
+    _require(isinstance(st.success, bool | np.bool_), "success must be a bool")
     _require(
-        not (env.success and episode_info(env).failure_cause),
+        not (st.success and st.info.failure_cause),
         "failure_cause is set on a successful episode",
     )
 
 
 def check_horizon(env: Env, task_id: str, seed: int) -> None:
     """Done by max_steps; a step after done refused; the failure cause and reason, str or None."""
-    env.reset(task_id, 0, seed)
-    limit = env.task.max_steps
-    while not env.done:
-        env.step(np.zeros(env.action_dim, dtype=np.float32))
-        _require(env.steps <= limit, f"done not set after max_steps={limit}")
+    st = _status(env, env.reset(task_id, 0, seed), "reset")
+    limit = _task(env, task_id).max_steps
+    while not st.done:
+        st = _status(env, env.step(np.zeros(env.action_dim, dtype=np.float32)), "step")
+        _require(st.steps <= limit, f"done not set after max_steps={limit}")
     try:
         env.step(np.zeros(env.action_dim, dtype=np.float32))
     except RuntimeError:
         pass
     else:
         raise EnvContractError("step() after done must raise RuntimeError")
-    episode = episode_info(env)
-    cause, reason = episode.failure_cause, episode.failure_reason
+    cause, reason = st.info.failure_cause, st.info.failure_reason
     _require(
         cause is None or isinstance(cause, str),
         f"failure_cause must be a str or None: {cause!r}",
@@ -241,4 +261,4 @@ def check_horizon(env: Env, task_id: str, seed: int) -> None:
         reason is None or isinstance(reason, str),
         f"failure_reason must be a str or None: {reason!r}",
     )
-    _require(not (env.success and cause), "failure_cause is set on a successful episode")
+    _require(not (st.success and cause), "failure_cause is set on a successful episode")

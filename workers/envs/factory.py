@@ -6,7 +6,8 @@ from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 from workers.envs.base import Env, TaskSpec, suite_hooks
-from workers.registry import check_params_bind, load_class
+from workers.params_model import check_params
+from workers.registry import load_class
 
 if TYPE_CHECKING:
     from workers.envs.server.client import ServerSpec
@@ -42,7 +43,7 @@ def env_class(suite: str) -> Any:
 def check_suite(suite: str, params: dict[str, Any] | None = None) -> None:
     cls = env_class(suite)
     if params is not None:
-        check_params_bind(f"env.params (suite {suite!r})", cls, params)
+        check_params(f"env.params (suite {suite!r})", cls, params)
 
 
 def suite_tasks(

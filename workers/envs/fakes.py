@@ -9,11 +9,13 @@ first failure (when the step budget runs out), for Avg Len.
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 import numpy as np
 
-from workers.envs.base import EnvObservation, TaskSpec
+from workers.envs.base import EnvObservation, EpisodeStatus, TaskSpec
+from workers.envs.episode_clock import EpisodeClock
+from workers.param_doc import Doc
 
 IMAGE_SIZE = 32
 STEP_SCALE = 0.1  # position change per unit action per step
@@ -45,13 +47,14 @@ class FakeMarkerEnv:
         "reach_chain": "move to each red marker in turn",
     }
 
-    def __init__(self, image_size: int = IMAGE_SIZE) -> None:
+    def __init__(
+        self, image_size: Annotated[int, Doc("px per side of the one camera")] = IMAGE_SIZE
+    ) -> None:
         self.image_size = image_size
-        self._task: TaskSpec | None = None
+        self._clock = EpisodeClock(self.action_dim)
         self._pos = np.zeros(2)
         self._targets: list[np.ndarray] = []
         self._done_count = 0
-        self._steps = 0
 
     @classmethod
     def suite_tasks(cls, **_: object) -> list[TaskSpec]:
@@ -72,11 +75,10 @@ class FakeMarkerEnv:
         spec = self._spec(task_id)
         task_index = self._TASKS.index(spec)
         rng = np.random.default_rng([seed, episode_index, task_index])
-        self._task = spec
+        self._clock.start(spec)
         self._pos = rng.uniform(-0.9, 0.9, size=2)
         self._targets = [rng.uniform(-0.9, 0.9, size=2) for _ in range(spec.subtasks_total)]
         self._done_count = 0
-        self._steps = 0
         return self._observe()
 
     def _observe(self) -> EnvObservation:
@@ -86,48 +88,31 @@ class FakeMarkerEnv:
             img[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2, 0] = 255
         r, c = plane_to_pixel(self._pos, self.image_size)
         img[r, c, 1] = 255
-        return EnvObservation(images={"agentview": img}, state=self._pos.astype(np.float32))
+        return EnvObservation(
+            images={"agentview": img}, state=self._pos.astype(np.float32), status=self._status()
+        )
+
+    def _status(self) -> EpisodeStatus:
+        task = self._clock.task
+        assert task is not None
+        success = self._done_count == task.subtasks_total
+        return self._clock.status(
+            self._INSTRUCTIONS[task.task_id],
+            success,
+            ended=success,
+            subtasks_done=self._done_count,
+        )
 
     def step(self, action: np.ndarray) -> EnvObservation:
-        action = np.asarray(action, dtype=np.float64)
-        if action.shape != (self.action_dim,):
-            raise ValueError(f"action must have shape ({self.action_dim},), got {action.shape}")
-        if self._task is None:
-            raise RuntimeError("step() before reset()")
-        if self.done:
-            raise RuntimeError("step() after the episode is done; call reset()")
+        self._move(self._clock.take(action))
+        return self._observe()
+
+    def _move(self, action: np.ndarray) -> None:
+        """The point's dynamics and the marker check of one step."""
         self._pos = np.clip(self._pos + STEP_SCALE * np.clip(action, -1, 1), -1, 1)
-        self._steps += 1
         target = self._targets[self._done_count]
         if np.linalg.norm(self._pos - target) < REACH_RADIUS:
             self._done_count += 1
-        return self._observe()
-
-    @property
-    def task(self) -> TaskSpec:
-        if self._task is None:
-            raise RuntimeError("no task: call reset() first")
-        return self._task
-
-    @property
-    def instruction(self) -> str:
-        return self._INSTRUCTIONS[self.task.task_id]
-
-    @property
-    def success(self) -> bool:
-        return self._task is not None and self._done_count == self._task.subtasks_total
-
-    @property
-    def done(self) -> bool:
-        return self.success or (self._task is not None and self._steps >= self._task.max_steps)
-
-    @property
-    def subtasks_done(self) -> int:
-        return self._done_count
-
-    @property
-    def steps(self) -> int:
-        return self._steps
 
     def close(self) -> None:
-        self._task = None
+        self._clock = EpisodeClock(self.action_dim)

@@ -30,12 +30,14 @@ import difflib
 import importlib
 import re
 from collections.abc import Mapping
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 
-from workers.envs.base import EnvObservation, TaskSpec
+from workers.envs.base import EnvObservation, EpisodeStatus, TaskSpec
+from workers.envs.episode_clock import EpisodeClock
 from workers.io_spec import EnvIO
+from workers.param_doc import Doc
 from workers.rendering import own_gl_context, release_gl_context
 
 DEFAULT_INSTRUCTION = "do the task"
@@ -178,17 +180,42 @@ class GymnasiumEnv:
 
     def __init__(
         self,
-        id: str,
-        kwargs: dict[str, Any] | None = None,
-        images: dict[str, str] | None = None,
-        state: list[str] | str | None = None,
-        instruction: str | None = None,
-        success_key: str = "is_success",
-        max_steps: int | None = None,
-        control_hz: float | None = None,
-        tasks: dict[str, dict[str, Any]] | None = None,
-        render_key: str | None = None,
-        render_quality: dict[str, int] | None = None,
+        id: Annotated[str, Doc("the registered Gymnasium id")],
+        kwargs: Annotated[
+            dict[str, Any] | None, Doc("keyword arguments for gymnasium.make")
+        ] = None,
+        images: Annotated[
+            dict[str, str] | None,
+            Doc("camera name -> the observation key of its image; None: every image leaf"),
+        ] = None,
+        state: Annotated[
+            list[str] | str | None,
+            Doc("the observation keys concatenated into the state; None: every vector leaf"),
+        ] = None,
+        instruction: Annotated[str | None, Doc("the instruction of every episode")] = None,
+        success_key: Annotated[str, Doc("the info key that says the task is done")] = "is_success",
+        max_steps: Annotated[
+            int | None, Doc("control steps per episode; None: the spec's max_episode_steps")
+        ] = None,
+        control_hz: Annotated[
+            float | None, Doc("control steps per second; None: the env's render_fps (else 10)")
+        ] = None,
+        tasks: Annotated[
+            dict[str, dict[str, Any]] | None,
+            Doc("task name -> {kwargs, instruction}: variants of the env as tasks"),
+        ] = None,
+        render_key: Annotated[
+            str | None,
+            Doc(
+                "for a state-vector env: the camera its rendered frame becomes (AddRenderObservation)"
+            ),
+        ] = None,
+        render_quality: Annotated[
+            dict[str, int] | None,
+            Doc(
+                "MuJoCo model.vis.quality fields set before the first frame, e.g. {shadowsize: 512}"
+            ),
+        ] = None,
     ) -> None:
         from workers.rendering import configure_rendering
 
@@ -270,8 +297,8 @@ class GymnasiumEnv:
         self._task_spec = TaskSpec(
             self.env_id.replace("/", "_"), self.env_id, int(steps), instruction=self._instruction
         )
-        self._task: TaskSpec | None = None
-        self._steps, self._success, self._ended = 0, False, False
+        self._clock = EpisodeClock(self.action_dim)
+        self._success, self._ended = False, False
 
     # -- the Env protocol -----------------------------------------------------------------------
     def tasks(self) -> list[TaskSpec]:
@@ -283,7 +310,7 @@ class GymnasiumEnv:
         specs = {t.task_id: t for t in self.tasks()}
         if task_id not in specs:
             raise ValueError(f"task_id={task_id!r} unknown; allowed: {sorted(specs)}")
-        self._task = None
+        self._clock = EpisodeClock(self.action_dim)  # no episode until this reset is through
         if hasattr(self, "_task_specs"):
             if task_id not in self._envs:
                 self._envs[task_id] = self._make(task_id)
@@ -292,21 +319,15 @@ class GymnasiumEnv:
         own_gl_context(self._env)
         obs, _ = self._env.reset(seed=int(seed) + int(episode_index))
         self.raw_observation = obs
-        self._task, self._steps, self._success, self._ended = specs[task_id], 0, False, False
+        self._clock.start(specs[task_id])
+        self._success, self._ended = False, False
         return self._observe(obs)
 
     def step(self, action: np.ndarray) -> EnvObservation:
-        action = np.asarray(action, dtype=np.float32)
-        if action.shape != (self.action_dim,):
-            raise ValueError(f"action must have shape ({self.action_dim},), got {action.shape}")
-        if self._task is None:
-            raise RuntimeError("step() before reset()")
-        if self.done:
-            raise RuntimeError("step() after the episode is done; call reset()")
+        action = self._clock.take(action).astype(np.float32)
         own_gl_context(self._env)
         obs, _, terminated, truncated, info = self._env.step(action)
         self.raw_observation = obs  # as the env gave it (a scripted expert reads its state)
-        self._steps += 1
         self._success = self._success or bool(info.get(self.success_key, False))
         self._ended = bool(terminated or truncated)
         return self._observe(obs)
@@ -316,33 +337,12 @@ class GymnasiumEnv:
         state = np.concatenate(
             [np.asarray(_get(obs, k), dtype=np.float32).reshape(-1) for k in self._state_keys]
         )
-        return EnvObservation(images=images, state=state)
+        return EnvObservation(images=images, state=state, status=self._status())
 
-    @property
-    def task(self) -> TaskSpec:
-        if self._task is None:
-            raise RuntimeError("no task: call reset() first")
-        return self._task
-
-    @property
-    def instruction(self) -> str:
-        return self._instruction
-
-    @property
-    def success(self) -> bool:
-        return self._success
-
-    @property
-    def done(self) -> bool:
-        return self._success or self._ended or self._steps >= self.task.max_steps
-
-    @property
-    def subtasks_done(self) -> int:
-        return int(self._success)
-
-    @property
-    def steps(self) -> int:
-        return self._steps
+    def _status(self) -> EpisodeStatus:
+        return self._clock.status(
+            self._instruction, self._success, ended=self._success or self._ended
+        )
 
     def _held_envs(self) -> list[Any]:
         """Every Gymnasium env this suite holds (one per task where tasks are variants)."""

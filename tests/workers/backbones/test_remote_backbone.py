@@ -142,7 +142,7 @@ def test_idr_through_the_real_openpi_server_package(flags):
 def _obs(e: int = 0):
     env = FakeMarkerEnv()
     obs = env.reset("reach", e, 0)
-    return obs, to_policy_observation(obs, env.instruction)
+    return obs, to_policy_observation(obs, obs.status.instruction)
 
 
 @pytest.mark.parametrize("server", [(), ("--batch",)], indirect=True, ids=["per-row", "batched"])

@@ -5,14 +5,67 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests.doubles.envs import PropertyMarkerEnv
 from workers.envs.checks import EnvContractError, check_env
 from workers.envs.fakes import FakeMarkerEnv
 
 
-def test_fake_marker_env_passes_contract() -> None:
-    env = FakeMarkerEnv()
+@pytest.mark.parametrize("env_cls", [FakeMarkerEnv, PropertyMarkerEnv])
+def test_fake_marker_env_passes_contract(env_cls) -> None:
+    """The status as a record, and (a user's env written before it) as properties."""
+    env = env_cls()
     for task in env.tasks():
         check_env(env, task_id=task.task_id, run_to_horizon=True)
+
+
+def test_a_property_env_reads_as_the_same_records_as_the_record_env() -> None:
+    """The adapter: a user's env that keeps status as properties gives, step for step, the
+    record the env that returns it gives."""
+    from workers.envs.base import episode_status
+
+    a, b = FakeMarkerEnv(), PropertyMarkerEnv()
+    for task in ("reach", "reach_chain"):
+        oa, ob = a.reset(task, 3, 0), b.reset(task, 3, 0)
+        assert ob.status is None
+        while True:
+            assert oa.status == episode_status(b, ob)
+            if oa.status.done:
+                break
+            act = np.array([0.7, -0.4])
+            oa, ob = a.step(act), b.step(act)
+
+
+def test_the_clock_counts_steps_and_guards_the_call_order() -> None:
+    from workers.envs.base import TaskSpec
+    from workers.envs.episode_clock import EpisodeClock
+
+    clock = EpisodeClock(2)
+    with pytest.raises(RuntimeError, match="before reset"):
+        clock.take([0.0, 0.0])
+    clock.start(TaskSpec("t", "t", max_steps=2))
+    with pytest.raises(ValueError, match="shape"):
+        clock.take([0.0])
+    with pytest.raises(ValueError, match="NaN"):
+        clock.take([np.nan, 0.0])
+    assert clock.steps == 0  # refused actions are not counted
+    clock.take([0.0, 1.0])
+    assert not clock.status("go", False).done
+    clock.take(np.ones(2))
+    st = clock.status("go", False)
+    assert st.done and st.steps == 2 and st.subtasks_done == 0  # the horizon
+    with pytest.raises(RuntimeError, match="after the episode is done"):
+        clock.take([0.0, 0.0])
+    clock.start(TaskSpec("t", "t", max_steps=5))
+    clock.take([0.0, 0.0])
+    st = clock.status("go", True, ended=True)
+    assert st.done and st.success and st.subtasks_done == 1  # the suite ended it
+
+
+def test_the_status_record_crosses_the_wire_unchanged() -> None:
+    from workers.envs.base import EpisodeStatus
+
+    st = FakeMarkerEnv().reset("reach_chain", 0, 0).status
+    assert EpisodeStatus.from_wire(st.to_wire()) == st
 
 
 class _SameInitEnv(FakeMarkerEnv):
@@ -39,7 +92,7 @@ class _FloatImageEnv(FakeMarkerEnv):
         return obs
 
 
-class _NeverDoneEnv(FakeMarkerEnv):
+class _NeverDoneEnv(PropertyMarkerEnv):
     @property
     def done(self):
         return False
@@ -49,15 +102,15 @@ class _GripperOutOfRangeEnv(FakeMarkerEnv):
     gripper_index = 2  # the action has 2 dims
 
 
-class _EmptyInitStateEnv(FakeMarkerEnv):
+class _EmptyInitStateEnv(PropertyMarkerEnv):
     init_state_id = ""
 
 
-class _StaleFailureCauseEnv(FakeMarkerEnv):
+class _StaleFailureCauseEnv(PropertyMarkerEnv):
     failure_cause = "wrong_order"  # set before any episode failed
 
 
-class _FailureOnSuccessEnv(FakeMarkerEnv):
+class _FailureOnSuccessEnv(PropertyMarkerEnv):
     @property
     def success(self) -> bool:
         return self._steps >= 1
@@ -100,11 +153,11 @@ def test_image_carries_information_the_state_lacks() -> None:
 
 def test_success_requires_reaching_the_marker() -> None:
     env = FakeMarkerEnv()
-    env.reset("reach", 0, seed=0)
+    st = env.reset("reach", 0, seed=0).status
     target, pos = env._targets[0], env._pos
-    while not env.done:
-        env.step(np.clip((target - env._pos) / 0.1, -1, 1))
-    assert env.success and env.subtasks_done == 1 and env.steps < env.task.max_steps
+    while not st.done:
+        st = env.step(np.clip((target - env._pos) / 0.1, -1, 1)).status
+    assert st.success and st.subtasks_done == 1 and st.steps < env.tasks()[0].max_steps
     assert np.linalg.norm(pos - target) > 0.08
 
 
@@ -117,7 +170,7 @@ def test_optional_members_have_one_documented_default() -> None:
         EpisodeInfo,
         SuiteHooks,
         SuiteInfo,
-        episode_info,
+        _read,
         suite_hooks,
         suite_info,
     )
@@ -126,7 +179,7 @@ def test_optional_members_have_one_documented_default() -> None:
     for group, read in (
         (SuiteInfo, suite_info),
         (SuiteHooks, suite_hooks),
-        (EpisodeInfo, episode_info),
+        (EpisodeInfo, lambda env: _read(env, EpisodeInfo)),
     ):
         got = read(bare)
         for f in fields(group):

@@ -63,42 +63,44 @@ def test_the_calvin_env_passes_the_env_contract(env):
 
 def test_a_noop_sequence_fails_its_first_subtask_after_360_steps(env):
     obs = env.reset("scene_D", 0, 0)
-    assert env.instruction == "take the blue block and rotate it to the right"
+    assert obs.status.instruction == "take the blue block and rotate it to the right"
     assert obs.images["rgb_static"].shape == (200, 200, 3)
     assert obs.images["rgb_gripper"].shape == (84, 84, 3) and obs.state.shape == (15,)
-    while not env.done:
-        env.step(np.array([0, 0, 0, 0, 0, 0, OPEN]))
-    assert (env.steps, env.subtasks_done, env.success) == (360, 0, False)
-    assert env.failure_cause == "subtask_budget"
-    assert "subtask 1/5 'rotate_blue_block_right'" in env.failure_reason
+    while not obs.status.done:
+        obs = env.step(np.array([0, 0, 0, 0, 0, 0, OPEN]))
+    st = obs.status
+    assert (st.steps, st.subtasks_done, st.success) == (360, 0, False)
+    assert st.info.failure_cause == "subtask_budget"
+    assert "subtask 1/5 'rotate_blue_block_right'" in st.info.failure_reason
 
 
 def _go(env, goal, gripper, steps, orn=(np.pi, 0.0, np.pi / 2)):
     """A proportional controller on the robot's target pose (privileged): the actions are
-    relative, in units of 0.02 m and 0.05 rad, as a policy's."""
+    relative, in units of 0.02 m and 0.05 rad, as a policy's. The last status."""
+    st = None
     for _ in range(steps):
         p = env._call("privileged")
         d_pos = (np.asarray(goal) - p["target_pos"]) / 0.02
         d_orn = ((np.asarray(orn) - p["target_orn"] + np.pi) % (2 * np.pi) - np.pi) / 0.05
-        env.step(np.r_[np.clip(d_pos, -1, 1), np.clip(d_orn, -1, 1), gripper])
-        if env.subtasks_done:
-            return
+        st = env.step(np.r_[np.clip(d_pos, -1, 1), np.clip(d_orn, -1, 1), gripper]).status
+        if st.subtasks_done:
+            break
+    return st
 
 
 def test_a_scripted_controller_opens_the_drawer_and_the_oracle_sees_it(env):
     seqs = load_sequences()
     e = next(i for i, (cond, tasks) in enumerate(seqs) if tasks[0] == "open_drawer")
-    env.reset("scene_D", e, 0)
-    assert env.instruction == "pull the handle to open the drawer"
+    assert env.reset("scene_D", e, 0).status.instruction == "pull the handle to open the drawer"
     handle = np.array([0.18, -0.25, 0.36])  # the drawer's handle bar (found with rayTest)
     _go(env, handle + np.array([0, 0, 0.10]), OPEN, 60)
     _go(env, handle, OPEN, 40)
     _go(env, handle, CLOSE, 15)
-    _go(env, handle - np.array([0, 0.20, 0]), CLOSE, 80)
-    assert env.subtasks_done == 1 and not env.done, env.failure_reason
-    assert env.steps < 360
+    st = _go(env, handle - np.array([0, 0.20, 0]), CLOSE, 80)
+    assert st.subtasks_done == 1 and not st.done, st.info.failure_reason
+    assert st.steps < 360
     # the next subtask's instruction; the policy is reset there (policy_reset_per_subtask)
-    assert env.instruction != "pull the handle to open the drawer"
+    assert st.instruction != "pull the handle to open the drawer"
     assert env.policy_reset_per_subtask is True
 
 

@@ -34,7 +34,7 @@ def test_the_zoo_metaworld_block_is_five_tasks_of_one_env_at_96px() -> None:
         assert all(t.max_steps == 150 for t in tasks.values())
         assert env.cameras == ("image",) and env.state_dim == 4 and env.action_dim == 4
         a = env.reset("drawer-open-v3", 0, seed=0)
-        assert env.instruction == "Open a drawer"
+        assert a.status.instruction == "Open a drawer"
         assert a.images["image"].shape == (96, 96, 3) and a.images["image"].dtype == np.uint8
         full = env.raw_observation["state"]
         assert full.shape == (39,) and np.array_equal(a.state, full[:4].astype(np.float32))
@@ -44,8 +44,7 @@ def test_the_zoo_metaworld_block_is_five_tasks_of_one_env_at_96px() -> None:
         assert np.array_equal(again.images["image"], a.images["image"])  # seeded: the same scene
         env.reset("drawer-open-v3", 1, seed=0)
         assert not np.allclose(env.raw_observation["state"][4:7], objects0)  # another init
-        env.reset("button-press-v3", 0, seed=0)
-        assert env.instruction == "Press a button"
+        assert env.reset("button-press-v3", 0, seed=0).status.instruction == "Press a button"
     finally:
         env.close()
 

@@ -34,7 +34,7 @@ def test_a_gymnasium_id_is_a_suite_that_keeps_the_env_contract() -> None:
         assert task.max_steps == 300 and task.instruction == "push the T"  # the spec's limit
         obs = env.reset(task.task_id, 0, seed=3)
         assert obs.images["pixels"].shape == (64, 64, 3) and obs.images["pixels"].dtype == np.uint8
-        assert obs.state.dtype == np.float32 and env.instruction == "push the T"
+        assert obs.state.dtype == np.float32 and obs.status.instruction == "push the T"
     finally:
         env.close()
 
@@ -82,6 +82,7 @@ def test_the_lerobot_suite_builds_lerobots_env_and_seeds_episodes_as_lerobot_eva
         ("lerobot", {"type": "vlabench"}, r"type='vlabench': 'VLABench' is not installed"),
         ("lerobot", {"type": "libero"}, r"robot_state.*use env.suite=libero"),
         ("lerobot", {**LEROBOT, "colour": 1}, "unexpected keyword argument 'colour'"),
+        ("lerobot", {**LEROBOT, "episode_lenght": 9}, "did you mean 'episode_length'"),
     ],
 )
 def test_bad_env_params_are_refused_before_any_work(tmp_path, suite, params, pattern) -> None:

@@ -66,7 +66,7 @@ def test_metaworld_tasks_are_named_and_keep_the_envs_budget_and_instruction() ->
         check_env(env)
         name = DIFFICULTY_TO_TASKS["easy"][3]
         obs = env.reset(f"easy/{name}", 0, seed=0)
-        assert env.instruction == TASK_DESCRIPTIONS[name]
+        assert obs.status.instruction == TASK_DESCRIPTIONS[name]
         assert obs.images["image"].shape == (480, 480, 3) and obs.state.shape == (4,)
         first = obs.images["image"].copy()
         again = env.reset(f"easy/{name}", 1, seed=0)  # seed 1: the objects move
@@ -132,7 +132,7 @@ def test_a_diverged_metaworld_episode_is_an_error_row_and_the_next_is_unaffected
         step = env.step
 
         def diverging(action):
-            if env.steps == 3:  # NaN velocities inside the physics, as a blow-up leaves them
+            if env._clock.steps == 3:  # NaN velocities inside the physics, as a blow-up leaves them
                 mujoco_data(env._env).qvel[:] = np.nan
             return step(action)
 

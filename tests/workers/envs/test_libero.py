@@ -245,8 +245,9 @@ def test_lazy_images_equal_the_eager_ones_flipped_180_degrees(env, eager_env) ->
             assert not np.array_equal(f.images[cam], r.images[cam][::-1])  # both axes
     assert not np.array_equal(lazy[0].images["wrist"], lazy[-1].images["wrist"])  # it moved
     # the eager env shows max_steps is a param and ends the episode
-    assert eager_env.task.max_steps == 3
-    assert eager_env.done and not eager_env.success and eager_env.steps == 3
+    last = raw[-1].status
+    assert {t.max_steps for t in eager_env.tasks()} == {3}
+    assert last.done and not last.success and last.steps == 3
     with pytest.raises(RuntimeError, match="after the episode is done"):
         eager_env.step(np.zeros(7))
 
@@ -285,11 +286,13 @@ def test_episode_follows_the_protocol(env, task_id) -> None:
     before = list(env.built)
     obs = env.reset(task_id, 53, seed=7)  # 50 init states per task: wraps to init 3
 
-    assert env.task.task_id == task_id and env.task.suite == suite
-    assert env.task.max_steps == PROTOCOL_MAX_STEPS[suite]
-    assert env.instruction == _benchmark_language(task_id)
-    assert env.init_state_id == f"{task_id}/init3"
-    assert env.steps == 0 and not env.done and not env.success
+    spec = next(t for t in env.tasks() if t.task_id == task_id)
+    st = obs.status
+    assert st.task_id == task_id and spec.suite == suite
+    assert spec.max_steps == PROTOCOL_MAX_STEPS[suite]
+    assert st.instruction == _benchmark_language(task_id)
+    assert st.info.init_state_id == f"{task_id}/init3"
+    assert st.steps == 0 and not st.done and not st.success
     assert env._sim.env.timestep == 10  # the ten no-ops ran in the simulator, uncounted
     _assert_obs_shapes(env, obs)
     raw = env._sim.env._get_observations()
@@ -299,10 +302,10 @@ def test_episode_follows_the_protocol(env, task_id) -> None:
     start = obs.state.copy()
     for i in range(3):
         obs = env.step(np.array([0.5, 0, 0, 0, 0, 0, -1], dtype=np.float32))
-        assert env.steps == i + 1
+        assert obs.status.steps == i + 1
     _assert_obs_shapes(env, obs)
     assert obs.state[0] > start[0] + 1e-3  # +x command moved the end effector along +x
-    assert not env.done
+    assert not obs.status.done
 
     if suite != "libero_spatial":  # switching task closed the previous simulator
         assert len(env.built) == len(before) + 1
@@ -323,8 +326,11 @@ def test_scene_perturbations_and_bit_identical_none(env) -> None:
     pe = PerturbedEnv(env, [None, *map(parse, kinds)])
     assert {t.task_id for t in pe.tasks()} >= {task, *(f"{task}@{k}" for k in kinds)}
 
+    last = [None]  # the last episode's status
+
     def episode(task_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         obs = pe.reset(task_id, 4, seed=7)
+        last[0] = obs.status
         first = obs.images["agentview"].copy()
         qpos = env._sim.env.sim.data.qpos.copy()
         obs = pe.step(np.array([0.5, 0, 0, 0, 0, 0, -1], dtype=np.float32))
@@ -335,10 +341,11 @@ def test_scene_perturbations_and_bit_identical_none(env) -> None:
     assert np.array_equal(tinted[3], plain[3]) and np.array_equal(tinted[2], plain[2])
     assert tinted[0].mean() < plain[0].mean() - 5  # the table darkened toward brown
     jittered = episode(f"{task}@init_jitter:0.02")
-    assert pe.init_state_id == f"{task}/init4@init_jitter:0.02"
+    assert last[0].info.init_state_id == f"{task}/init4@init_jitter:0.02"
+    assert last[0].task_id == f"{task}@init_jitter:0.02"  # the wrapper's id
     moved = np.abs(jittered[3] - plain[3])
     assert 1e-4 < moved.max() < 0.05  # objects moved by centimetres, nothing flew
     again = episode(task)
-    assert pe.init_state_id == f"{task}/init4"
+    assert last[0].info.init_state_id == f"{task}/init4"
     for a, b in zip(again, plain, strict=True):
         assert np.array_equal(a, b)

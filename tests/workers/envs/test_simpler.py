@@ -182,10 +182,10 @@ def test_the_run_is_refused_before_any_work(tmp_path, monkeypatch) -> None:
 
 def _run(env, task_id: str, episode: int, n: int, action: np.ndarray) -> list:
     obs = env.reset(task_id, episode, seed=123)
-    seen = [(obs, env.instruction)]
+    seen = [(obs, obs.status.instruction)]
     for _ in range(n):
         obs = env.step(action)
-        seen.append((obs, env.instruction))
+        seen.append((obs, obs.status.instruction))
     return seen
 
 
@@ -219,18 +219,19 @@ def test_adapter_builds_resets_and_steps_as_the_evaluator(tmp_path, monkeypatch)
     assert reset["options"]["robot_init_options"]["init_xy"] == [0.652, 0.009]
     assert np.allclose(LOG[2]["action"][3:6], [0, 0, 0.2])  # yaw 0.2 -> axis-angle about z
     assert seen[0][0].images["image"].shape == (512, 640, 3) and seen[0][0].state.shape == (8,)
-    assert env.done and env.steps == 113
-    assert not env.success  # success held at steps 3-5 only: the final step's rule
-    assert env.init_state_id.startswith(f"{DRAWER}/urdf_none/open_drawer_b0")
+    last = seen[-1][0].status
+    assert last.done and last.steps == 113
+    assert not last.success  # success held at steps 3-5 only: the final step's rule
+    assert last.info.init_state_id.startswith(f"{DRAWER}/urdf_none/open_drawer_b0")
     assert env.render_backend == "sapien-vulkan-gpu/rt"
     # any_step: the episode ends at the first success
     env2 = SimplerEnv(
         maniskill2_real2sim=str(root), renderer="gpu", shader="ibl", success_rule="any_step"
     )
-    env2.reset(DRAWER, 0, seed=0)
-    while not env2.done:
-        env2.step(np.zeros(7))
-    assert env2.success and env2.steps == 3 and LOG[-1]["op"] != "make"
+    st = env2.reset(DRAWER, 0, seed=0).status
+    while not st.done:
+        st = env2.step(np.zeros(7)).status
+    assert st.success and st.steps == 3 and LOG[-1]["op"] != "make"
     assert "shader_dir" not in [e for e in LOG if e["op"] == "make"][-1]  # ibl: the default
     # the apple task's instruction changes at step 100, as the env says
     apple = _run(
@@ -265,8 +266,8 @@ def test_through_an_env_server(tmp_path) -> None:
         obs = env.reset(DRAWER, 0, seed=0)
         assert obs.images["image"].shape == (512, 640, 3)
         for _ in range(5):
-            env.step(np.array([0, 0, 0, 0, 0, 0, 2.0]))
-        assert env.success and not env.done  # step 5: success holds, 108 steps to go
+            st = env.step(np.array([0, 0, 0, 0, 0, 0, 2.0])).status
+        assert st.success and not st.done  # step 5: success holds, 108 steps to go
         env.close()
     finally:
         del os.environ["FAKE_SIMPLER_LOG"]

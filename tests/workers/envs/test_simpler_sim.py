@@ -58,14 +58,17 @@ def test_an_official_episode_is_deterministic_and_moves_as_told(env):
         return out
 
     a, b = run(3), run(3)
-    assert env.instruction == "open top drawer"
-    assert env.init_state_id == f"{OPEN_TOP}/urdf_none/open_drawer_b1/rob_0.752_0.009_yaw_0/obj_0_0"
+    st = env.step(np.zeros(7)).status  # the fourth step of the second run
+    assert st.instruction == "open top drawer"
+    assert st.info.init_state_id == (
+        f"{OPEN_TOP}/urdf_none/open_drawer_b1/rob_0.752_0.009_yaw_0/obj_0_0"
+    )
     image = a[0][0]
     assert image.shape == (512, 640, 3) and image.dtype == np.uint8 and image.std() > 10
     for (ia, sa), (ib, sb) in zip(a, b, strict=True):  # a fresh env per episode: the same twice
         assert np.array_equal(ia, ib) and np.array_equal(sa, sb)
     assert a[-1][1][0] > a[0][1][0] + 0.02  # +x in the base frame: the TCP moved forward
-    assert not env.success and not env.done and env.steps == 3
+    assert not st.success and not st.done and st.steps == 4
 
 
 def test_a_renderer_that_cannot_start_is_one_clear_error() -> None:
@@ -91,7 +94,7 @@ def close_drawer_policy(privileged, step: int) -> np.ndarray:
 def test_a_scripted_push_closes_the_drawer_and_the_final_step_decides(env):
     obs = env.reset("google_robot_close_top_drawer/visual_matching", 4, seed=0)
     assert obs.privileged["drawer_qpos"] == pytest.approx(0.2)  # close tasks start open 0.2 m
-    while not env.done:
-        obs = env.step(close_drawer_policy(obs.privileged, env.steps))
-    assert env.steps == 113 and env.success  # the official rule: the last step's success
+    while not obs.status.done:
+        obs = env.step(close_drawer_policy(obs.privileged, obs.status.steps))
+    assert obs.status.steps == 113 and obs.status.success  # the official rule: the last step's
     assert obs.privileged["drawer_qpos"] <= 0.05

@@ -24,9 +24,9 @@ def _run(env, task, episode, policy, seed=0):
     from workers.experts.tabletop import expert_action  # noqa: F401
 
     obs = env.reset(task, episode, seed)
-    while not env.done:
+    while not obs.status.done:
         obs = env.step(policy(obs.privileged))
-    return env.success, env.subtasks_done, env.steps
+    return obs.status
 
 
 @pytest.mark.parametrize("task", ["pick_color", "stack_color", "organize"])
@@ -42,12 +42,14 @@ def test_contract(env, task) -> None:
 def test_expert_succeeds(env, task, episodes) -> None:
     from workers.experts.tabletop import expert_action
 
+    spec = next(t for t in env.tasks() if t.task_id == task)
     for i in range(episodes):
-        success, done, steps = _run(env, task, 100 + i, expert_action)
-        assert success, (
-            f"{task} episode {100 + i}: expert failed after {steps} steps ({env.failure_reason})"
+        st = _run(env, task, 100 + i, expert_action)
+        assert st.success, (
+            f"{task} episode {100 + i}: expert failed after {st.steps} steps "
+            f"({st.info.failure_reason})"
         )
-        assert done == env.task.subtasks_total and steps < env.task.max_steps
+        assert st.subtasks_done == spec.subtasks_total and st.steps < spec.max_steps
 
 
 def test_expert_with_a_wider_place_tolerance_still_succeeds(env) -> None:
@@ -55,8 +57,8 @@ def test_expert_with_a_wider_place_tolerance_still_succeeds(env) -> None:
     from workers.experts.tabletop import TabletopExpertBackbone, expert_action
 
     for task, i in (("stack_color", 110), ("stack_color", 111), ("organize", 110)):
-        success, _, steps = _run(env, task, i, lambda p: expert_action(p, place_tol=0.02))
-        assert success, f"{task} episode {i}: failed after {steps} steps ({env.failure_reason})"
+        st = _run(env, task, i, lambda p: expert_action(p, place_tol=0.02))
+        assert st.success, f"{task} episode {i}: failed after {st.steps} steps ({st.info})"
     with pytest.raises(ValueError, match="place_tol"):
         TabletopExpertBackbone(place_tol=0.05)
 
@@ -70,27 +72,29 @@ def test_chain_stops_at_first_failure(env) -> None:
         order[2], order[3] = order[3], order[2]
         return expert_action({**priv, "targets": order})
 
-    success, done, _ = _run(env, "organize", 7, swapped)
-    assert not success and done == 2 and env.done
-    assert "put in the bin before" in env.failure_reason and env.failure_cause == "wrong_order"
+    st = _run(env, "organize", 7, swapped)
+    assert not st.success and st.subtasks_done == 2 and st.done
+    assert "put in the bin before" in st.info.failure_reason
+    assert st.info.failure_cause == "wrong_order"
 
 
 def test_chain_ends_when_a_subtask_overruns_its_budget(env) -> None:
     """Standing still: organize ends after subtask_budget steps, with that cause."""
-    success, done, steps = _run(env, "organize", 0, lambda p: np.array([0, 0, 0, 0, 0, 0, -1.0]))
-    assert not success and done == 0 and steps == env.subtask_budget < env.task.max_steps
-    assert env.failure_cause == "subtask_budget" and "subtask 1 not done" in env.failure_reason
+    st = _run(env, "organize", 0, lambda p: np.array([0, 0, 0, 0, 0, 0, -1.0]))
+    max_steps = next(t.max_steps for t in env.tasks() if t.task_id == "organize")
+    assert not st.success and st.subtasks_done == 0 and st.steps == env.subtask_budget < max_steps
+    assert st.info.failure_cause == "subtask_budget"
+    assert "subtask 1 not done" in st.info.failure_reason
     # the next episode starts clean
-    env.reset("organize", 1, 0)
-    assert env.failure_cause is None and env.failure_reason is None
+    info = env.reset("organize", 1, 0).status.info
+    assert info.failure_cause is None and info.failure_reason is None
 
 
 def test_wrong_actions_fail_and_episode_ends_at_max_steps(env) -> None:
-    success, done, steps = _run(
-        env, "pick_color", 0, lambda p: np.array([0, 0, 1.0, 0, 0, 0, -1.0])
-    )
-    assert not success and done == 0 and steps == env.task.max_steps
-    assert env.failure_cause is None  # not ended early: the worker records a timeout
+    st = _run(env, "pick_color", 0, lambda p: np.array([0, 0, 1.0, 0, 0, 0, -1.0]))
+    max_steps = next(t.max_steps for t in env.tasks() if t.task_id == "pick_color")
+    assert not st.success and st.subtasks_done == 0 and st.steps == max_steps and st.done
+    assert st.info.failure_cause is None  # not ended early: the worker records a timeout
     with pytest.raises(RuntimeError, match="after the episode is done"):
         env.step(np.zeros(7))
 
@@ -108,20 +112,19 @@ def test_blind_policy_fails_pick_color_most_of_the_time(env) -> None:
         fake["grasped"] = [False] * len(pos)
         return expert_action(fake)
 
-    wins = sum(_run(env, "pick_color", 200 + i, blind)[0] for i in range(8))
+    wins = sum(_run(env, "pick_color", 200 + i, blind).success for i in range(8))
     assert wins <= 1
 
 
 def test_instructions_name_colors_and_vary(env) -> None:
     texts = set()
     for i in range(6):
-        env.reset("pick_color", i, 0)
-        texts.add(env.instruction)
+        texts.add(env.reset("pick_color", i, 0).status.instruction)
     assert (
         all(t.startswith("pick up the ") and t.endswith(" cube") for t in texts) and len(texts) >= 2
     )
-    env.reset("organize", 0, 0)
-    assert env.instruction.startswith("put the ") and env.instruction.count(",") >= 3
+    text = env.reset("organize", 0, 0).status.instruction
+    assert text.startswith("put the ") and text.count(",") >= 3
 
 
 def test_images_render_only_when_read(env) -> None:

@@ -4,7 +4,7 @@
 rendering per camera, failure causes, the optional members), so the episode loop does not
 know where the simulator lives. Images and the privileged state are fetched on first read,
 like an in-process env renders them; the status after each reset and step comes with the
-reply and is read from a cache.
+reply, as the record ``EnvObservation.status``.
 
 Lifecycle: one server per actor, started with the env (``start_timeout_s`` for the handshake
 and the build), health-checked before each reset (a dead one is restarted), killed with its
@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from workers.envs.base import EnvObservation, LazyImages, LazyState, TaskSpec
+from workers.envs.base import EnvObservation, EpisodeStatus, LazyImages, LazyState, TaskSpec
 from workers.envs.server import wire
 from workers.envs.server.spec import ServerSpec
 
@@ -234,7 +234,6 @@ class EnvServerClient:
         self.entry, self.params, self.server_spec = entry, dict(params), server
         self.restarts = 0
         self._server: ServerProcess | None = None
-        self._status: dict[str, Any] | None = None
         self._generation = 0
         self._perturbation: Any = None
         self._start()
@@ -256,7 +255,6 @@ class EnvServerClient:
         self.policy_reset_per_subtask: bool = info["policy_reset_per_subtask"]
         self.perturbation_kinds: tuple[str, ...] = tuple(info.get("perturbation_kinds", ()))
         self._tasks = [TaskSpec(**t) for t in info["tasks"]]
-        self._status = None
         self._generation += 1  # observations of the old server are stale
 
     @property
@@ -304,7 +302,6 @@ class EnvServerClient:
     def _observation(self, reply: dict[str, Any]) -> EnvObservation:
         self._generation += 1
         generation = self._generation
-        self._status = reply["status"]
 
         def current() -> bool:
             return self._generation == generation
@@ -315,49 +312,12 @@ class EnvServerClient:
             if reply["has_privileged"]
             else None
         )
-        return EnvObservation(images=images, state=reply["state"], privileged=privileged)
-
-    def _get(self, key: str) -> Any:
-        if self._status is None:
-            raise RuntimeError("no episode: call reset() first")
-        return self._status[key]
-
-    @property
-    def task(self) -> TaskSpec:
-        task_id = self._get("task_id")
-        return next(t for t in self._tasks if t.task_id == task_id)
-
-    @property
-    def instruction(self) -> str:
-        return self._get("instruction")
-
-    @property
-    def success(self) -> bool:
-        return self._get("success")
-
-    @property
-    def done(self) -> bool:
-        return self._get("done")
-
-    @property
-    def subtasks_done(self) -> int:
-        return self._get("subtasks_done")
-
-    @property
-    def steps(self) -> int:
-        return self._get("steps")
-
-    @property
-    def init_state_id(self) -> str | None:
-        return self._status.get("init_state_id") if self._status else None
-
-    @property
-    def failure_cause(self) -> str | None:
-        return self._status.get("failure_cause") if self._status else None
-
-    @property
-    def failure_reason(self) -> str | None:
-        return self._status.get("failure_reason") if self._status else None
+        return EnvObservation(
+            images=images,
+            state=reply["state"],
+            privileged=privileged,
+            status=EpisodeStatus.from_wire(reply["status"]),
+        )
 
     def close(self) -> None:
         """Idempotent."""

@@ -23,6 +23,7 @@ import traceback
 from collections.abc import Callable
 from typing import Any
 
+from workers.envs.base import episode_status
 from workers.envs.server import wire
 
 PR_SET_PDEATHSIG = 1
@@ -47,24 +48,6 @@ def env_info(env: Any) -> dict[str, Any]:
         "policy_reset_per_subtask": bool(info.policy_reset_per_subtask),
         "perturbation_kinds": list(info.perturbation_kinds),
         "tasks": [asdict(t) for t in env.tasks()],
-    }
-
-
-def env_status(env: Any) -> dict[str, Any]:
-    """The env's status after a reset or a step (the actor reads it from a cache)."""
-    from workers.envs.base import episode_info
-
-    episode = episode_info(env)
-    return {
-        "task_id": env.task.task_id,
-        "instruction": env.instruction,
-        "steps": int(env.steps),
-        "done": bool(env.done),
-        "success": bool(env.success),
-        "subtasks_done": int(env.subtasks_done),
-        "init_state_id": episode.init_state_id,
-        "failure_cause": episode.failure_cause,
-        "failure_reason": episode.failure_reason,
     }
 
 
@@ -144,7 +127,7 @@ class EnvServer:
         return {
             "state": self.obs.state,
             "has_privileged": self.obs.privileged is not None,
-            "status": env_status(self.env),
+            "status": episode_status(self.env, self.obs).to_wire(),
         }
 
     def handle(self, req: Any) -> dict[str, Any]:

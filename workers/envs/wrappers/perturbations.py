@@ -92,17 +92,17 @@ class PerturbedEnv:
     def _wrap(self, obs: Any) -> Any:
         from dataclasses import replace
 
+        from workers.envs.base import episode_status
+
         p = self._p
+        task_id, episode, seed = self._episode
+        status = episode_status(self._env, obs)
+        obs = replace(obs, status=replace(status, task_id=task_id))  # the perturbed task's id
         if p is None or p.scene:
             return obs
-        task_id, episode, seed = self._episode
-        step = int(self._env.steps)
+        step = status.steps
 
         def rng_for(camera: str) -> np.random.Generator:
             return p.rng(seed, task_id, episode, step, zlib.crc32(camera.encode()))
 
         return replace(obs, images=PerturbedImages(obs.images, p, rng_for))
-
-    @property
-    def task(self) -> Any:
-        return perturbed_task(self._env.task, self._p)

@@ -46,11 +46,19 @@ import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 
-from workers.envs.base import EnvObservation, LazyImages, LazyState, TaskSpec
+from workers.envs.base import (
+    EnvObservation,
+    EpisodeInfo,
+    EpisodeStatus,
+    LazyImages,
+    LazyState,
+    TaskSpec,
+)
+from workers.envs.episode_clock import EpisodeClock
 from workers.envs.suites.calvin.checkout import (
     BUTTON_BUG_COMMIT,
     annotations_file,
@@ -68,6 +76,7 @@ from workers.envs.suites.calvin.sequences import (
     load_sequences,
 )
 from workers.io_spec import EnvIO
+from workers.param_doc import Doc
 
 SUITE = "calvin"
 CAMERAS = {"rgb_static": ("static", 200), "rgb_gripper": ("gripper", 84)}  # key: (calvin, px)
@@ -103,14 +112,28 @@ class CalvinEnv:
 
     def __init__(
         self,
-        calvin_env: str | None = None,
-        annotations: str | None = None,
-        scene: str = "calvin_scene_D",
-        cameras: Sequence[str] = ("rgb_static", "rgb_gripper"),
-        renderer: str = "egl",
-        robot: str = "panda_longer_finger",
-        subtask_steps: int = EP_LEN,
-        sequences: str | None = None,
+        calvin_env: Annotated[str | None, Doc("the calvin_env checkout; None: $CALVIN_ENV")] = None,
+        annotations: Annotated[
+            str | None,
+            Doc(
+                "the evaluation's language annotations (yaml); None: those of the mees/calvin clone around calvin_env"
+            ),
+        ] = None,
+        scene: Annotated[str, Doc("the CALVIN scene the sequences run in")] = "calvin_scene_D",
+        cameras: Annotated[Sequence[str], Doc("the cameras rendered: rgb_static, rgb_gripper")] = (
+            "rgb_static",
+            "rgb_gripper",
+        ),
+        renderer: Annotated[
+            str, Doc("egl (as the CALVIN data was rendered) or tiny (PyBullet's CPU renderer)")
+        ] = "egl",
+        robot: Annotated[str, Doc("the robot of calvin_env's config")] = "panda_longer_finger",
+        subtask_steps: Annotated[
+            int, Doc("steps each subtask of a chain may take (the official 360)")
+        ] = EP_LEN,
+        sequences: Annotated[
+            str | None, Doc("a file of evaluation sequences; None: the official 1,000")
+        ] = None,
     ) -> None:
         params = self._check_params(calvin_env, scene, cameras, renderer, robot, subtask_steps)
         self.checkout = params["checkout"]
@@ -128,7 +151,7 @@ class CalvinEnv:
         self._used = False  # the simulator has run a sequence: the next one gets a new one
         self._subtasks: tuple[str, ...] = ()
         self._done_count = 0
-        self._steps = 0
+        self._clock = EpisodeClock(self.action_dim)
         self._subtask_step = 0
         self._start_info: dict[str, Any] | None = None
         self._failed: str | None = None
@@ -282,16 +305,14 @@ class CalvinEnv:
         env = self._env
         env.reset(robot_obs=robot_obs, scene_obs=scene_obs)  # the official reset
         self._episode = episode_index
-        self._done_count, self._steps, self._subtask_step, self._failed = 0, 0, 0, None
+        self._done_count, self._subtask_step, self._failed = 0, 0, None
+        self._clock.start(self._task)
         self._start_info = env.get_info()
         return self._observe()
 
     def step(self, action: np.ndarray) -> EnvObservation:
+        self._clock.take(action)  # checked and counted; the action itself keeps its dtype
         action = np.asarray(action)
-        if action.shape != (self.action_dim,):
-            raise ValueError(f"action must have shape ({self.action_dim},), got {action.shape}")
-        if self.done:
-            raise RuntimeError("step() after the episode is done; call reset()")
         env = self._env
         # env.step without its camera rendering: images are rendered when read (the same
         # pixels: rendering does not touch the physics)
@@ -300,7 +321,6 @@ class CalvinEnv:
             env.p.stepSimulation(physicsClientId=env.cid)
         env.scene.step()
         info = env.get_info()
-        self._steps += 1
         self._subtask_step += 1
         subtask = self._subtasks[self._done_count]
         if self._oracle.get_task_info_for_set(self._start_info, info, {subtask}):
@@ -331,6 +351,7 @@ class CalvinEnv:
             images=LazyImages(self.cameras, render, current),
             state=state,
             privileged=LazyState(self.privileged, current),
+            status=self._status(),
         )
 
     def privileged(self) -> dict[str, Any]:
@@ -345,48 +366,22 @@ class CalvinEnv:
         }
 
     # -- status ------------------------------------------------------------------------------
-    @property
-    def task(self) -> TaskSpec:
-        return self._task
-
-    @property
-    def subtasks(self) -> tuple[str, ...]:
-        return self._subtasks
-
-    @property
-    def instruction(self) -> str:
-        if not self._subtasks:
-            raise RuntimeError("no sequence: call reset() first")
-        return self._annotations[self._subtasks[min(self._done_count, NUM_SUBTASKS - 1)]]
-
-    @property
-    def success(self) -> bool:
-        return self._done_count == NUM_SUBTASKS
-
-    @property
-    def done(self) -> bool:
-        return self.success or self._failed is not None
-
-    @property
-    def subtasks_done(self) -> int:
-        return self._done_count
-
-    @property
-    def steps(self) -> int:
-        return self._steps
-
-    @property
-    def init_state_id(self) -> str:
+    def _status(self) -> EpisodeStatus:
+        """The chain's status: success when all five subtasks are done; ended early when one
+        is not done within ``subtask_steps`` (CALVIN has no horizon of its own beyond that)."""
+        success = self._done_count == NUM_SUBTASKS
         condition, _ = self._sequences[self._episode]
-        return f"sequence {self._episode} (scene seed {condition_seed(condition)})"
-
-    @property
-    def failure_cause(self) -> str | None:
-        return "subtask_budget" if self._failed else None
-
-    @property
-    def failure_reason(self) -> str | None:
-        return self._failed
+        return self._clock.status(
+            self._annotations[self._subtasks[min(self._done_count, NUM_SUBTASKS - 1)]],
+            success,
+            ended=success or self._failed is not None,
+            subtasks_done=self._done_count,
+            info=EpisodeInfo(
+                init_state_id=f"sequence {self._episode} (scene seed {condition_seed(condition)})",
+                failure_cause="subtask_budget" if self._failed else None,
+                failure_reason=self._failed,
+            ),
+        )
 
     def close(self) -> None:
         """The physics client is disconnected once, here; calvin_env's own ``__del__`` would

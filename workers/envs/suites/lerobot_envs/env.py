@@ -25,14 +25,16 @@ import dataclasses
 import difflib
 import sys
 from collections.abc import Iterator, Mapping
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 
 from workers.envs.base import EnvObservation, TaskSpec
+from workers.envs.episode_clock import EpisodeClock
 from workers.envs.gym_env import DEFAULT_INSTRUCTION, GymnasiumEnv, env_io
 from workers.envs.mujoco.stability import mujoco_instability, raise_if_unstable
 from workers.io_spec import EnvIO
+from workers.param_doc import Doc
 from workers.rendering import own_gl_context, release_gl_context
 
 # the package each env type needs, as lerobot's extras name it (what the refusal says to install)
@@ -89,10 +91,34 @@ def env_config(type: str, config: Mapping[str, Any]) -> Any:
         raise ValueError(
             f"env.params.type={type!r} is not a lerobot env type{hint}; known: {types}"
         )
+    fields = config_fields(type)
+    unknown = [k for k in config if k not in fields]
+    if unknown:
+        hints = [
+            f"{k!r}: did you mean {close[0]!r}?"
+            for k in unknown
+            if (close := difflib.get_close_matches(k, fields, n=1))
+        ]
+        hint = f" ({'; '.join(hints)})" if hints else ""
+        raise ValueError(
+            f"env.params (lerobot env type {type!r}): unexpected keyword argument "
+            f"{', '.join(map(repr, unknown))}{hint}; the suite's own params are type, "
+            f"instruction and max_steps, the others go to lerobot's config: {fields}"
+        )
     try:
         return make_env_config(type, **config)
     except TypeError as exc:
         raise ValueError(f"env.params (lerobot env type {type!r}): {exc}") from None
+
+
+def config_fields(type: str) -> list[str]:
+    """The fields of lerobot's env config of ``type`` (what ``env.params`` may set beyond the
+    suite's own)."""
+    import dataclasses
+
+    from lerobot.envs.configs import EnvConfig
+
+    return [f.name for f in dataclasses.fields(EnvConfig.get_choice_class(type))]
 
 
 class _OneOfVector:
@@ -223,9 +249,14 @@ class LerobotEnvSuite(GymnasiumEnv):
 
     def __init__(
         self,
-        type: str,
-        instruction: str | None = None,
-        max_steps: int | None = None,
+        type: Annotated[str, Doc("the lerobot env type (pusht, aloha, metaworld, ...)")],
+        instruction: Annotated[
+            str | None, Doc("the instruction where the env describes no task")
+        ] = None,
+        max_steps: Annotated[
+            int | None,
+            Doc("control steps per episode; None: the env's own (what lerobot-eval reads)"),
+        ] = None,
         **config: Any,
     ) -> None:
         if max_steps is not None and (not isinstance(max_steps, int) or max_steps <= 0):
@@ -293,7 +324,7 @@ class LerobotEnvSuite(GymnasiumEnv):
     def reset(self, task_id: str, episode_index: int, seed: int) -> EnvObservation:
         if task_id not in self._specs:
             raise ValueError(f"task_id={task_id!r} unknown; allowed: {sorted(self._specs)}")
-        self._task = None
+        self._clock = EpisodeClock(self.action_dim)  # no episode until this reset is through
         self._env = self._vecs[task_id]
         own_gl_context(self._env)
         with self._missing_package(self.env_type):  # types that import their simulator here
@@ -303,7 +334,8 @@ class LerobotEnvSuite(GymnasiumEnv):
         self._data = mujoco_data(self._env)
         if self._data is not None:
             mujoco_instability(self._data)  # what an earlier episode left: cleared
-        self._task, self._steps, self._success, self._ended = self._specs[task_id], 0, False, False
+        self._clock.start(self._specs[task_id])
+        self._success, self._ended = False, False
         return self._observe(obs)
 
     def step(self, action: np.ndarray) -> EnvObservation:
@@ -311,7 +343,8 @@ class LerobotEnvSuite(GymnasiumEnv):
         raises SimulationUnstableError: an error row, not a scored episode."""
         obs = super().step(action)
         if self._data is not None:
-            raise_if_unstable(self._data, f"at step {self._steps} of {self.task.task_id}")
+            where = f"at step {self._clock.steps} of {obs.status.task_id}"
+            raise_if_unstable(self._data, where)
         return obs
 
     def _held_envs(self) -> list[Any]:

@@ -32,11 +32,12 @@ from __future__ import annotations
 import functools
 import os
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 
-from workers.envs.base import EnvObservation, LazyImages, TaskSpec, checked_action
+from workers.envs.base import EnvObservation, EpisodeInfo, EpisodeStatus, LazyImages, TaskSpec
+from workers.envs.episode_clock import EpisodeClock
 from workers.envs.mujoco.stability import mujoco_instability, raise_if_unstable
 from workers.envs.suites.libero import tables as hf_libero_tables
 from workers.envs.suites.libero.assets import LiberoSetupError
@@ -51,6 +52,7 @@ from workers.envs.suites.libero.protocol import (
 )
 from workers.envs.suites.libero.snapshots import Frame, Snapshots, install_snapshot, render_frame
 from workers.io_spec import ROBOSUITE_CAMERA_ALIASES, EnvIO
+from workers.param_doc import Doc
 
 __all__ = [
     "CAMERAS",
@@ -110,15 +112,34 @@ class LiberoEnv:
 
     def __init__(
         self,
-        protocol: str = "openpi",
-        suites: Sequence[str] = SUITES,
-        image_size: int | None = None,
-        cameras: Sequence[str] = ("agentview", "wrist"),
-        num_noops: int | None = None,
-        max_steps: Mapping[str, int] | None = None,
-        flip_images: bool = True,
-        control_hz: float = 20.0,
-        lazy_render: bool = True,
+        protocol: Annotated[
+            str,
+            Doc(
+                "the evaluation convention: openpi (the paper's tables) or lerobot (lerobot-eval's)"
+            ),
+        ] = "openpi",
+        suites: Annotated[Sequence[str], Doc("the LIBERO suites whose tasks the env has")] = SUITES,
+        image_size: Annotated[
+            int | None,
+            Doc("render px per side; None: the protocol's (openpi 256, lerobot the checkpoint's)"),
+        ] = None,
+        cameras: Annotated[
+            Sequence[str], Doc("the cameras rendered: agentview, wrist; () renders nothing")
+        ] = ("agentview", "wrist"),
+        num_noops: Annotated[
+            int | None, Doc("uncounted no-op steps after each reset; None: the protocol's (10)")
+        ] = None,
+        max_steps: Annotated[
+            Mapping[str, int] | None,
+            Doc("suite -> control steps per episode; None: the protocol's"),
+        ] = None,
+        flip_images: Annotated[
+            bool, Doc("flip images 180 degrees, as LIBERO's policies were trained")
+        ] = True,
+        control_hz: Annotated[float, Doc("control steps per simulated second")] = 20.0,
+        lazy_render: Annotated[
+            bool, Doc("render a camera only when its image is read (the same pixels)")
+        ] = True,
     ) -> None:
         """``protocol`` names the evaluation convention (``openpi`` or ``lerobot``); the other
         params left at None take its figures, and given ones override them (logged with the
@@ -159,12 +180,11 @@ class LiberoEnv:
         self._sim: Any = None  # OffScreenRenderEnv of self._sim_task
         self._sim_task: str | None = None
         self._init_states: np.ndarray | None = None
-        self._task: TaskSpec | None = None
+        self._clock = EpisodeClock(self.action_dim)
         self._init_index = 0
         self._perturbation: Any = None  # for the next reset (set_perturbation)
         self._perturber: Any = None  # MujocoScenePerturber of the model last perturbed
         self._init_suffix = ""  # the layout perturbation, in init_state_id
-        self._steps = 0
         self._success = False
 
     @classmethod
@@ -264,7 +284,7 @@ class LiberoEnv:
     def close(self) -> None:
         """Idempotent."""
         self._close_sim()
-        self._task = None
+        self._clock = EpisodeClock(self.action_dim)
 
     # -- episodes -------------------------------------------------------------------------
 
@@ -272,7 +292,7 @@ class LiberoEnv:
         spec = self._spec(task_id)
         if episode_index < 0:
             raise ValueError(f"episode_index must be >= 0, got {episode_index}")
-        self._task = None  # an exception below leaves no half-reset episode behind
+        self._clock = EpisodeClock(self.action_dim)  # a failed reset leaves no episode behind
         self._open(spec)
         assert self._init_states is not None
         self._init_index = episode_index % len(self._init_states)
@@ -291,7 +311,8 @@ class LiberoEnv:
             self._sim.env.sim.data._data,
             f"in the no-ops after reset of {task_id} episode {episode_index}",
         )
-        self._task, self._steps, self._success = spec, 0, False
+        self._clock.start(spec)
+        self._success = False
         return self._observe(raw)
 
     # -- perturbations (workers/envs/wrappers/perturbations.py) ---------------------------------------
@@ -337,12 +358,13 @@ class LiberoEnv:
         return self._sim.set_init_state(self._sim.get_sim_state())
 
     def step(self, action: np.ndarray) -> EnvObservation:
-        a = checked_action(action, self.action_dim, self._task is not None, self.done)
+        a = self._clock.take(action)
         raw, _, goal_reached, _ = self._sim.step(a)
-        self._steps += 1
         # MuJoCo resets a diverged simulation and carries on: an error row, not a failure
+        task = self._clock.task
+        assert task is not None
         raise_if_unstable(
-            self._sim.env.sim.data._data, f"at step {self._steps} of {self._task.task_id}"
+            self._sim.env.sim.data._data, f"at step {self._clock.steps} of {task.task_id}"
         )
         self._success = bool(goal_reached)  # hf-libero's done is its goal check
         return self._observe(raw)
@@ -355,7 +377,22 @@ class LiberoEnv:
             images = LazyImages(self.cameras, functools.partial(self._render, frame))
         else:
             images = {cam: self._finish(raw[CAMERAS[cam][1]]) for cam in self.cameras}
-        return EnvObservation(images=images, state=state_vector(raw, self.protocol.float32_state))
+        return EnvObservation(
+            images=images,
+            state=state_vector(raw, self.protocol.float32_state),
+            status=self._status(),
+        )
+
+    def _status(self) -> EpisodeStatus:
+        task = self._clock.task
+        assert task is not None
+        init = f"{task.task_id}/init{self._init_index}{self._init_suffix}"
+        return self._clock.status(
+            str(task.instruction),
+            self._success,
+            ended=self._success,
+            info=EpisodeInfo(init_state_id=init),
+        )
 
     def _finish(self, img: np.ndarray) -> np.ndarray:
         """An image as robosuite's camera observable gives it -> as observations carry it."""
@@ -370,36 +407,3 @@ class LiberoEnv:
                 "and its images were not read in time: its simulator is gone"
             )
         return self._finish(render_frame(frame, CAMERAS[cam][0], self.protocol.image_size))
-
-    # -- status ---------------------------------------------------------------------------
-
-    @property
-    def task(self) -> TaskSpec:
-        if self._task is None:
-            raise RuntimeError("no task: call reset() first")
-        return self._task
-
-    @property
-    def instruction(self) -> str:
-        return str(self.task.instruction)
-
-    @property
-    def init_state_id(self) -> str:
-        """Which fixed init state this episode started from, e.g. ``libero_spatial/0/init3``."""
-        return f"{self.task.task_id}/init{self._init_index}{self._init_suffix}"
-
-    @property
-    def success(self) -> bool:
-        return self._success
-
-    @property
-    def done(self) -> bool:
-        return self._task is not None and (self._success or self._steps >= self._task.max_steps)
-
-    @property
-    def subtasks_done(self) -> int:
-        return int(self._success)
-
-    @property
-    def steps(self) -> int:
-        return self._steps

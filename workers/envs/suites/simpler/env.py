@@ -33,17 +33,19 @@ import inspect
 import os
 import sys
 from collections.abc import Sequence
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 
-from workers.envs.base import EnvObservation, LazyState, TaskSpec, checked_action
+from workers.envs.base import EnvObservation, EpisodeInfo, EpisodeStatus, LazyState, TaskSpec
+from workers.envs.episode_clock import EpisodeClock
 from workers.envs.suites.simpler import protocol as sp
 from workers.envs.suites.simpler import vulkan_cpu as vk
 from workers.envs.suites.simpler.assets import checkout, missing_assets
 from workers.envs.suites.simpler.grids import TASKS, episodes_of, split_task_id
 from workers.envs.suites.simpler.state import privileged_state, robot_state
 from workers.io_spec import EnvIO
+from workers.param_doc import Doc
 
 SUITE = "simpler"
 SHADERS = ("official", "ibl", "rt")
@@ -70,13 +72,34 @@ class SimplerEnv:
 
     def __init__(
         self,
-        maniskill2_real2sim: str | None = None,
-        renderer: str = "auto",
-        vulkan_cpu: str | None = None,
-        shader: str = "official",
-        success_rule: str = "final_step",
-        rotation: str = "axis_angle",
-        binarize_gripper: bool = False,
+        maniskill2_real2sim: Annotated[
+            str | None, Doc("the ManiSkill2_real2sim checkout; None: $MS2_REAL2SIM or $SIMPLER_ENV")
+        ] = None,
+        renderer: Annotated[
+            str,
+            Doc(
+                "Vulkan: auto (gpu where a GPU driver is installed, else lavapipe), gpu or lavapipe"
+            ),
+        ] = "auto",
+        vulkan_cpu: Annotated[
+            str | None,
+            Doc(
+                "the prefix make setup-simpler builds lavapipe into; None: $IDR_VULKAN_CPU or .vulkan-cpu"
+            ),
+        ] = None,
+        shader: Annotated[
+            str, Doc("official (rt for the drawer and apple tasks, ibl for the others), ibl or rt")
+        ] = "official",
+        success_rule: Annotated[
+            str,
+            Doc(
+                "final_step (the official: the last step's success) or any_step (ends at the first)"
+            ),
+        ] = "final_step",
+        rotation: Annotated[
+            str, Doc("the action's rotation: axis_angle (SimplerEnv, RT-1) or rpy")
+        ] = "axis_angle",
+        binarize_gripper: Annotated[bool, Doc("round the gripper action to open / close")] = False,
     ) -> None:
         self._check_params(maniskill2_real2sim, renderer, shader, success_rule, rotation)
         self.checkout = checkout(maniskill2_real2sim)
@@ -91,10 +114,9 @@ class SimplerEnv:
         os.environ["MS2_REAL2SIM_ASSET_DIR"] = str(self.data)
         self._specs = {t.task_id: t for t in self.suite_tasks()}
         self._env: Any = None
-        self._task: TaskSpec | None = None
+        self._clock = EpisodeClock(self.action_dim)
         self._episode: sp.Episode | None = None
         self._robot: sp.Robot = sp.GOOGLE
-        self._steps = 0
         self._success = False
         self._instruction = ""
         self._obs: dict[str, Any] = {}
@@ -277,21 +299,21 @@ class SimplerEnv:
         ep = episodes[episode_index]
         if lost := missing_assets(self.data, [ep]):
             raise ValueError(f"{task_id} episode {episode_index}: assets missing: {lost}")
-        self._task = None
+        self._clock = EpisodeClock(self.action_dim)  # a failed reset leaves no episode behind
         self._close_env()
         self._env = self._build(ep, task)
         obs, _ = self._env.reset(options=ep.reset_options())
-        self._task, self._episode, self._robot = spec, ep, task.robot
-        self._steps, self._success = 0, False
+        self._episode, self._robot = ep, task.robot
+        self._clock.start(spec)
+        self._success = False
         self._obs = obs
         self._instruction = str(self._env.unwrapped.get_language_instruction())
         return self._observe()
 
     def step(self, action: np.ndarray) -> EnvObservation:
-        a = checked_action(action, self.action_dim, self._task is not None, self.done)
+        a = self._clock.take(action)
         sim = sp.to_sim_action(a, self._robot.family, self.rotation, self.binarize)
         self._obs, _, _, _, info = self._env.step(sim)
-        self._steps += 1
         now = bool(info["success"])
         self._success = now if self.success_rule == "final_step" else (self._success or now)
         self._instruction = str(self._env.unwrapped.get_language_instruction())
@@ -311,6 +333,19 @@ class SimplerEnv:
             images={"image": image},
             state=state,
             privileged=LazyState(lambda: self.privileged(state), current),
+            status=self._status(),
+        )
+
+    def _status(self) -> EpisodeStatus:
+        """Success by the task's rule: at the final step (``final_step``, the episode runs to
+        its horizon) or at any step (``any_step``, which ends it)."""
+        task = self._clock.task
+        assert task is not None and self._episode is not None
+        return self._clock.status(
+            self._instruction,
+            self._success,
+            ended=self.success_rule == "any_step" and self._success,
+            info=EpisodeInfo(init_state_id=f"{task.task_id}/{self._episode.label()}"),
         )
 
     def privileged(self, state: np.ndarray) -> dict[str, Any]:
@@ -328,47 +363,11 @@ class SimplerEnv:
 
     def close(self) -> None:
         self._close_env()
-        self._task = None
-
-    # -- status ------------------------------------------------------------------------------
-    @property
-    def task(self) -> TaskSpec:
-        if self._task is None:
-            raise RuntimeError("no task: call reset() first")
-        return self._task
-
-    @property
-    def instruction(self) -> str:
-        return self._instruction
-
-    @property
-    def success(self) -> bool:
-        return self._success
-
-    @property
-    def done(self) -> bool:
-        if self._task is None:
-            return False
-        return self._steps >= self._task.max_steps or (
-            self.success_rule == "any_step" and self._success
-        )
-
-    @property
-    def subtasks_done(self) -> int:
-        return int(self._success)
-
-    @property
-    def steps(self) -> int:
-        return self._steps
+        self._clock = EpisodeClock(self.action_dim)
 
     @property
     def control_hz(self) -> float:
         return float(self._robot.control_freq)
-
-    @property
-    def init_state_id(self) -> str:
-        assert self._episode is not None
-        return f"{self.task.task_id}/{self._episode.label()}"
 
     @property
     def render_backend(self) -> str:

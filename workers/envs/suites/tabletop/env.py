@@ -21,14 +21,16 @@ instructions and scoring rules), ``sim`` (the robosuite scene), ``layout`` (its 
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
 
-from workers.envs.base import EnvObservation, LazyImages, LazyState, TaskSpec
+from workers.envs.base import EnvObservation, EpisodeInfo, LazyImages, LazyState, TaskSpec
+from workers.envs.episode_clock import EpisodeClock
 from workers.envs.mujoco.stability import mujoco_instability, raise_if_unstable
 from workers.envs.suites.tabletop.episodes import Episode, free_spots, new_episode, update_progress
 from workers.io_spec import ROBOSUITE_CAMERA_ALIASES, EnvIO
+from workers.param_doc import Doc
 
 SUITE = "tabletop"
 CAMERAS = {"agentview": "agentview", "wrist": "robot0_eye_in_hand"}
@@ -68,12 +70,25 @@ class TabletopEnv:
 
     def __init__(
         self,
-        image_size: int = 96,
-        cameras: tuple[str, ...] | list[str] = ("agentview", "wrist"),
-        max_steps: dict[str, int] | None = None,
-        subtask_budget: int = DEFAULT_SUBTASK_BUDGET,
-        fast_render: bool = True,
-        state_dims: list[int] | None = None,
+        image_size: Annotated[int, Doc("px per side of every camera image")] = 96,
+        cameras: Annotated[
+            tuple[str, ...] | list[str], Doc("the cameras rendered: agentview, wrist")
+        ] = ("agentview", "wrist"),
+        max_steps: Annotated[
+            dict[str, int] | None,
+            Doc("task -> control steps before a timeout, over the defaults"),
+        ] = None,
+        subtask_budget: Annotated[
+            int, Doc("organize: steps each subtask may take before the chain fails")
+        ] = DEFAULT_SUBTASK_BUDGET,
+        fast_render: Annotated[
+            bool,
+            Doc("drop MSAA, reflections, skybox and shadows (several x cheaper)"),
+        ] = True,
+        state_dims: Annotated[
+            list[int] | None,
+            Doc("which of the 8 state dims the policy gets, e.g. [0,1,2,6,7]; None: all"),
+        ] = None,
     ) -> None:
         self.state_dims = self._check_state_dims(state_dims)
         if self.state_dims is not None:
@@ -97,6 +112,7 @@ class TabletopEnv:
         self._perturbers: dict[str, Any] = {}
         self._perturbation: Any = None  # for the next reset (set_perturbation)
         self._ep: Episode | None = None
+        self._clock = EpisodeClock(self.action_dim)
 
     @staticmethod
     def _check_max_steps(max_steps: dict[str, int] | None) -> dict[str, int]:
@@ -198,7 +214,7 @@ class TabletopEnv:
         )
 
     def reset(self, task_id: str, episode_index: int, seed: int) -> EnvObservation:
-        self._spec(task_id)
+        spec = self._spec(task_id)
         task_index = list(DEFAULT_MAX_STEPS).index(task_id)
         ep = new_episode(task_id, task_index, self.TASK_COLORS[task_id], episode_index, seed)
         p = self._perturbation
@@ -223,24 +239,18 @@ class TabletopEnv:
             self._perturber(ep.scene_key, scene).apply(p, scene.sim.data._data)
         mujoco_instability(scene.sim.data._data)  # clear what earlier episodes left
         self._ep = ep
+        self._clock.start(spec)
         return self._observe()
 
     def step(self, action: np.ndarray) -> EnvObservation:
-        action = np.asarray(action, dtype=np.float64)
-        if action.shape != (self.action_dim,):
-            raise ValueError(f"action must have shape ({self.action_dim},), got {action.shape}")
-        if self._ep is None:
-            raise RuntimeError("step() before reset()")
-        if self.done:
-            raise RuntimeError("step() after the episode is done; call reset()")
-        if not np.isfinite(action).all():
-            raise ValueError(f"non-finite action {action.tolist()}")
+        action = self._clock.take(action)
+        assert self._ep is not None
         scene = self._scenes[self._ep.scene_key]
         data = scene.sim.data._data
         self._last_obs, _, _, _ = scene.step(np.clip(action, -1.0, 1.0))
-        self._ep.steps += 1
-        raise_if_unstable(data, f"at step {self._ep.steps} of {self._ep.init_state_id}")
-        update_progress(self._ep, scene, self.subtask_budget)
+        steps = self._clock.steps
+        raise_if_unstable(data, f"at step {steps} of {self._ep.init_state_id}")
+        update_progress(self._ep, scene, self.subtask_budget, steps)
         return self._observe()
 
     def _observe(self) -> EnvObservation:
@@ -253,14 +263,24 @@ class TabletopEnv:
         if self.state_dims is not None:
             state = state[list(self.state_dims)]
         # rendering and the privileged state read the live simulator: valid until the next step
-        ep, steps = self._ep, self._ep.steps
+        ep, clock, steps = self._ep, self._clock, self._clock.steps
 
         def current() -> bool:
-            return self._ep is ep and ep.steps == steps
+            return self._ep is ep and clock.steps == steps
 
         images = LazyImages(self.cameras, self._renderers[ep.scene_key].render_one, current)
+        status = self._clock.status(
+            ep.instruction,
+            ep.success,
+            ended=ep.success or bool(ep.failed),
+            subtasks_done=ep.subtasks_done,
+            info=EpisodeInfo(ep.init_state_id, ep.failed_cause, ep.failed),
+        )
         return EnvObservation(
-            images=images, state=state, privileged=LazyState(self.privileged, current)
+            images=images,
+            state=state,
+            privileged=LazyState(self.privileged, current),
+            status=status,
         )
 
     def privileged(self) -> dict[str, Any]:
@@ -277,51 +297,10 @@ class TabletopEnv:
             "grasped": [scene.is_grasped(i) for i in range(len(ep.colors))],
         }
 
-    # -- status ------------------------------------------------------------------------------
-    @property
-    def task(self) -> TaskSpec:
-        if self._ep is None:
-            raise RuntimeError("no task: call reset() first")
-        return self._spec(self._ep.task_id)
-
-    @property
-    def instruction(self) -> str:
-        return self._ep.instruction if self._ep else ""
-
-    @property
-    def success(self) -> bool:
-        return bool(self._ep and self._ep.success)
-
-    @property
-    def failure_reason(self) -> str | None:
-        return self._ep.failed if self._ep else None
-
-    @property
-    def failure_cause(self) -> str | None:
-        """Why the episode ended before max_steps, as a code the report counts (None: it did
-        not end early)."""
-        return self._ep.failed_cause if self._ep else None
-
-    @property
-    def done(self) -> bool:
-        ep = self._ep
-        return bool(ep and (ep.success or ep.failed or ep.steps >= self._max_steps[ep.task_id]))
-
-    @property
-    def subtasks_done(self) -> int:
-        return self._ep.subtasks_done if self._ep else 0
-
-    @property
-    def steps(self) -> int:
-        return self._ep.steps if self._ep else 0
-
-    @property
-    def init_state_id(self) -> str:
-        return self._ep.init_state_id if self._ep else ""
-
     def close(self) -> None:
         for r in self._renderers.values():
             r.close()
         for s in self._scenes.values():
             s.close()
         self._renderers, self._scenes, self._ep = {}, {}, None
+        self._clock = EpisodeClock(self.action_dim)

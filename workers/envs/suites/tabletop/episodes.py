@@ -23,7 +23,6 @@ class Episode:
     cube_xy: np.ndarray
     instruction: str
     targets: list[int]  # pick: [cube]; stack: [top, bottom]; organize: the order
-    steps: int = 0
     subtasks_done: int = 0
     last_progress_step: int = 0
     success: bool = False
@@ -97,8 +96,8 @@ def new_episode(
     )
 
 
-def update_progress(ep: Episode, scene: Any, subtask_budget: int) -> None:
-    """``ep``'s success, subtasks and failure after a step, from the scene's cubes."""
+def update_progress(ep: Episode, scene: Any, subtask_budget: int, steps: int) -> None:
+    """``ep``'s success, subtasks and failure after step ``steps``, from the scene's cubes."""
     pos = scene.cube_positions()
 
     if ep.task_id == "pick_color":
@@ -127,10 +126,10 @@ def update_progress(ep: Episode, scene: Any, subtask_budget: int) -> None:
                 return
             ep.placed.add(i)
             ep.subtasks_done += 1
-            ep.last_progress_step = ep.steps
+            ep.last_progress_step = steps
             if ep.subtasks_done == 5:
                 ep.success = True
                 return
-        if ep.steps - ep.last_progress_step >= subtask_budget:
+        if steps - ep.last_progress_step >= subtask_budget:
             ep.failed = f"subtask {ep.subtasks_done + 1} not done within {subtask_budget} steps"
             ep.failed_cause = "subtask_budget"

@@ -26,10 +26,11 @@ pre-flight. What differs:
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Annotated, Any
 
 from workers.envs.suites.libero import env as libero_env
 from workers.envs.suites.libero.pro import families, tables
+from workers.param_doc import Doc
 
 DEFAULT_SUITES = families.DEFAULT_SUITES
 
@@ -38,6 +39,7 @@ class LiberoProEnv(libero_env.LiberoEnv):
     """LIBERO-PRO's perturbed LIBERO suites behind the Env protocol (see the module docstring)."""
 
     suite = "libero_pro"
+    params_forwarded_to = libero_env.LiberoEnv  # its other params are LIBERO's (the docs' table)
     tables = tables
     known_suites = families.KNOWN_SUITES
     server_setup_hint = tables.SETUP_HINT
@@ -48,7 +50,13 @@ class LiberoProEnv(libero_env.LiberoEnv):
     def base_suite(suite: str) -> str:
         return families.base_suite(suite)
 
-    def __init__(self, suites: Sequence[str] = DEFAULT_SUITES, **params: Any) -> None:
+    def __init__(
+        self,
+        suites: Annotated[
+            Sequence[str], Doc("the LIBERO-PRO suites (originals and perturbed) the env has")
+        ] = DEFAULT_SUITES,
+        **params: Any,
+    ) -> None:
         tables.ensure_package()
         super().__init__(suites=suites, **params)
 
