@@ -100,14 +100,16 @@ def test_bad_bases_are_refused_before_loading(bases, tmp_path) -> None:
         IDRConfig(mode="diagnose").resolve_base()
     for kind, match in (
         ("groot", "processors from the hub"),
-        ("vqbet", "select_action fills"),
+        ("multi_task_dit", "select_action fills"),
         ("eo1", "not run under IDR yet"),
     ):
         other = tmp_path / kind
         shutil.copytree(bases["act"], other)
         cfg = json.loads((other / "config.json").read_text())
         (other / "config.json").write_text(json.dumps({**cfg, "type": kind}))
-        refused(other, rf"base type {kind!r} .*{match}.*act, diffusion, pi0, pi05, smolvla, xvla")
+        refused(
+            other, rf"base type {kind!r} .*{match}.*act, diffusion, pi0, pi05, smolvla, xvla, vqbet"
+        )
     truncated = tmp_path / "truncated"
     shutil.copytree(bases["act"], truncated)
     weights = truncated / "model.safetensors"

@@ -30,7 +30,7 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 #: Base policy types IDR wraps, and why lerobot's others are refused (each reason verified on
 #: lerobot 0.6.1 offline: docs/policy-types.md). A type registered by a third-party plugin
 #: (a ``lerobot_policy_*`` distribution) takes the generic path (``is_third_party_type``).
-SUPPORTED_BASE_TYPES = ("act", "diffusion", "pi0", "pi05", "smolvla", "xvla", "tiny_vla")
+SUPPORTED_BASE_TYPES = ("act", "diffusion", "pi0", "pi05", "smolvla", "xvla", "vqbet", "tiny_vla")
 REFUSED_BASE_TYPES = {
     "idr": "an idr policy cannot wrap another idr policy; wrap its base instead",
     "groot": "GR00T loads its processors from the hub; not supported offline",
@@ -46,8 +46,6 @@ REFUSED_BASE_TYPES = {
     "its select_action fills; IDR calls predict_action_chunk on whole batches",
     "tdmpc": "TD-MPC is a state-based RL planner: its predict_action_chunk reads select_action's "
     "queues and keeps a CEM warm start between calls",
-    "vqbet": "VQ-BeT's predict_action_chunk reads the 5-step observation queues that its "
-    "select_action fills; IDR calls predict_action_chunk on whole batches",
     "wall_x": "WALL-OSS needs peft, torchdiffeq and qwen-vl-utils (not installed) and its "
     "checkpoint from the hub",
 }

@@ -37,10 +37,15 @@ from lerobot_policy_idr.configuration_idr import (
     adopt_base_type,
     read_base_config,
 )
-from lerobot_policy_idr.processor_idr import BATCH_SIZE_KEY, IMAGE_PREFIX, STATE_KEY
+from lerobot_policy_idr.processor_idr import BATCH_SIZE_KEY, STATE_KEY, is_image_key
 
 ACTION = "action"
+OBS_IMAGES = "observation.images"  # the stacked cameras VQ-BeT's queues hold
 _HISTORY_KEYS = (STATE_KEY, "observation.environment_state")
+#: Base types whose ``predict_action_chunk`` reads the observation queues that their
+#: ``select_action`` fills, not the batch it is given: IDR keeps queues of its own (3B rows)
+#: and lends them to the base for each forward (``_predict``), the base's own left untouched.
+QUEUE_FED_TYPES = ("vqbet",)
 
 
 class IDRPolicy(PreTrainedPolicy):
@@ -71,7 +76,11 @@ class IDRPolicy(PreTrainedPolicy):
                 "inside its own select_action: use mode=baseline, or a base without it"
             )
         self.action_dim = int(base_cfg.output_features[ACTION].shape[0])
-        base_steps = getattr(base_cfg, "n_action_steps", None) or base_cfg.chunk_size
+        base_steps = (
+            getattr(base_cfg, "n_action_steps", None)
+            or getattr(base_cfg, "chunk_size", None)
+            or base_cfg.action_chunk_size  # VQ-BeT executes its whole chunk
+        )
         self.n_action_steps = int(config.n_action_steps or base_steps)
         self.n_obs_steps = int(getattr(base_cfg, "n_obs_steps", 1) or 1)
         self._unnormalize, self._bounds = _action_unnormalizer(base_dir, config)
@@ -109,6 +118,7 @@ class IDRPolicy(PreTrainedPolicy):
         self.base.reset()
         self._queue: deque[torch.Tensor] = deque(maxlen=self.n_action_steps)
         self._history: dict[str, deque[torch.Tensor]] = {}
+        self._fed: dict[str, deque[torch.Tensor]] | None = None  # queue-fed bases: IDR's queues
         self._steps = 0
         self._tick = 0
         if self._recorded:  # a new episode starts
@@ -138,6 +148,8 @@ class IDRPolicy(PreTrainedPolicy):
             self._queue.extend(chunk[:, : self.n_action_steps].transpose(0, 1))
             wait = (time.perf_counter() - t0) * 1e3
             self.sidecar.add([{**r, "wait_ms": wait} for r in rows])
+        else:  # no inference: the frame still joins the history, as the base's own queues take
+            self._with_history(batch)  # every step's observation (Diffusion, VQ-BeT)
         return self._queue.popleft()
 
     # -- the three passes, the diagnosis and the refinement ---------------------------------
@@ -145,7 +157,7 @@ class IDRPolicy(PreTrainedPolicy):
         t0 = time.perf_counter()
         mode = self.config.mode
         if mode == "baseline":
-            actions = self.base.predict_action_chunk(self._with_history(batch))
+            actions = self._predict(self._with_history(batch))
             actions = actions[:, : self.n_action_steps]
             ms = (time.perf_counter() - t0) * 1e3
             rows = self._rows(actions.shape[0], None, forward_ms=ms, inference_ms=ms)
@@ -166,9 +178,9 @@ class IDRPolicy(PreTrainedPolicy):
         if self.crn == "seeded_rng":  # X-VLA ignores a noise input: three forwards, one seed
             out = self._seeded_thirds(batch, b, noise)
         elif noise is not None:
-            out = self.base.predict_action_chunk(batch, noise=repeat3(noise))
+            out = self._predict(batch, noise=repeat3(noise))
         else:
-            out = self.base.predict_action_chunk(batch)
+            out = self._predict(batch)
         if weights_version(self.base) != version:
             raise IDRConfigError(
                 f"the base policy (type {self.base.config.type!r}) changed its own weights during "
@@ -209,7 +221,7 @@ class IDRPolicy(PreTrainedPolicy):
             part = {k: _rows_of(v, i, b) for k, v in batch.items()}
             with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
                 torch.manual_seed(s)
-                outs.append(self.base.predict_action_chunk(part))
+                outs.append(self._predict(part, slice(i * b, (i + 1) * b)))
         return torch.cat(outs, dim=0)
 
     def _refine(self, a_base: torch.Tensor, a_no_img: torch.Tensor, a_no_prop: torch.Tensor):
@@ -235,14 +247,44 @@ class IDRPolicy(PreTrainedPolicy):
     def _physical(self, actions: torch.Tensor) -> torch.Tensor:
         return actions if self._unnormalize is None else self._unnormalize(actions)
 
+    def _predict(self, batch: dict[str, Any], rows: slice | None = None, **kw: Any) -> torch.Tensor:
+        """The base's ``predict_action_chunk``; a queue-fed base reads IDR's queues (``rows``
+        of them: one third in a seeded pass), lent for the call, its own restored after."""
+        if self._fed is None:
+            return self.base.predict_action_chunk(batch, **kw)
+        own = self.base._queues
+        self.base._queues = {
+            k: deque((x if rows is None else x[rows] for x in q), maxlen=q.maxlen)
+            for k, q in self._fed.items()
+        }
+        try:
+            return self.base.predict_action_chunk(batch, **kw)
+        finally:
+            self.base._queues = own
+
     def _with_history(self, batch: dict[str, Any]) -> dict[str, Any]:
-        """Diffusion reads (rows, n_obs_steps, ...) observations: keep the last n_obs_steps
-        frames of each row (the first frame repeated at an episode's start), as Diffusion's own
-        select_action does, for the 3B rows."""
+        """Observation history where the base reads one. Diffusion reads (rows, n_obs_steps,
+        ...) observations: keep the last n_obs_steps frames of each row (the first frame
+        repeated at an episode's start), as Diffusion's own select_action does, for the 3B
+        rows. A queue-fed base (VQ-BeT): its cameras stacked as its select_action stacks them,
+        appended to IDR's queues with lerobot's ``populate_queues``, as its select_action
+        appends to its own."""
+        if self.base.config.type in QUEUE_FED_TYPES:
+            from lerobot.policies.utils import populate_queues
+
+            out = dict(batch)
+            out.pop(ACTION, None)  # as its select_action pops it: no action is observed
+            out[OBS_IMAGES] = torch.stack(
+                [batch[k] for k in self.base.config.image_features], dim=-4
+            )
+            if self._fed is None:  # the base's queue layout, empty
+                self._fed = {k: deque(maxlen=q.maxlen) for k, q in self.base._queues.items()}
+            self._fed = populate_queues(self._fed, out, exclude_keys=[ACTION])
+            return out
         if self.base.config.type != "diffusion":
             return batch
         out = dict(batch)
-        keys = [k for k in batch if k in _HISTORY_KEYS or k.startswith(IMAGE_PREFIX)]
+        keys = [k for k in batch if k in _HISTORY_KEYS or is_image_key(k)]
         for key in keys:
             q = self._history.setdefault(key, deque(maxlen=self.n_obs_steps))
             while len(q) < self.n_obs_steps - 1:
@@ -279,7 +321,7 @@ class IDRPolicy(PreTrainedPolicy):
 
 def _batch_rows(batch: dict[str, Any]) -> int:
     for key, value in batch.items():
-        if isinstance(value, torch.Tensor) and (key == STATE_KEY or key.startswith(IMAGE_PREFIX)):
+        if isinstance(value, torch.Tensor) and (key == STATE_KEY or is_image_key(key)):
             return int(value.shape[0])
     raise ValueError(f"the idr policy found no state or image tensor in the batch: {sorted(batch)}")
 

@@ -35,18 +35,24 @@ from lerobot.processor import (
 
 STATE_KEY = "observation.state"
 IMAGE_PREFIX = "observation.images."
+SINGLE_IMAGE_KEY = "observation.image"  # lerobot's one-camera key (PushT)
 BATCH_SIZE_KEY = "idr_batch_size"  # complementary data: B of the 3B rows
 # after these (the last of them before the normalizer) the counterfactual rows are made
 _BEFORE_COUNTERFACTUALS = ("AddBatchDimensionProcessorStep", "RelativeActionsProcessorStep")
 
 
+def is_image_key(key: str) -> bool:
+    """A camera's key: ``observation.images.<cam>``, or lerobot's one-camera
+    ``observation.image``."""
+    return key == SINGLE_IMAGE_KEY or key.startswith(IMAGE_PREFIX)
+
+
 def _rows(obs: dict[str, Any]) -> int:
     for key, value in obs.items():
-        if isinstance(value, torch.Tensor) and (key == STATE_KEY or key.startswith(IMAGE_PREFIX)):
+        if isinstance(value, torch.Tensor) and (key == STATE_KEY or is_image_key(key)):
             return int(value.shape[0])
     raise ValueError(
-        f"the idr policy needs {STATE_KEY!r} or an {IMAGE_PREFIX}* tensor; observation has "
-        f"{sorted(obs)}"
+        f"the idr policy needs {STATE_KEY!r} or an image tensor; observation has {sorted(obs)}"
     )
 
 
@@ -81,7 +87,7 @@ class IDRCounterfactualBatchStep(ProcessorStep):
                     f"{STATE_KEY}: the robot or env gives {int(value.shape[-1])} dims, the base "
                     f"reads {shape[0]}: wrap a base trained on this robot's state"
                 )
-            if key.startswith(IMAGE_PREFIX) and int(value.shape[-3]) != shape[0]:
+            if is_image_key(key) and int(value.shape[-3]) != shape[0]:
                 raise ValueError(
                     f"{key}: the robot or env gives {int(value.shape[-3])} channels, the base "
                     f"reads {shape[0]}"
@@ -94,7 +100,7 @@ class IDRCounterfactualBatchStep(ProcessorStep):
         b = _rows(obs)
         step_seed = self.seed + 7919 * self._calls  # gaussian interventions: new draw per call
         self._calls += 1
-        images = sorted(k for k in obs if k.startswith(IMAGE_PREFIX))
+        images = sorted(k for k in obs if is_image_key(k))
         for key, value in list(obs.items()):
             if not isinstance(value, torch.Tensor) or value.ndim == 0 or value.shape[0] != b:
                 continue
@@ -209,7 +215,7 @@ def insert_idr_steps(
         expects = {
             k: list(f.shape)
             for k, f in (config.input_features or {}).items()
-            if k == STATE_KEY or k.startswith(IMAGE_PREFIX)
+            if k == STATE_KEY or is_image_key(k)
         }
         steps.insert(
             where,

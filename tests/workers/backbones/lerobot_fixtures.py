@@ -119,6 +119,49 @@ def build_diffusion(out: Path, image: int = 64, state: int = 8, action: int = 7)
     )
 
 
+def build_vqbet(
+    out: Path,
+    image: int = 64,
+    state: int = 8,
+    action: int = 7,
+    temperature: float = 0.1,
+    cams: tuple[str, ...] = ("agentview",),
+) -> Path:
+    """A small VQ-BeT (random weights) whose residual VQ is marked trained (``discretized``, as
+    its training's first phase leaves it), so its head decodes actions from codebook codes and
+    offsets; 2 observation steps, chunks of 4. It samples its codes at ``temperature``
+    (lerobot's default 0.1; near 0 its sampling is an argmax)."""
+    from lerobot.policies.vqbet.configuration_vqbet import VQBeTConfig
+    from lerobot.policies.vqbet.modeling_vqbet import VQBeTPolicy
+
+    inputs, outputs = _features(image, state, action, cams)
+    cfg = VQBeTConfig(
+        input_features=inputs,
+        output_features=outputs,
+        pretrained_backbone_weights=None,
+        crop_shape=None,
+        n_obs_steps=2,
+        n_action_pred_token=3,
+        action_chunk_size=4,
+        vqvae_n_embed=8,
+        vqvae_embedding_dim=32,
+        vqvae_enc_hidden_dim=32,
+        gpt_block_size=100,
+        gpt_n_layer=2,
+        gpt_n_head=2,
+        gpt_hidden_dim=64,
+        gpt_input_dim=64,
+        gpt_output_dim=64,
+        spatial_softmax_num_keypoints=8,
+        bet_softmax_temperature=temperature,
+        device="cpu",
+    )
+    torch.manual_seed(0)
+    policy = VQBeTPolicy(cfg).eval()
+    policy.vqbet.action_head.vqvae_model.discretized.fill_(True)
+    return save_checkpoint(policy, cfg, _stats(image, state, action, cams), out)
+
+
 # -- pi0 / pi0.5 -------------------------------------------------------------------------------
 # lerobot 0.6.1 cannot run its smallest pi variant (paligemma_variant="gemma_300m"): the SigLIP
 # projector is hard-wired to 2048-d while gemma_300m's language embeddings are 1024-d, so

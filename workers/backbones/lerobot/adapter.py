@@ -137,7 +137,13 @@ def policy_io(path: Path, chunk_len: int | None = None) -> PolicyIO:
         if len(shape) != 3:
             raise ValueError(f"{cfg_path}: {IMAGE_PREFIX + key} shape {shape} is not (C, H, W)")
     state = inputs.get(STATE_KEY)
-    steps = chunk_len or cfg.get("n_action_steps") or cfg.get("chunk_size") or 1
+    steps = (
+        chunk_len
+        or cfg.get("n_action_steps")
+        or cfg.get("chunk_size")
+        or cfg.get("action_chunk_size")  # VQ-BeT
+        or 1
+    )
     return PolicyIO(
         images=images,
         state_dim=_shape(cfg_path, STATE_KEY, state)[0] if state is not None else None,
@@ -261,7 +267,12 @@ class LerobotBackbone:
         state = cfg.input_features.get(STATE_KEY)
         self.state_dim = int(state.shape[0]) if state is not None else 0
         self.action_dim = int(cfg.output_features["action"].shape[0])
-        self.chunk_len = int(chunk_len or getattr(cfg, "n_action_steps", None) or cfg.chunk_size)
+        self.chunk_len = int(
+            chunk_len
+            or getattr(cfg, "n_action_steps", None)
+            or getattr(cfg, "chunk_size", None)
+            or cfg.action_chunk_size  # VQ-BeT executes its whole chunk
+        )
         self.crn_mode = crn_mode(cfg.type, self.policy.predict_action_chunk)
         self.can_batch = (
             self.crn_mode != "seeded_rng"
@@ -351,6 +362,26 @@ class LerobotBackbone:
                 out[key] = x[:, None].expand(-1, n, -1, -1, -1)
         return out
 
+    def _fed_queues(self, processed: dict[str, Any]) -> dict[str, Any] | None:
+        """A queue-fed policy (VQ-BeT: its predict_action_chunk reads the observation queues
+        its select_action fills): queues of the current frame repeated, filled by lerobot's
+        ``populate_queues`` from the stacked cameras (what select_action does at an episode's
+        first step), lent for this call; None for other policies."""
+        from lerobot_policy_idr.modeling_idr import OBS_IMAGES, QUEUE_FED_TYPES
+
+        if self.config.type not in QUEUE_FED_TYPES:
+            return None
+        from collections import deque
+
+        from lerobot.policies.utils import populate_queues
+
+        processed.pop("action", None)  # as its select_action pops it
+        processed[OBS_IMAGES] = torch.stack(
+            [processed[k] for k in self.config.image_features], dim=-4
+        )
+        empty = {k: deque(maxlen=q.maxlen) for k, q in self.policy._queues.items()}
+        return populate_queues(empty, processed, exclude_keys=["action"])
+
     @torch.inference_mode()
     def predict_chunk(
         self, obs: Observation, noise: Any = None, intervention: Any = None
@@ -374,14 +405,22 @@ class LerobotBackbone:
         from lerobot_policy_idr.modeling_idr import weights_version
 
         version = weights_version(self.policy)
-        if self.crn_mode == "shared_noise" and noise is not None:
-            actions = self.policy.predict_action_chunk(processed, noise=noise)
-        elif self.crn_mode == "seeded_rng" and noise is not None:
-            with torch.random.fork_rng(devices=[self.device] if self.device.type == "cuda" else []):
-                torch.manual_seed(int(noise[0]))
+        lent, own = self._fed_queues(processed), getattr(self.policy, "_queues", None)
+        if lent is not None:
+            self.policy._queues = lent
+        try:
+            if self.crn_mode == "shared_noise" and noise is not None:
+                actions = self.policy.predict_action_chunk(processed, noise=noise)
+            elif self.crn_mode == "seeded_rng" and noise is not None:
+                devices = [self.device] if self.device.type == "cuda" else []
+                with torch.random.fork_rng(devices=devices):
+                    torch.manual_seed(int(noise[0]))
+                    actions = self.policy.predict_action_chunk(processed)
+            else:
                 actions = self.policy.predict_action_chunk(processed)
-        else:
-            actions = self.policy.predict_action_chunk(processed)
+        finally:
+            if lent is not None:
+                self.policy._queues = own
         if weights_version(self.policy) != version:
             raise ValueError(
                 f"{self.name} changed its own weights during predict_action_chunk (test-time "
