@@ -100,7 +100,7 @@ def test_bad_bases_are_refused_before_loading(bases, tmp_path) -> None:
         IDRConfig(mode="diagnose").resolve_base()
     for kind, match in (
         ("groot", "processors from the hub"),
-        ("multi_task_dit", "select_action fills"),
+        ("tdmpc", "state-based RL planner"),
         ("eo1", "not run under IDR yet"),
     ):
         other = tmp_path / kind
@@ -108,7 +108,8 @@ def test_bad_bases_are_refused_before_loading(bases, tmp_path) -> None:
         cfg = json.loads((other / "config.json").read_text())
         (other / "config.json").write_text(json.dumps({**cfg, "type": kind}))
         refused(
-            other, rf"base type {kind!r} .*{match}.*act, diffusion, pi0, pi05, smolvla, xvla, vqbet"
+            other,
+            rf"base type {kind!r} .*{match}.*act, diffusion, pi0, pi05, smolvla, xvla, vqbet, multi_task_dit",
         )
     truncated = tmp_path / "truncated"
     shutil.copytree(bases["act"], truncated)

@@ -115,8 +115,8 @@ def test_a_type_no_installed_plugin_registers_is_refused_by_name(tmp_path) -> No
     (base / "config.json").write_text(json.dumps({"type": "nobody_registers_this"}))
     with pytest.raises(IDRConfigError, match=r"nobody_registers_this.*lerobot_policy_\* plugin"):
         IDRConfig(base_policy_path=str(base), mode="diagnose").resolve_base()
-    (base / "config.json").write_text(json.dumps({"type": "multi_task_dit"}))
-    with pytest.raises(IDRConfigError, match=r"multi_task_dit.*is refused.*select_action"):
+    (base / "config.json").write_text(json.dumps({"type": "tdmpc"}))
+    with pytest.raises(IDRConfigError, match=r"tdmpc.*is refused.*select_action"):
         IDRConfig(base_policy_path=str(base), mode="diagnose").resolve_base()
 
 

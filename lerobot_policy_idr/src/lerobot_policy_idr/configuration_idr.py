@@ -30,7 +30,17 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 #: Base policy types IDR wraps, and why lerobot's others are refused (each reason verified on
 #: lerobot 0.6.1 offline: docs/policy-types.md). A type registered by a third-party plugin
 #: (a ``lerobot_policy_*`` distribution) takes the generic path (``is_third_party_type``).
-SUPPORTED_BASE_TYPES = ("act", "diffusion", "pi0", "pi05", "smolvla", "xvla", "vqbet", "tiny_vla")
+SUPPORTED_BASE_TYPES = (
+    "act",
+    "diffusion",
+    "pi0",
+    "pi05",
+    "smolvla",
+    "xvla",
+    "vqbet",
+    "multi_task_dit",
+    "tiny_vla",
+)
 REFUSED_BASE_TYPES = {
     "idr": "an idr policy cannot wrap another idr policy; wrap its base instead",
     "groot": "GR00T loads its processors from the hub; not supported offline",
@@ -42,8 +52,6 @@ REFUSED_BASE_TYPES = {
     "passes would write into it), reads no state, and loads Wan's VAE and UMT5 from the hub",
     "molmoact2": "MolmoAct2 constructs only from a full MolmoAct2 checkpoint folder (its hub "
     "snapshot)",
-    "multi_task_dit": "Multi-Task DiT's predict_action_chunk reads the observation queues that "
-    "its select_action fills; IDR calls predict_action_chunk on whole batches",
     "tdmpc": "TD-MPC is a state-based RL planner: its predict_action_chunk reads select_action's "
     "queues and keeps a CEM warm start between calls",
     "wall_x": "WALL-OSS needs peft, torchdiffeq and qwen-vl-utils (not installed) and its "

@@ -45,7 +45,7 @@ _HISTORY_KEYS = (STATE_KEY, "observation.environment_state")
 #: Base types whose ``predict_action_chunk`` reads the observation queues that their
 #: ``select_action`` fills, not the batch it is given: IDR keeps queues of its own (3B rows)
 #: and lends them to the base for each forward (``_predict``), the base's own left untouched.
-QUEUE_FED_TYPES = ("vqbet",)
+QUEUE_FED_TYPES = ("vqbet", "multi_task_dit")
 
 
 class IDRPolicy(PreTrainedPolicy):

@@ -162,6 +162,79 @@ def build_vqbet(
     return save_checkpoint(policy, cfg, _stats(image, state, action, cams), out)
 
 
+def build_tiny_clip(out: Path, instructions: list[str]) -> Path:
+    """A local CLIP folder at toy widths (random weights, 32 px images in 8 px patches) with a
+    word-level tokenizer trained offline on ``instructions``: what Multi-Task DiT names as its
+    vision and text encoder instead of a hub id (lerobot checks that the name says "clip")."""
+    from transformers import CLIPConfig, CLIPModel
+
+    if "clip" not in out.name.lower():
+        raise ValueError(f"{out}: Multi-Task DiT requires 'clip' in the encoder's name")
+    tok = build_local_tokenizer(out.parent / f"{out.name}-tokenizer", instructions)
+    cfg = CLIPConfig(
+        text_config={
+            "vocab_size": 512,
+            "hidden_size": 32,
+            "intermediate_size": 64,
+            "num_hidden_layers": 1,
+            "num_attention_heads": 2,
+            "max_position_embeddings": 16,
+        },
+        vision_config={
+            "hidden_size": 32,
+            "intermediate_size": 64,
+            "num_hidden_layers": 1,
+            "num_attention_heads": 2,
+            "image_size": 32,
+            "patch_size": 8,
+        },
+        projection_dim=32,
+    )
+    torch.manual_seed(0)
+    CLIPModel(cfg).save_pretrained(out)
+    for f in tok.iterdir():
+        if f.name != "config.json":
+            (out / f.name).write_bytes(f.read_bytes())
+    return out
+
+
+def build_multi_task_dit(
+    out: Path, clip: Path, image: int = 64, state: int = 8, action: int = 7
+) -> Path:
+    """A small Multi-Task DiT (random weights; DDIM, 3 steps) on the local CLIP folder ``clip``:
+    2 observation steps, chunks of 8 of which 4 execute, text conditioned."""
+    from lerobot.policies.multi_task_dit.configuration_multi_task_dit import MultiTaskDiTConfig
+    from lerobot.policies.multi_task_dit.modeling_multi_task_dit import MultiTaskDiTPolicy
+
+    inputs, outputs = _features(image, state, action, ("agentview",))
+    cfg = MultiTaskDiTConfig(
+        input_features=inputs,
+        output_features=outputs,
+        vision_encoder_name=str(clip),
+        text_encoder_name=str(clip),
+        image_resize_shape=(32, 32),
+        image_crop_shape=(32, 32),
+        hidden_dim=32,
+        num_layers=2,
+        num_heads=2,
+        timestep_embed_dim=32,
+        horizon=8,
+        n_action_steps=4,
+        noise_scheduler_type="DDIM",
+        num_train_timesteps=10,
+        num_inference_steps=3,
+        tokenizer_max_length=16,
+        device="cpu",
+    )
+    torch.manual_seed(0)
+    policy = MultiTaskDiTPolicy(cfg).eval()
+    with torch.no_grad():  # its DiT zero-initializes its conditioning and output layers (adaLN-
+        for param in policy.parameters():  # zero): at init the output ignores every input
+            if not param.any():
+                param.normal_(0.0, 0.2)
+    return save_checkpoint(policy, cfg, _stats(image, state, action, ("agentview",)), out)
+
+
 # -- pi0 / pi0.5 -------------------------------------------------------------------------------
 # lerobot 0.6.1 cannot run its smallest pi variant (paligemma_variant="gemma_300m"): the SigLIP
 # projector is hard-wired to 2048-d while gemma_300m's language embeddings are 1024-d, so

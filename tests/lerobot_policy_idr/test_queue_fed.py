@@ -1,7 +1,8 @@
-"""VQ-BeT under IDR: a discretized action head whose ``predict_action_chunk`` reads the
-observation queues its ``select_action`` fills. IDR keeps queues of its own for the 3B rows and
-lends them for each forward; the actions are decoded from codes first and refined in action
-space after (small VQ-BeT, random weights, residual VQ marked trained, built offline)."""
+"""Bases whose ``predict_action_chunk`` reads the observation queues their ``select_action``
+fills: VQ-BeT (a discretized action head: actions decoded from codes first, refined in action
+space after) and Multi-Task DiT (CLIP-conditioned diffusion). IDR keeps queues of its own for
+the 3B rows and lends them for each forward (small models, random weights, built offline; VQ-BeT's
+residual VQ marked trained, Multi-Task DiT's CLIP a local folder)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,11 @@ from idr_core.sidecar import read_sidecar
 
 from tests.lerobot_policy_idr.conftest import load, make_idr, obs_batch
 from tests.lerobot_policy_idr.test_modeling_idr import _base, _harness
-from tests.workers.backbones.lerobot_fixtures import build_vqbet
+from tests.workers.backbones.lerobot_fixtures import (
+    build_multi_task_dit,
+    build_tiny_clip,
+    build_vqbet,
+)
 
 pytestmark = pytest.mark.slow
 
@@ -20,9 +25,11 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def vqbet(tmp_path_factory):
     root = tmp_path_factory.mktemp("vqbet")
+    clip = build_tiny_clip(root / "tiny-clip", [f"task {i}" for i in range(2)])
     return {
         "sampling": build_vqbet(root / "sampling"),
         "argmax": build_vqbet(root / "argmax", temperature=1e-4),
+        "multi_task_dit": build_multi_task_dit(root / "dit", clip),
     }
 
 
@@ -35,10 +42,11 @@ def _rollout(policy, pre, post, steps: int, seed0: int = 0) -> list[torch.Tensor
     return out
 
 
-def test_baseline_is_the_base_bit_for_bit(vqbet, tmp_path) -> None:
-    folder = make_idr(vqbet["sampling"], tmp_path / "idr", "--mode", "baseline")
+@pytest.mark.parametrize("kind", ["sampling", "multi_task_dit"])
+def test_baseline_is_the_base_bit_for_bit(vqbet, tmp_path, kind) -> None:
+    folder = make_idr(vqbet[kind], tmp_path / "idr", "--mode", "baseline")
     torch.manual_seed(0)
-    theirs = _rollout(*_base(vqbet["sampling"]), steps=9)
+    theirs = _rollout(*_base(vqbet[kind]), steps=9)
     torch.manual_seed(0)
     ours = _rollout(*load(folder), steps=9)
     for t, (a, b) in enumerate(zip(theirs, ours, strict=True)):
@@ -67,13 +75,16 @@ def test_diagnose_follows_the_bases_own_rollout_history_included(vqbet, tmp_path
     assert all(torch.equal(a, b) for a, b in zip(last, want, strict=True))
 
 
-def test_mode_E_equals_the_harness_and_the_image_moves_the_decoded_actions(vqbet, tmp_path) -> None:
+@pytest.mark.parametrize("kind", ["sampling", "multi_task_dit"])
+def test_mode_E_equals_the_harness_and_the_image_moves_the_decoded_actions(
+    vqbet, tmp_path, kind
+) -> None:
     """The same checkpoint, observation and seed: the plugin's refined chunk and diagnostics
     equal idr-eval's IDRWrapper around its lerobot backbone (three seeded passes each); the
     decoded counterfactual without the image differs from the factual one."""
     from workers.backbones.base import Observation
 
-    base = vqbet["sampling"]
+    base = vqbet[kind]
     folder = make_idr(
         base,
         tmp_path / "idr",
