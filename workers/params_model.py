@@ -84,20 +84,25 @@ def params_model(cls: Any) -> type[BaseModel]:
     return create_model(f"{cls.__name__}Params", __config__=config, **fields)
 
 
+def named_with_hints(unknown: list[str], accepted: list[str]) -> str:
+    """``'colour', 'siz' ('siz': did you mean 'size'?)``: unknown keys, with the accepted key
+    each is closest to, where one is close."""
+    hints = [
+        f"{k!r}: did you mean {close[0]!r}?"
+        for k in unknown
+        if (close := difflib.get_close_matches(k, accepted, n=1))
+    ]
+    return ", ".join(map(repr, unknown)) + (f" ({'; '.join(hints)})" if hints else "")
+
+
 def check_params(where: str, cls: Any, params: dict[str, Any]) -> None:
     """Refuse params the class does not take (did you mean ...?, naming the ones it does) and
     values that do not fit their type, with one ValueError naming ``where`` and the key."""
     accepted = [p.name for p in _parameters(cls)]
     unknown = [] if takes_any_keyword(cls) else [k for k in params if k not in accepted]
     if unknown:
-        hints = [
-            f"{k!r}: did you mean {close[0]!r}?"
-            for k in unknown
-            if (close := difflib.get_close_matches(k, accepted, n=1))
-        ]
-        hint = f" ({'; '.join(hints)})" if hints else ""
         raise ValueError(
-            f"{where}: unexpected parameter {', '.join(map(repr, unknown))}{hint}; "
+            f"{where}: unexpected parameter {named_with_hints(unknown, accepted)}; "
             f"accepted parameters: {accepted}"
         )
     try:

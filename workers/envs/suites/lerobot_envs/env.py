@@ -94,15 +94,11 @@ def env_config(type: str, config: Mapping[str, Any]) -> Any:
     fields = config_fields(type)
     unknown = [k for k in config if k not in fields]
     if unknown:
-        hints = [
-            f"{k!r}: did you mean {close[0]!r}?"
-            for k in unknown
-            if (close := difflib.get_close_matches(k, fields, n=1))
-        ]
-        hint = f" ({'; '.join(hints)})" if hints else ""
+        from workers.params_model import named_with_hints
+
         raise ValueError(
             f"env.params (lerobot env type {type!r}): unexpected keyword argument "
-            f"{', '.join(map(repr, unknown))}{hint}; the suite's own params are type, "
+            f"{named_with_hints(unknown, fields)}; the suite's own params are type, "
             f"instruction and max_steps, the others go to lerobot's config: {fields}"
         )
     try:
