@@ -44,7 +44,9 @@ def _rollout(policy, pre, post, steps: int, seed0: int = 0) -> list[torch.Tensor
 
 @pytest.mark.parametrize("kind", ["sampling", "multi_task_dit"])
 def test_baseline_is_the_base_bit_for_bit(vqbet, tmp_path, kind) -> None:
-    folder = make_idr(vqbet[kind], tmp_path / "idr", "--mode", "baseline")
+    folder = make_idr(
+        vqbet[kind], tmp_path / "idr", "--mode", "baseline", "--diagnostics-dir", str(tmp_path)
+    )
     torch.manual_seed(0)
     theirs = _rollout(*_base(vqbet[kind]), steps=9)
     torch.manual_seed(0)
@@ -58,7 +60,9 @@ def test_diagnose_follows_the_bases_own_rollout_history_included(vqbet, tmp_path
     every 4th. IDR's queues must hold the same frames (not only the inference steps'), so its
     base rows give the base's actions: equal up to the float rounding of a 3B batch (codes
     sampled at a temperature near 0, so the draw is the argmax in both)."""
-    folder = make_idr(vqbet["argmax"], tmp_path / "idr", "--mode", "diagnose")
+    folder = make_idr(
+        vqbet["argmax"], tmp_path / "idr", "--mode", "diagnose", "--diagnostics-dir", str(tmp_path)
+    )
     theirs = _rollout(*_base(vqbet["argmax"]), steps=12)
     policy, pre, post = load(folder)
     ours = _rollout(policy, pre, post, steps=12)

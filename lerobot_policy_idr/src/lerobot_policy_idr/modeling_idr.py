@@ -46,6 +46,8 @@ _HISTORY_KEYS = (STATE_KEY, "observation.environment_state")
 #: ``select_action`` fills, not the batch it is given: IDR keeps queues of its own (3B rows)
 #: and lends them to the base for each forward (``_predict``), the base's own left untouched.
 QUEUE_FED_TYPES = ("vqbet", "multi_task_dit")
+#: batch entries that concatenate every row's image patches along dim 0 (Qwen-VL processors)
+FLAT_PATCH_KEYS = ("pixel_values", "pixel_values_videos")
 
 
 class IDRPolicy(PreTrainedPolicy):
@@ -59,6 +61,9 @@ class IDRPolicy(PreTrainedPolicy):
         base_dir = config.resolve_base()
         base_cfg = PreTrainedConfig.from_pretrained(base_dir)
         base_cfg.device = config.device
+        # as lerobot's CLIs set it: a type that builds a sub-model (EO1's VLM) builds it from
+        # the saved config, not from its hub id, when it is loaded from a checkpoint
+        base_cfg.pretrained_path = base_dir
         if not config.output_features:
             config.copy_features(read_base_config(base_dir))
         self.base_dir = base_dir
@@ -218,7 +223,7 @@ class IDRPolicy(PreTrainedPolicy):
         device = _batch_device(batch)
         outs = []
         for i in range(3):
-            part = {k: _rows_of(v, i, b) for k, v in batch.items()}
+            part = {k: _rows_of(v, i, b, k) for k, v in batch.items()}
             with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
                 torch.manual_seed(s)
                 outs.append(self._predict(part, slice(i * b, (i + 1) * b)))
@@ -326,10 +331,15 @@ def _batch_rows(batch: dict[str, Any]) -> int:
     raise ValueError(f"the idr policy found no state or image tensor in the batch: {sorted(batch)}")
 
 
-def _rows_of(value: Any, i: int, b: int) -> Any:
-    """Third ``i`` of a 3B-row batch entry (tensors and per-row lists; others as they are)."""
+def _rows_of(value: Any, i: int, b: int, key: str = "") -> Any:
+    """Third ``i`` of a 3B-row batch entry (tensors and per-row lists; others as they are).
+    A Qwen-VL processor's ``pixel_values`` hold every row's image patches one after another
+    (EO1): the thirds are its thirds, the three thirds' images being of one size."""
     if isinstance(value, torch.Tensor) and value.ndim and value.shape[0] == 3 * b:
         return value[i * b : (i + 1) * b]
+    if key in FLAT_PATCH_KEYS and isinstance(value, torch.Tensor) and value.shape[0] % 3 == 0:
+        n = value.shape[0] // 3
+        return value[i * n : (i + 1) * n]
     if isinstance(value, list) and len(value) == 3 * b:
         return value[i * b : (i + 1) * b]
     return value

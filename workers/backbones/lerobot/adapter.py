@@ -240,6 +240,7 @@ class LerobotBackbone:
         self.device = torch.device(device)
         cfg = PreTrainedConfig.from_pretrained(path)
         cfg.device = str(self.device)
+        cfg.pretrained_path = Path(path)  # as lerobot's CLIs: EO1 builds its VLM from its config
         self.config = cfg
         self.policy = (
             get_policy_class(cfg.type).from_pretrained(path, config=cfg).to(self.device).eval()

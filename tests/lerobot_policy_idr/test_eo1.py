@@ -1,0 +1,83 @@
+"""EO1 under IDR (a Qwen2.5-VL policy with a flow-matching action head; the toy VLM folder and
+EO1 with random weights, built offline): it samples its noise from torch's RNG and takes no
+noise argument, so IDR runs three forwards under one seed."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from idr_core.sidecar import read_sidecar
+
+from tests.lerobot_policy_idr.conftest import load, make_idr, obs_batch
+from tests.lerobot_policy_idr.test_modeling_idr import _base, _harness
+from tests.workers.backbones.qwen_fixtures import build_eo1, build_qwen25vl_folder
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def eo1(tmp_path_factory):
+    root = tmp_path_factory.mktemp("eo1")
+    return build_eo1(root / "eo1", build_qwen25vl_folder(root / "toy-qwen2.5-vl"))
+
+
+def _rollout(policy, pre, post, steps: int) -> list[torch.Tensor]:
+    policy.reset()
+    out = []
+    for t in range(steps):
+        with torch.inference_mode():
+            out.append(post(policy.select_action(pre(obs_batch(2, seed=t)))))
+    return out
+
+
+def test_baseline_is_the_base_bit_for_bit(eo1, tmp_path) -> None:
+    folder = make_idr(
+        eo1, tmp_path / "idr", "--mode", "baseline", "--diagnostics-dir", str(tmp_path)
+    )
+    base, idr = _base(eo1), load(folder)  # both loaded before the seed: loading draws from it
+    torch.manual_seed(0)
+    theirs = _rollout(*base, steps=6)
+    torch.manual_seed(0)
+    ours = _rollout(*idr, steps=6)
+    for t, (a, b) in enumerate(zip(theirs, ours, strict=True)):
+        assert torch.equal(a, b), f"step {t}"
+
+
+def test_mode_E_equals_the_harness_and_the_image_moves_the_actions(eo1, tmp_path) -> None:
+    """The same checkpoint, observation and seed: the plugin's refined chunk and diagnostics
+    equal idr-eval's IDRWrapper around its lerobot backbone; the same seed gives the same chunk,
+    another seed another one."""
+    from workers.backbones.base import Observation
+
+    folder = make_idr(
+        eo1, tmp_path / "idr", "--tau", "1e9", "--no-clip", "--diagnostics-dir", str(tmp_path / "d")
+    )
+    backbone, harness = _harness(eo1, 1e9)
+    assert backbone.crn_mode == "seeded_rng" and backbone.chunk_len == 4
+    policy, pre, post = load(folder)
+    assert policy.crn == "seeded_rng"
+    for seed in range(2):
+        obs = obs_batch(2, seed=seed)
+        step = harness.infer(
+            Observation(
+                {"agentview": obs["observation.images.agentview"]},
+                obs["observation.state"],
+                obs["task"],
+            ),
+            step_seed=seed,
+        )
+        with torch.inference_mode():
+            ours = post(policy.predict_action_chunk(pre(obs), noise=backbone.make_noise(2, seed)))
+            again = post(policy.predict_action_chunk(pre(obs), noise=backbone.make_noise(2, seed)))
+            other = post(policy.predict_action_chunk(pre(obs), noise=backbone.make_noise(2, 99)))
+        assert torch.equal(ours, step.action), f"seed {seed}"
+        assert torch.equal(again, ours) and not torch.equal(other, ours)
+        assert not torch.equal(step.a_base, step.a_no_img)  # the image moves the actions
+        assert not torch.equal(step.action, step.a_base)  # refined: not a vacuous comparison
+    policy.sidecar.flush()
+    rows = read_sidecar(tmp_path / "d")
+    diag = step.diag.to_numpy()
+    assert (rows["e_img"] > 0).all()
+    for key in ("e_img", "e_prop", "r_img", "gate", "w_prop"):
+        assert np.array_equal(rows[key].to_numpy()[-6:-4].astype(np.float32), diag[key]), key

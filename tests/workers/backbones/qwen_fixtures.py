@@ -1,0 +1,248 @@
+"""A toy local Qwen2.5-VL folder (random weights, a byte-level BPE tokenizer trained offline on a
+few sentences, Qwen's special tokens, a hand-written Qwen-style chat template, the image and
+video processor configs) and lerobot's EO1 on it: what EO1 names as ``vlm_base`` instead of
+``Qwen/Qwen2.5-VL-3B-Instruct``, so that it builds and loads with no hub."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import torch
+
+from tests.workers.backbones.lerobot_fixtures import _features, _stats, save_checkpoint
+
+# ----------------------------------------------------------------------------------------------
+# Toy sizes
+# ----------------------------------------------------------------------------------------------
+PATCH_SIZE = 8  # vision patch size (real Qwen2.5-VL: 14)
+MERGE_SIZE = 2  # spatial merge (same as real)
+TEMPORAL_PATCH_SIZE = 2  # same as real
+FACTOR = PATCH_SIZE * MERGE_SIZE  # images are resized to multiples of this
+MIN_PIXELS = 16 * 16  # 64x64 camera frames get resized down to 32x32 ...
+MAX_PIXELS = 32 * 32  # ... -> grid (1, 4, 4) = 16 patches = 4 image tokens per image
+TEXT_HIDDEN = 64
+TEXT_HEADS = 4  # head_dim 16 -> rotary half-dim 8 = sum(mrope_section)
+MROPE_SECTION = [2, 3, 3]
+
+# Qwen2.5-VL special tokens, in the order of the real tokenizer (151643..151656).
+QWEN_SPECIAL_TOKENS = [
+    "<|endoftext|>",
+    "<|im_start|>",
+    "<|im_end|>",
+    "<|object_ref_start|>",
+    "<|object_ref_end|>",
+    "<|box_start|>",
+    "<|box_end|>",
+    "<|quad_start|>",
+    "<|quad_end|>",
+    "<|vision_start|>",
+    "<|vision_end|>",
+    "<|vision_pad|>",
+    "<|image_pad|>",
+    "<|video_pad|>",
+]
+
+# Hand-written chat template that renders like Qwen2.5-VL's: each message becomes
+# "<|im_start|>{role}\n...<|im_end|>\n", image parts become <|vision_start|><|image_pad|><|vision_end|>.
+CHAT_TEMPLATE = (
+    "{% set image_count = namespace(value=0) %}{% set video_count = namespace(value=0) %}"
+    "{% for message in messages %}"
+    "{% if loop.first and message['role'] != 'system' %}<|im_start|>system\nYou are a helpful assistant.<|im_end|>\n{% endif %}"
+    "<|im_start|>{{ message['role'] }}\n"
+    "{% if message['content'] is string %}{{ message['content'] }}<|im_end|>\n"
+    "{% else %}"
+    "{% for content in message['content'] %}"
+    "{% if content['type'] == 'image' or 'image' in content or 'image_url' in content %}"
+    "{% set image_count.value = image_count.value + 1 %}"
+    "{% if add_vision_id %}Picture {{ image_count.value }}: {% endif %}"
+    "<|vision_start|><|image_pad|><|vision_end|>"
+    "{% elif content['type'] == 'video' or 'video' in content %}"
+    "{% set video_count.value = video_count.value + 1 %}"
+    "{% if add_vision_id %}Video {{ video_count.value }}: {% endif %}"
+    "<|vision_start|><|video_pad|><|vision_end|>"
+    "{% elif 'text' in content %}{{ content['text'] }}"
+    "{% endif %}"
+    "{% endfor %}<|im_end|>\n"
+    "{% endif %}"
+    "{% endfor %}"
+    "{% if add_generation_prompt %}<|im_start|>assistant\n{% endif %}"
+)
+
+# Same pre-tokenizer regex as transformers' Qwen2Tokenizer.
+QWEN_PRETOKENIZE_REGEX = r"""(?i:'s|'t|'re|'ve|'m|'ll|'d)|[^\r\n\p{L}\p{N}]?\p{L}+|\p{N}| ?[^\s\p{L}\p{N}]+[\r\n]*|\s*[\r\n]+|\s+(?!\S)|\s+"""
+TOY_CORPUS = [
+    "You are a helpful physical assistant.",
+    "You are a helpful assistant.",
+    "pick it",
+    "place it",
+    "pick up the red block and place it in the bowl",
+    "open the drawer, close the drawer, push the button",
+    "system user assistant",
+]
+
+
+def _train_toy_tokenizer(vocab_size: int = 320):
+    """Train a tiny byte-level BPE with Qwen's pre-tokenizer and wrap it as a Qwen2Tokenizer."""
+    from tokenizers import (
+        AddedToken,
+        Regex,
+        Tokenizer,
+        decoders,
+        models,
+        normalizers,
+        pre_tokenizers,
+        trainers,
+    )
+    from transformers import Qwen2Tokenizer
+
+    tok = Tokenizer(models.BPE())
+    tok.normalizer = normalizers.NFC()
+    tok.pre_tokenizer = pre_tokenizers.Sequence(
+        [
+            pre_tokenizers.Split(Regex(QWEN_PRETOKENIZE_REGEX), behavior="isolated", invert=False),
+            pre_tokenizers.ByteLevel(add_prefix_space=False, use_regex=False),
+        ]
+    )
+    tok.decoder = decoders.ByteLevel()
+    trainer = trainers.BpeTrainer(
+        vocab_size=vocab_size,
+        initial_alphabet=pre_tokenizers.ByteLevel.alphabet(),  # all 256 bytes -> no unknown tokens
+        special_tokens=[],
+        show_progress=False,
+    )
+    tok.train_from_iterator(TOY_CORPUS, trainer=trainer)
+    model_json = json.loads(tok.to_str())["model"]
+    vocab = model_json["vocab"]
+    merges = [
+        tuple(m) if isinstance(m, list) else tuple(m.split(" ")) for m in model_json["merges"]
+    ]
+
+    qwen_tok = Qwen2Tokenizer(
+        vocab=vocab,
+        merges=merges,
+        unk_token=None,
+        bos_token=None,
+        eos_token="<|im_end|>",
+        pad_token="<|endoftext|>",
+        model_max_length=4096,
+    )
+    # Specials get consecutive ids right after the BPE vocab, like the real Qwen tokenizer.
+    qwen_tok.add_tokens(
+        [AddedToken(t, special=True, normalized=False) for t in QWEN_SPECIAL_TOKENS]
+    )
+    return qwen_tok
+
+
+def build_qwen25vl_folder(out: str | Path) -> Path:
+    """Write a random-weight toy Qwen2.5-VL checkpoint + every processor file into `out`."""
+    from transformers import (
+        Qwen2_5_VLConfig,
+        Qwen2_5_VLForConditionalGeneration,
+        Qwen2VLImageProcessor,
+        Qwen2VLVideoProcessor,
+    )
+
+    out = Path(out)
+    shutil.rmtree(out, ignore_errors=True)  # no stale files from an earlier layout
+    out.mkdir(parents=True)
+
+    # 1) Tokenizer.
+    tokenizer = _train_toy_tokenizer()
+    ids = {t: tokenizer.convert_tokens_to_ids(t) for t in QWEN_SPECIAL_TOKENS}
+    assert len(set(ids.values())) == len(QWEN_SPECIAL_TOKENS), ids
+
+    # 2) Image / video processors (Qwen2VL*), small pixel budget and matching patch geometry.
+    vision_kwargs = dict(
+        min_pixels=MIN_PIXELS,
+        max_pixels=MAX_PIXELS,
+        patch_size=PATCH_SIZE,
+        temporal_patch_size=TEMPORAL_PATCH_SIZE,
+        merge_size=MERGE_SIZE,
+    )
+    image_processor = Qwen2VLImageProcessor(**vision_kwargs)
+    video_processor = Qwen2VLVideoProcessor(**vision_kwargs)
+
+    # Hub-style layout (like Qwen/Qwen2.5-VL-3B-Instruct): one file per component, rather than the
+    # combined processor_config.json that `Qwen2_5_VLProcessor.save_pretrained` writes in transformers 5.
+    image_processor.save_pretrained(out)  # -> preprocessor_config.json
+    video_processor.save_pretrained(out)  # -> video_preprocessor_config.json
+    tokenizer.save_pretrained(out)  # -> tokenizer.json + tokenizer_config.json
+    (out / "chat_template.jinja").write_text(CHAT_TEMPLATE)
+
+    # 3) Model config. Leave head-room for the 7 EO1 tokens that EO1QwenProcessorStep adds at load time.
+    vocab_size = int(math.ceil((len(tokenizer) + 16) / 64) * 64)
+    config = Qwen2_5_VLConfig(
+        text_config=dict(
+            vocab_size=vocab_size,
+            hidden_size=TEXT_HIDDEN,
+            intermediate_size=2 * TEXT_HIDDEN,
+            num_hidden_layers=2,
+            num_attention_heads=TEXT_HEADS,
+            num_key_value_heads=2,
+            max_position_embeddings=1024,
+            rope_parameters={
+                "rope_type": "default",
+                "rope_theta": 10000.0,
+                "mrope_section": MROPE_SECTION,
+            },
+            bos_token_id=None,
+            eos_token_id=ids["<|im_end|>"],
+            pad_token_id=ids["<|endoftext|>"],
+            tie_word_embeddings=False,
+        ),
+        vision_config=dict(
+            depth=1,
+            hidden_size=32,
+            intermediate_size=64,
+            num_heads=2,
+            in_channels=3,
+            patch_size=PATCH_SIZE,
+            spatial_merge_size=MERGE_SIZE,
+            temporal_patch_size=TEMPORAL_PATCH_SIZE,
+            window_size=2 * FACTOR,  # window (in merged tokens) = window_size // merge // patch = 2
+            out_hidden_size=TEXT_HIDDEN,
+            fullatt_block_indexes=[0],
+        ),
+        image_token_id=ids["<|image_pad|>"],
+        video_token_id=ids["<|video_pad|>"],
+        vision_start_token_id=ids["<|vision_start|>"],
+        vision_end_token_id=ids["<|vision_end|>"],
+        tie_word_embeddings=False,
+    )
+
+    torch.manual_seed(0)
+    model = Qwen2_5_VLForConditionalGeneration(config).to(torch.float32)
+    # Guard: no weight matrix may be all-zero (biases are zero by design and stay zero).
+    for p in model.parameters():
+        if p.dim() >= 2 and torch.count_nonzero(p) == 0:
+            with torch.no_grad():
+                p.normal_(0.0, 0.02)
+    model.save_pretrained(out)
+    return out
+
+
+def build_eo1(out: Path, vlm: Path, image: int = 64, state: int = 8, action: int = 7) -> Path:
+    """lerobot's EO1 (random weights) on the toy Qwen2.5-VL folder ``vlm``: chunks of 4, 3
+    denoising steps, float32, the toy pixel budget (a 64 px frame is 4 image tokens)."""
+    from lerobot.policies.eo1.configuration_eo1 import EO1Config
+    from lerobot.policies.eo1.modeling_eo1 import EO1Policy
+
+    inputs, outputs = _features(image, state, action, ("agentview",))
+    cfg = EO1Config(
+        vlm_base=str(vlm),
+        input_features=inputs,
+        output_features=outputs,
+        chunk_size=4,
+        n_action_steps=4,
+        num_denoise_steps=3,
+        dtype="float32",
+        device="cpu",
+        image_min_pixels=MIN_PIXELS,
+        image_max_pixels=MAX_PIXELS,
+    )
+    torch.manual_seed(0)
+    policy = EO1Policy(cfg).eval()
+    return save_checkpoint(policy, cfg, _stats(image, state, action, ("agentview",)), out)
