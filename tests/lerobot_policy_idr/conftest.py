@@ -22,7 +22,10 @@ def bases(tmp_path_factory) -> dict[str, Path]:
 
 
 def make_idr(base: Path, out: Path, *args: str) -> Path:
-    """An IDR folder around ``base`` made by the real command (exit code checked)."""
+    """An IDR folder around ``base`` made by the real command (exit code checked); its sidecar
+    beside it unless ``args`` name one (not in the working directory's idr_diagnostics)."""
+    if "--diagnostics-dir" not in args:
+        args = (*args, "--diagnostics-dir", str(out.parent / f"{out.name}-diagnostics"))
     code = wrap_main([str(base), str(out), *args])
     assert code == 0, f"lerobot-idr-wrap exited {code}"
     return out

@@ -101,7 +101,7 @@ def test_bad_bases_are_refused_before_loading(bases, tmp_path) -> None:
     for kind, match in (
         ("groot", "processors from the hub"),
         ("tdmpc", "state-based RL planner"),
-        ("evo1", "not run under IDR yet"),
+        ("vla_jepa", "not run under IDR yet"),
     ):
         other = tmp_path / kind
         shutil.copytree(bases["act"], other)
@@ -109,7 +109,7 @@ def test_bad_bases_are_refused_before_loading(bases, tmp_path) -> None:
         (other / "config.json").write_text(json.dumps({**cfg, "type": kind}))
         refused(
             other,
-            rf"base type {kind!r} .*{match}.*act, diffusion, pi0, pi05, smolvla, xvla, vqbet, multi_task_dit, eo1",
+            rf"base type {kind!r} .*{match}.*act, diffusion, pi0, pi05, smolvla, xvla, vqbet, multi_task_dit, eo1, evo1",
         )
     truncated = tmp_path / "truncated"
     shutil.copytree(bases["act"], truncated)

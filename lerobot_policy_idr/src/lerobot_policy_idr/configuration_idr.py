@@ -40,6 +40,7 @@ SUPPORTED_BASE_TYPES = (
     "vqbet",
     "multi_task_dit",
     "eo1",
+    "evo1",
     "tiny_vla",
 )
 REFUSED_BASE_TYPES = {
@@ -61,7 +62,6 @@ REFUSED_BASE_TYPES = {
 #: lerobot types that construct offline with local sub-model folders and whose
 #: predict_action_chunk runs on a batch, but that IDR has not been run on here yet.
 UNVERIFIED_BASE_TYPES = {
-    "evo1": "InternVL3",
     "pi0_fast": "PaliGemma and the FAST action tokenizer",
     # its postprocessor clips and snaps the gripper before unnormalizing and binarizes after:
     # IDR's physical space takes the unnormalizer alone (measured: E_img differs from

@@ -1,7 +1,12 @@
-"""A toy local Qwen2.5-VL folder (random weights, a byte-level BPE tokenizer trained offline on a
-few sentences, Qwen's special tokens, a hand-written Qwen-style chat template, the image and
-video processor configs) and lerobot's EO1 on it: what EO1 names as ``vlm_base`` instead of
-``Qwen/Qwen2.5-VL-3B-Instruct``, so that it builds and loads with no hub."""
+"""Toy local VLM folders and the lerobot policies built on them, with no hub: random weights at
+toy widths, a byte-level BPE tokenizer trained offline on a few sentences with the model's
+special tokens, and the processor files its loader reads.
+
+- Qwen2.5-VL (a hand-written Qwen-style chat template, the image and video processor configs):
+  EO1's ``vlm_base`` instead of ``Qwen/Qwen2.5-VL-3B-Instruct``;
+- InternVL3 (transformers' own InternVL classes, no remote code; EVO1 writes its prompt and
+  preprocesses its images itself): EVO1's ``vlm_model_name``.
+"""
 
 from __future__ import annotations
 
@@ -75,6 +80,7 @@ CHAT_TEMPLATE = (
 QWEN_PRETOKENIZE_REGEX = r"""(?i:'s|'t|'re|'ve|'m|'ll|'d)|[^\r\n\p{L}\p{N}]?\p{L}+|\p{N}| ?[^\s\p{L}\p{N}]+[\r\n]*|\s*[\r\n]+|\s+(?!\S)|\s+"""
 TOY_CORPUS = [
     "You are a helpful physical assistant.",
+    "Image-1: Image-2: Image-3:",
     "You are a helpful assistant.",
     "pick it",
     "place it",
@@ -84,8 +90,12 @@ TOY_CORPUS = [
 ]
 
 
-def _train_toy_tokenizer(vocab_size: int = 320):
-    """Train a tiny byte-level BPE with Qwen's pre-tokenizer and wrap it as a Qwen2Tokenizer."""
+def _train_toy_tokenizer(
+    specials: list[str] = QWEN_SPECIAL_TOKENS, vocab_size: int = 320, **kwargs: object
+):
+    """Train a tiny byte-level BPE with Qwen's pre-tokenizer and wrap it as a Qwen2Tokenizer,
+    with ``specials`` added after the BPE vocabulary (as Qwen's tokenizer numbers them);
+    ``kwargs`` go to the Qwen2Tokenizer."""
     from tokenizers import (
         AddedToken,
         Regex,
@@ -128,11 +138,10 @@ def _train_toy_tokenizer(vocab_size: int = 320):
         eos_token="<|im_end|>",
         pad_token="<|endoftext|>",
         model_max_length=4096,
+        **kwargs,
     )
     # Specials get consecutive ids right after the BPE vocab, like the real Qwen tokenizer.
-    qwen_tok.add_tokens(
-        [AddedToken(t, special=True, normalized=False) for t in QWEN_SPECIAL_TOKENS]
-    )
+    qwen_tok.add_tokens([AddedToken(t, special=True, normalized=False) for t in specials])
     return qwen_tok
 
 
@@ -245,4 +254,140 @@ def build_eo1(out: Path, vlm: Path, image: int = 64, state: int = 8, action: int
     )
     torch.manual_seed(0)
     policy = EO1Policy(cfg).eval()
+    return save_checkpoint(policy, cfg, _stats(image, state, action, ("agentview",)), out)
+
+
+# -- InternVL3 (EVO1) ----------------------------------------------------------------------------
+INTERNVL_IMAGE = 32  # the vision tower's input (real: 448); EVO1's image_resolution must equal it
+INTERNVL_PATCH = 8  # (real: 14): 4 x 4 patches
+INTERNVL_DOWNSAMPLE = 0.5  # pixel shuffle, as the real one: 2 x 2 = 4 tokens per image
+INTERNVL_SEQ = int((INTERNVL_IMAGE // INTERNVL_PATCH) ** 2 * INTERNVL_DOWNSAMPLE**2)
+INTERNVL_TEXT_HIDDEN = 64  # EVO1's embed_dim must equal it
+# InternVL3-hf's added tokens (EVO1 hard-wires <img>, </img> and <IMG_CONTEXT>)
+INTERNVL_SPECIAL_TOKENS = [
+    "<|endoftext|>",
+    "<|im_start|>",
+    "<|im_end|>",
+    "<img>",
+    "</img>",
+    "<IMG_CONTEXT>",
+    "<quad>",
+    "</quad>",
+    "<ref>",
+    "</ref>",
+    "<box>",
+    "</box>",
+    "<video>",
+]
+IMAGENET_MEAN = [0.485, 0.456, 0.406]
+IMAGENET_STD = [0.229, 0.224, 0.225]
+
+
+def build_internvl3_folder(out: Path) -> Path:
+    """A toy InternVL3-hf folder: InternViT (1 layer) + pixel-shuffle projector + Qwen2 text
+    model (2 layers), its processor files (EVO1 reads only the tokenizer: it writes its prompt
+    and normalizes its images itself)."""
+    from transformers import (
+        GotOcr2ImageProcessor,
+        InternVLConfig,
+        InternVLModel,
+        InternVLProcessor,
+        InternVLVideoProcessor,
+    )
+
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    tokenizer = _train_toy_tokenizer(
+        INTERNVL_SPECIAL_TOKENS,
+        padding_side="right",  # EVO1 pools each row's last real token: right padding
+        extra_special_tokens={
+            "start_image_token": "<img>",
+            "end_image_token": "</img>",
+            "context_image_token": "<IMG_CONTEXT>",
+            "video_token": "<video>",
+        },
+    )
+    ids = {t: tokenizer.convert_tokens_to_ids(t) for t in INTERNVL_SPECIAL_TOKENS}
+    size = {"height": INTERNVL_IMAGE, "width": INTERNVL_IMAGE}
+    InternVLProcessor(
+        image_processor=GotOcr2ImageProcessor(
+            size=size, crop_to_patches=False, image_mean=IMAGENET_MEAN, image_std=IMAGENET_STD
+        ),
+        tokenizer=tokenizer,
+        video_processor=InternVLVideoProcessor(
+            size=size, image_mean=IMAGENET_MEAN, image_std=IMAGENET_STD
+        ),
+        image_seq_length=INTERNVL_SEQ,
+    ).save_pretrained(out)
+    config = InternVLConfig(
+        vision_config={
+            "hidden_size": 32,
+            "num_hidden_layers": 1,
+            "num_attention_heads": 2,
+            "intermediate_size": 64,
+            "image_size": [INTERNVL_IMAGE, INTERNVL_IMAGE],
+            "patch_size": [INTERNVL_PATCH, INTERNVL_PATCH],
+            "norm_type": "layer_norm",
+            "use_mean_pooling": True,
+        },
+        text_config={
+            "model_type": "qwen2",
+            "vocab_size": int(math.ceil(len(tokenizer) / 64) * 64),
+            "hidden_size": INTERNVL_TEXT_HIDDEN,
+            "intermediate_size": 2 * INTERNVL_TEXT_HIDDEN,
+            "num_hidden_layers": 2,
+            "num_attention_heads": 4,
+            "num_key_value_heads": 2,
+            "max_position_embeddings": 1024,
+            "bos_token_id": None,
+            "eos_token_id": ids["<|im_end|>"],
+            "pad_token_id": ids["<|endoftext|>"],
+            "tie_word_embeddings": False,
+        },
+        image_token_id=ids["<IMG_CONTEXT>"],
+        image_seq_length=INTERNVL_SEQ,
+        downsample_ratio=INTERNVL_DOWNSAMPLE,
+        vision_feature_layer=-1,
+        vision_feature_select_strategy="default",
+        tie_word_embeddings=False,
+    )
+    torch.manual_seed(0)
+    model = InternVLModel(config).to(torch.float32)
+    with torch.no_grad():  # InternViT zero-initializes its cls token and position embeddings
+        for param in model.parameters():
+            if param.dim() >= 2 and not param.any():
+                param.normal_(0.0, 0.02)
+    model.save_pretrained(out)
+    return out
+
+
+def build_evo1(out: Path, vlm: Path, image: int = 64, state: int = 8, action: int = 7) -> Path:
+    """lerobot's EVO1 (random weights) on the toy InternVL3 folder ``vlm``: chunks of 4, 3
+    sampling steps, float32, no flash attention."""
+    from lerobot.policies.evo1.configuration_evo1 import Evo1Config
+    from lerobot.policies.evo1.modeling_evo1 import Evo1Policy
+
+    inputs, outputs = _features(image, state, action, ("agentview",))
+    cfg = Evo1Config(
+        vlm_model_name=str(vlm),
+        vlm_num_layers=None,
+        vlm_dtype="float32",
+        use_flash_attn=False,
+        use_amp=False,
+        image_resolution=(INTERNVL_IMAGE, INTERNVL_IMAGE),
+        input_features=inputs,
+        output_features=outputs,
+        chunk_size=4,
+        n_action_steps=4,
+        num_inference_timesteps=3,
+        embed_dim=INTERNVL_TEXT_HIDDEN,
+        hidden_dim=64,
+        state_hidden_dim=64,
+        num_heads=4,
+        num_layers=2,
+        max_text_length=256,
+        device="cpu",
+    )
+    torch.manual_seed(0)
+    policy = Evo1Policy(cfg).eval()
     return save_checkpoint(policy, cfg, _stats(image, state, action, ("agentview",)), out)
