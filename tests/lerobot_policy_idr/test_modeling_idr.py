@@ -97,6 +97,34 @@ def test_diagnose_executes_the_base_row_of_the_three_pass_forward(bases, tmp_pat
     assert set(rows["fallback"]) == {""} and (rows["clipped"] == 0).all()
 
 
+def test_postprocessor_steps_before_the_unnormalizer_stay_in_the_normalized_space(
+    bases, tmp_path
+) -> None:
+    """A base whose postprocessor acts on normalized actions before unnormalizing them (as
+    VLA-JEPA snaps its gripper to {0, 1} there): IDR runs that step, then the unnormalizer, then
+    refines, so diagnose executes the base's own actions (the snap applied to physical actions
+    would give other ones)."""
+    import shutil
+
+    base = tmp_path / "clipping_act"
+    shutil.copytree(bases["act"], base)
+    post_json = base / "policy_postprocessor.json"
+    post = json.loads(post_json.read_text())
+    snap = {
+        "registry_name": "vla_jepa_pre_snap_gripper",
+        "config": {"gripper_dim": 6, "threshold": 0.0},
+    }
+    post["steps"].insert(0, snap)
+    post_json.write_text(json.dumps(post))
+    folder = make_idr(base, tmp_path / "idr", "--mode", "diagnose")
+    theirs = _rollout(*_base(base), steps=8)
+    ours = _rollout(*load(folder), steps=8)
+    diff = max(float((a - b).abs().max()) for a, b in zip(theirs, ours, strict=True))
+    assert diff < 1e-5, diff
+    unsnapped = _rollout(*_base(bases["act"]), steps=8)  # the snap changes these actions
+    assert max(float((a - b).abs().max()) for a, b in zip(theirs, unsnapped, strict=True)) > 0.01
+
+
 @pytest.mark.parametrize("kind", ["act", "diffusion"])
 def test_mode_E_equals_the_harness_exactly(bases, tmp_path, kind) -> None:
     """The same checkpoint, observation and noise: the plugin's refined chunk and diagnostics

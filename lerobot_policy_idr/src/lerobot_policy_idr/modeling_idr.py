@@ -369,8 +369,9 @@ def weights_version(module: torch.nn.Module) -> int:
 
 
 def _action_unnormalizer(base_dir: Path, config: IDRConfig):
-    """The base's action unnormalizer as a callable on action tensors and the action bounds
-    it knows (dataset min/max), for ``refine_space=physical``; (None, None) otherwise."""
+    """The base's postprocessor up to its action unnormalizer, as a callable on action tensors,
+    and the action bounds the unnormalizer knows (dataset min/max), for
+    ``refine_space=physical``; (None, None) otherwise."""
     if config.refine_space != "physical":
         return None, None
     from lerobot.processor import PolicyProcessorPipeline
@@ -385,13 +386,19 @@ def _action_unnormalizer(base_dir: Path, config: IDRConfig):
         to_transition=policy_action_to_transition,
         to_output=transition_to_policy_action,
     )
-    steps = [s for s in post.steps if type(s).__name__ == "UnnormalizerProcessorStep"]
-    if not steps:
+    names = [type(s).__name__ for s in post.steps]
+    if "UnnormalizerProcessorStep" not in names:
         return None, None
-    step = steps[0]
-    step.to(device=config.device)
+    # the unnormalizer and the steps before it, which act in the normalized space (VLA-JEPA
+    # clips its actions and snaps its gripper there): the policy's physical actions are the
+    # base's, and the folder's postprocessor keeps the steps after (processor_idr)
+    before = post.steps[: names.index("UnnormalizerProcessorStep") + 1]
+    step = before[-1]
+    for s in before:
+        if hasattr(s, "to"):
+            s.to(device=config.device)
     unnormalize = PolicyProcessorPipeline(
-        steps=[step],
+        steps=before,
         name="idr_action_unnormalizer",
         to_transition=policy_action_to_transition,
         to_output=transition_to_policy_action,

@@ -11,9 +11,9 @@ counterfactual inputs are made inside the base's own preprocessor, by two regist
    space (zero = the dataset mean), before any later step reads the state (pi0.5's state
    tokenizer turns it into text).
 
-With ``refine_space=physical`` the base's action unnormalizer moves from the postprocessor
-into the policy (it refines physical actions and returns them), so the folder's
-postprocessor is the base's without that step.
+With ``refine_space=physical`` the base's action unnormalizer, and any step before it (those
+act in the normalized space), move from the postprocessor into the policy (it refines physical
+actions and returns them), so the folder's postprocessor is the base's steps after it.
 """
 
 from __future__ import annotations
@@ -199,8 +199,8 @@ def insert_idr_steps(
     post_steps = list(post.steps)
     if config.refine_space == "physical":
         i = _index(post_steps, "UnnormalizerProcessorStep")
-        if i is not None:  # the policy unnormalizes before refining
-            post_steps.pop(i)
+        if i is not None:  # the policy runs these (normalized space) and unnormalizes, then refines
+            post_steps = post_steps[i + 1 :]
     if config.mode != "baseline":
         norm = _index(steps, "NormalizerProcessorStep")
         anchors = [i for n in _BEFORE_COUNTERFACTUALS if (i := _index(steps, n)) is not None]
