@@ -41,6 +41,17 @@ def obs_batch(b: int = 2, seed: int = 0, image: int = 64, state: int = 8) -> dic
     }
 
 
+def rollout(policy, pre, post, steps: int) -> list[torch.Tensor]:
+    """select_action on a sequence of observations (2 envs, seeds 0..steps-1), as lerobot-eval's
+    loop calls it, from a reset."""
+    policy.reset()
+    out = []
+    for t in range(steps):
+        with torch.inference_mode():
+            out.append(post(policy.select_action(pre(obs_batch(2, seed=t)))))
+    return out
+
+
 def load(folder: Path):
     """The policy and its processors from an IDR folder, as lerobot's tools load it."""
     return load_idr(folder)

@@ -11,7 +11,7 @@ import pytest
 import torch
 from idr_core.sidecar import read_sidecar
 
-from tests.lerobot_policy_idr.conftest import load, make_idr, obs_batch
+from tests.lerobot_policy_idr.conftest import load, make_idr, obs_batch, rollout
 
 pytestmark = pytest.mark.slow
 
@@ -41,16 +41,6 @@ def _harness(base, tau: float):
     return backbone, policy
 
 
-def _rollout(policy, pre, post, steps: int) -> list[torch.Tensor]:
-    """select_action on a sequence of observations, as lerobot-eval's loop calls it."""
-    policy.reset()
-    out = []
-    for t in range(steps):
-        with torch.inference_mode():
-            out.append(post(policy.select_action(pre(obs_batch(2, seed=t)))))
-    return out
-
-
 @pytest.mark.parametrize("kind", ["act", "diffusion"])
 def test_baseline_is_the_base_bit_for_bit(bases, tmp_path, kind) -> None:
     folder = make_idr(
@@ -62,10 +52,10 @@ def test_baseline_is_the_base_bit_for_bit(bases, tmp_path, kind) -> None:
         str(tmp_path / "d"),
     )
     torch.manual_seed(0)
-    theirs = _rollout(*_base(bases[kind]), steps=9)
+    theirs = rollout(*_base(bases[kind]), steps=9)
     torch.manual_seed(0)
     policy, pre, post = load(folder)
-    ours = _rollout(policy, pre, post, steps=9)
+    ours = rollout(policy, pre, post, steps=9)
     for t, (a, b) in enumerate(zip(theirs, ours, strict=True)):
         assert torch.equal(a, b), f"step {t}: {a} vs {b}"
     policy.sidecar.flush()
@@ -85,9 +75,9 @@ def test_diagnose_executes_the_base_row_of_the_three_pass_forward(bases, tmp_pat
         "--diagnostics-dir",
         str(tmp_path / "d"),
     )
-    theirs = _rollout(*_base(bases["act"]), steps=8)
+    theirs = rollout(*_base(bases["act"]), steps=8)
     policy, pre, post = load(folder)
-    ours = _rollout(policy, pre, post, steps=8)
+    ours = rollout(policy, pre, post, steps=8)
     diff = max(float((a - b).abs().max()) for a, b in zip(theirs, ours, strict=True))
     # the same rows in a batch of 3B instead of B: equal up to float32 rounding of that batch
     assert diff < 1e-5, diff
@@ -117,11 +107,11 @@ def test_postprocessor_steps_before_the_unnormalizer_stay_in_the_normalized_spac
     post["steps"].insert(0, snap)
     post_json.write_text(json.dumps(post))
     folder = make_idr(base, tmp_path / "idr", "--mode", "diagnose")
-    theirs = _rollout(*_base(base), steps=8)
-    ours = _rollout(*load(folder), steps=8)
+    theirs = rollout(*_base(base), steps=8)
+    ours = rollout(*load(folder), steps=8)
     diff = max(float((a - b).abs().max()) for a, b in zip(theirs, ours, strict=True))
     assert diff < 1e-5, diff
-    unsnapped = _rollout(*_base(bases["act"]), steps=8)  # the snap changes these actions
+    unsnapped = rollout(*_base(bases["act"]), steps=8)  # the snap changes these actions
     assert max(float((a - b).abs().max()) for a, b in zip(theirs, unsnapped, strict=True)) > 0.01
 
 
@@ -260,7 +250,7 @@ def test_sidecar_rows_follow_episodes_and_ticks(bases, tmp_path) -> None:
     )
     policy, pre, post = load(folder)
     for _ in range(2):  # two episodes of 9 steps, replanning every 4
-        _rollout(policy, pre, post, steps=9)
+        rollout(policy, pre, post, steps=9)
     policy.reset()
     rows = read_sidecar(tmp_path / "d")
     assert sorted(set(rows["episode"])) == [0, 1]

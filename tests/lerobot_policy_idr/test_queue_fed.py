@@ -11,7 +11,7 @@ import pytest
 import torch
 from idr_core.sidecar import read_sidecar
 
-from tests.lerobot_policy_idr.conftest import load, make_idr, obs_batch
+from tests.lerobot_policy_idr.conftest import load, make_idr, obs_batch, rollout
 from tests.lerobot_policy_idr.test_modeling_idr import _base, _harness
 from tests.workers.backbones.lerobot_fixtures import (
     build_multi_task_dit,
@@ -33,24 +33,15 @@ def vqbet(tmp_path_factory):
     }
 
 
-def _rollout(policy, pre, post, steps: int, seed0: int = 0) -> list[torch.Tensor]:
-    policy.reset()
-    out = []
-    for t in range(steps):
-        with torch.inference_mode():
-            out.append(post(policy.select_action(pre(obs_batch(2, seed=seed0 + t)))))
-    return out
-
-
 @pytest.mark.parametrize("kind", ["sampling", "multi_task_dit"])
 def test_baseline_is_the_base_bit_for_bit(vqbet, tmp_path, kind) -> None:
     folder = make_idr(
         vqbet[kind], tmp_path / "idr", "--mode", "baseline", "--diagnostics-dir", str(tmp_path)
     )
     torch.manual_seed(0)
-    theirs = _rollout(*_base(vqbet[kind]), steps=9)
+    theirs = rollout(*_base(vqbet[kind]), steps=9)
     torch.manual_seed(0)
-    ours = _rollout(*load(folder), steps=9)
+    ours = rollout(*load(folder), steps=9)
     for t, (a, b) in enumerate(zip(theirs, ours, strict=True)):
         assert torch.equal(a, b), f"step {t}"
 
@@ -63,9 +54,9 @@ def test_diagnose_follows_the_bases_own_rollout_history_included(vqbet, tmp_path
     folder = make_idr(
         vqbet["argmax"], tmp_path / "idr", "--mode", "diagnose", "--diagnostics-dir", str(tmp_path)
     )
-    theirs = _rollout(*_base(vqbet["argmax"]), steps=12)
+    theirs = rollout(*_base(vqbet["argmax"]), steps=12)
     policy, pre, post = load(folder)
-    ours = _rollout(policy, pre, post, steps=12)
+    ours = rollout(policy, pre, post, steps=12)
     diff = max(float((a - b).abs().max()) for a, b in zip(theirs, ours, strict=True))
     assert diff < 1e-5, diff
     assert {k: len(q) for k, q in policy.base._queues.items() if k != "action"} == {

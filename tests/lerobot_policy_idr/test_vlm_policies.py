@@ -10,7 +10,7 @@ import pytest
 import torch
 from idr_core.sidecar import read_sidecar
 
-from tests.lerobot_policy_idr.conftest import load, make_idr, obs_batch
+from tests.lerobot_policy_idr.conftest import load, make_idr, obs_batch, rollout
 from tests.lerobot_policy_idr.test_modeling_idr import _base, _harness
 from tests.workers.backbones.vlm_fixtures import (
     build_eo1,
@@ -31,15 +31,6 @@ def vlms(tmp_path_factory):
     }
 
 
-def _rollout(policy, pre, post, steps: int) -> list[torch.Tensor]:
-    policy.reset()
-    out = []
-    for t in range(steps):
-        with torch.inference_mode():
-            out.append(post(policy.select_action(pre(obs_batch(2, seed=t)))))
-    return out
-
-
 @pytest.mark.parametrize("kind", ["eo1", "evo1"])
 def test_baseline_is_the_base_bit_for_bit(vlms, tmp_path, kind) -> None:
     ckpt = vlms[kind]
@@ -48,9 +39,9 @@ def test_baseline_is_the_base_bit_for_bit(vlms, tmp_path, kind) -> None:
     )
     base, idr = _base(ckpt), load(folder)  # both loaded before the seed: loading draws from it
     torch.manual_seed(0)
-    theirs = _rollout(*base, steps=6)
+    theirs = rollout(*base, steps=6)
     torch.manual_seed(0)
-    ours = _rollout(*idr, steps=6)
+    ours = rollout(*idr, steps=6)
     for t, (a, b) in enumerate(zip(theirs, ours, strict=True)):
         assert torch.equal(a, b), f"step {t}"
 
