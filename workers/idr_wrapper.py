@@ -10,13 +10,13 @@ Mode ``baseline`` runs one factual pass and no counterfactuals at all.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 from idr_core.three_pass import PassRequest, PassResult, infer_requests
 
-from workers.backbones.base import Backbone, Observation, concat_observations
+from workers.backbones.base import Backbone, Observation, backbone_member, concat_observations
 from workers.forward_shape import cat_rows
 from workers.idr import Diagnostics, RefinerConfig
 from workers.interventions import InterventionConfig, intervene
@@ -155,7 +155,7 @@ class IDRWrapper:
         """Several requests of one intervention through ``idr_core``'s one IDR inference (one
         forward when the backbone batches)."""
         needs = any(r.counterfactuals is not None for r in requests)
-        return infer_requests(
+        results = infer_requests(
             self.forward(intervention or self.intervention),
             requests,
             concat=concat_observations,
@@ -163,6 +163,10 @@ class IDRWrapper:
             # one request of the factual pass alone is one call either way
             batched=self.batched and (needs or len(requests) > 1),
         )
+        finish = backbone_member(self.backbone, "finish_chunk")
+        if finish is None:
+            return results
+        return [replace(r, action=finish(r.action)) for r in results]
 
     def infer(
         self,

@@ -101,7 +101,7 @@ def test_bad_bases_are_refused_before_loading(bases, tmp_path) -> None:
     for kind, match in (
         ("groot", "processors from the hub"),
         ("tdmpc", "state-based RL planner"),
-        ("vla_jepa", "not run under IDR yet"),
+        ("pi0_fast", "FAST action tokenizer"),
     ):
         other = tmp_path / kind
         shutil.copytree(bases["act"], other)

@@ -115,6 +115,52 @@ def test_postprocessor_steps_before_the_unnormalizer_stay_in_the_normalized_spac
     assert max(float((a - b).abs().max()) for a, b in zip(theirs, unsnapped, strict=True)) > 0.01
 
 
+def test_postprocessor_steps_after_the_unnormalizer_apply_to_the_refined_chunk(
+    bases, tmp_path
+) -> None:
+    """A base whose postprocessor changes physical actions after unnormalizing them (as
+    VLA-JEPA binarizes its gripper): the plugin and idr-eval's backbone both measure and refine
+    the unnormalized actions and apply that step to the refined chunk only, so mode E gives the
+    same chunk and the same E_img both ways, and the executed gripper is binary."""
+    import shutil
+
+    from workers.backbones.base import Observation
+
+    base = tmp_path / "binarizing_act"
+    shutil.copytree(bases["act"], base)
+    post_json = base / "policy_postprocessor.json"
+    post = json.loads(post_json.read_text())
+    names = [s["registry_name"] for s in post["steps"]]
+    # its default settings (gripper dim 6, threshold 0.5): lerobot's step saves no config
+    binarize = {"registry_name": "vla_jepa_binarize_gripper"}
+    post["steps"].insert(names.index("unnormalizer_processor") + 1, binarize)
+    post_json.write_text(json.dumps(post))
+    folder = make_idr(
+        base, tmp_path / "idr", "--tau", "1e9", "--no-clip", "--diagnostics-dir", str(tmp_path)
+    )
+    backbone, harness = _harness(base, 1e9)
+    assert backbone.finish_chunk is not None
+    policy, pre, post_ = load(folder)
+    obs = obs_batch(2, seed=0)
+    step = harness.infer(
+        Observation(
+            {"agentview": obs["observation.images.agentview"]},
+            obs["observation.state"],
+            obs["task"],
+        )
+    )
+    with torch.inference_mode():
+        ours = post_(policy.predict_action_chunk(pre(obs)))
+    assert torch.equal(ours[:, : backbone.chunk_len], step.action)
+    assert set(step.action[..., 6].unique().tolist()) <= {-1.0, 1.0}
+    assert not set(step.a_base[..., 6].unique().tolist()) <= {-1.0, 1.0}  # measured before it
+    policy.sidecar.flush()
+    rows = read_sidecar(tmp_path)
+    diag = step.diag.to_numpy()
+    for key in ("e_img", "e_prop", "r_img", "gate"):
+        assert np.array_equal(rows[key].to_numpy()[-2:].astype(np.float32), diag[key]), key
+
+
 @pytest.mark.parametrize("kind", ["act", "diffusion"])
 def test_mode_E_equals_the_harness_exactly(bases, tmp_path, kind) -> None:
     """The same checkpoint, observation and noise: the plugin's refined chunk and diagnostics

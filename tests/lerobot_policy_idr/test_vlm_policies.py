@@ -1,7 +1,7 @@
-"""VLM policies under IDR: EO1 (Qwen2.5-VL) and EVO1 (InternVL3), each with a flow-matching
-action head (toy VLM folders and policies with random weights, built offline). Both sample
-their noise from torch's RNG and take no noise argument, so IDR runs three forwards under one
-seed."""
+"""VLM policies under IDR: EO1 (Qwen2.5-VL), EVO1 (InternVL3) and VLA-JEPA (Qwen3-VL), each
+with a flow-matching or diffusion action head (toy VLM folders and policies with random weights,
+built offline). They sample their noise from torch's RNG and take no noise argument (VLA-JEPA
+names one and ignores it), so IDR runs three forwards under one seed."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from idr_core.sidecar import read_sidecar
 
 from tests.lerobot_policy_idr.conftest import load, make_idr, obs_batch, rollout
 from tests.lerobot_policy_idr.test_modeling_idr import _base, _harness
+from tests.workers.backbones.vla_jepa_fixtures import build_qwen3vl_folder, build_vla_jepa
 from tests.workers.backbones.vlm_fixtures import (
     build_eo1,
     build_evo1,
@@ -28,10 +29,11 @@ def vlms(tmp_path_factory):
     return {
         "eo1": build_eo1(root / "eo1", build_qwen25vl_folder(root / "toy-qwen2.5-vl")),
         "evo1": build_evo1(root / "evo1", build_internvl3_folder(root / "toy-internvl3")),
+        "vla_jepa": build_vla_jepa(root / "vla_jepa", build_qwen3vl_folder(root / "toy-qwen3-vl")),
     }
 
 
-@pytest.mark.parametrize("kind", ["eo1", "evo1"])
+@pytest.mark.parametrize("kind", ["eo1", "evo1", "vla_jepa"])
 def test_baseline_is_the_base_bit_for_bit(vlms, tmp_path, kind) -> None:
     ckpt = vlms[kind]
     folder = make_idr(
@@ -46,7 +48,7 @@ def test_baseline_is_the_base_bit_for_bit(vlms, tmp_path, kind) -> None:
         assert torch.equal(a, b), f"step {t}"
 
 
-@pytest.mark.parametrize("kind", ["eo1", "evo1"])
+@pytest.mark.parametrize("kind", ["eo1", "evo1", "vla_jepa"])
 def test_mode_E_equals_the_harness_and_the_image_moves_the_actions(vlms, tmp_path, kind) -> None:
     """The same checkpoint, observation and seed: the plugin's refined chunk and diagnostics
     equal idr-eval's IDRWrapper around its lerobot backbone; the same seed gives the same chunk,
@@ -96,3 +98,66 @@ def test_mode_E_equals_the_harness_and_the_image_moves_the_actions(vlms, tmp_pat
     for key in ("e_img", "e_prop", "r_img", "gate", "w_prop"):
         got = rows[key].to_numpy()[-6:-4].astype(np.float32)
         np.testing.assert_allclose(got, diag[key], rtol=tol, atol=0, err_msg=key)
+
+
+@pytest.mark.parametrize("kind", ["eo1", "evo1", "vla_jepa"])
+def test_diagnose_executes_the_bases_own_chunk(vlms, tmp_path, kind) -> None:
+    """Three forwards of B rows under one seed: the factual third is the base's own forward
+    under that seed, so diagnose executes the base's chunk exactly (not even a 3B batch's
+    rounding), and the counterfactual thirds move the actions (E_img, E_prop > 0)."""
+    ckpt = vlms[kind]
+    folder = make_idr(
+        ckpt, tmp_path / "idr", "--mode", "diagnose", "--diagnostics-dir", str(tmp_path)
+    )
+    (base, pre0, post0), (policy, pre, post) = _base(ckpt), load(folder)
+    obs = obs_batch(2, seed=0)
+    chunks = []
+    for seed in (11, 12):
+        with torch.inference_mode():
+            ours = post(policy.predict_action_chunk(pre(dict(obs)), noise=torch.tensor([seed])))
+            torch.manual_seed(seed)
+            theirs = post0(base.predict_action_chunk(pre0(dict(obs))))
+        assert torch.equal(ours, theirs[:, : policy.n_action_steps]), seed
+        chunks.append(ours)
+    assert not torch.equal(chunks[0], chunks[1])  # the base does sample
+    policy.sidecar.flush()
+    rows = read_sidecar(tmp_path)
+    assert len(rows) == 2 * 2 and (rows["e_img"] > 0).all() and (rows["e_prop"] > 0).all()
+
+
+@pytest.fixture(scope="module")
+def libero_vlms(tmp_path_factory):
+    """The same policies with lerobot's LIBERO cameras (image, image2)."""
+    root = tmp_path_factory.mktemp("libero_vlms")
+    cams = ("image", "image2")
+    return {
+        "eo1": build_eo1(root / "eo1", build_qwen25vl_folder(root / "qwen25"), cams=cams),
+        "evo1": build_evo1(root / "evo1", build_internvl3_folder(root / "internvl3"), cams=cams),
+        "vla_jepa": build_vla_jepa(root / "jepa", build_qwen3vl_folder(root / "qwen3"), cams=cams),
+    }
+
+
+@pytest.mark.sim
+@pytest.mark.parametrize("kind", ["eo1", "evo1", "vla_jepa"])
+def test_lerobot_eval_runs_it_on_libero(libero_vlms, tmp_path, kind) -> None:
+    """lerobot-eval's own code path (make_env, make_policy, its processors, eval_policy_all) on
+    LIBERO with the IDR folder, mode E with the gate on: every executed action is finite and
+    in the env's action space, one sidecar row per inference, the image moved every one."""
+    from tests.support.lerobot_eval import lerobot_eval_libero
+    from workers.envs.suites.libero.assets import ensure_config_env
+    from workers.rendering import configure_rendering
+
+    ensure_config_env()
+    configure_rendering()
+    folder = make_idr(
+        libero_vlms[kind], tmp_path / "idr", "--tau", "1e9", "--diagnostics-dir", str(tmp_path)
+    )
+    steps = 8
+    recorded, _ = lerobot_eval_libero(folder, steps=steps, episodes=1, seed=0, size=64)
+    actions = np.stack(recorded[0]["actions"])
+    assert actions.shape[0] == steps and np.isfinite(actions).all()
+    rows = read_sidecar(tmp_path)
+    assert len(rows) == steps // 4  # chunks of 4, all executed
+    assert (rows["gate"] == 1.0).all() and (rows["e_img"] > 0).all()
+    if kind == "vla_jepa":  # its gripper binarized after IDR refined: the env got -1 or 1
+        assert set(np.unique(actions[..., 6]).tolist()) <= {-1.0, 1.0}

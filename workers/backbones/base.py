@@ -103,6 +103,13 @@ OPTIONAL_BACKBONE_MEMBERS: dict[str, tuple[Any, str]] = {
         "observation shaped like the env's (a served model), raising ValueError naming both "
         "sides when the answer does not fit the env; the pre-flight calls it; None: no trial",
     ),
+    "finish_chunk": (
+        None,
+        "callable(chunk) -> chunk: steps applied to the chunk the env executes, after IDR has "
+        "refined it (a lerobot postprocessor's steps after its unnormalizer: VLA-JEPA's "
+        "gripper binarization); predict_chunk returns the chunk before them, the space where "
+        "IDR measures and refines; None: none",
+    ),
     "remote": (
         False,
         "bool: the model runs in another process (a policy server) whose numerics are its own: "

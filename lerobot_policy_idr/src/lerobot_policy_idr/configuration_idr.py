@@ -41,6 +41,7 @@ SUPPORTED_BASE_TYPES = (
     "multi_task_dit",
     "eo1",
     "evo1",
+    "vla_jepa",
     "tiny_vla",
 )
 REFUSED_BASE_TYPES = {
@@ -56,17 +57,12 @@ REFUSED_BASE_TYPES = {
     "snapshot)",
     "tdmpc": "TD-MPC is a state-based RL planner: its predict_action_chunk reads select_action's "
     "queues and keeps a CEM warm start between calls",
+    "pi0_fast": "pi0-FAST's constructor loads its FAST action tokenizer with "
+    "trust_remote_code from a hub repo (lerobot/fast-action-tokenizer), code on no package "
+    "index; offline it fails: 'Failed to load required tokenizers for PI0FastPolicy "
+    "initialization'",
     "wall_x": "WALL-OSS needs peft, torchdiffeq and qwen-vl-utils (not installed) and its "
     "checkpoint from the hub",
-}
-#: lerobot types that construct offline with local sub-model folders and whose
-#: predict_action_chunk runs on a batch, but that IDR has not been run on here yet.
-UNVERIFIED_BASE_TYPES = {
-    "pi0_fast": "PaliGemma and the FAST action tokenizer",
-    # its postprocessor clips and snaps the gripper before unnormalizing and binarizes after:
-    # IDR's physical space takes the unnormalizer alone (measured: E_img differs from
-    # idr-eval's, which measures after the whole postprocessor)
-    "vla_jepa": "Qwen3-VL",
 }
 REFINE_SPACES = ("physical", "normalized")
 
@@ -214,13 +210,6 @@ class IDRConfig(PreTrainedConfig):
             raise IDRConfigError(
                 f"policy.base_policy_path={str(base)!r}: base type {kind!r} is refused: "
                 f"{REFUSED_BASE_TYPES[kind]}. Supported: {', '.join(SUPPORTED_BASE_TYPES)}"
-            )
-        if kind in UNVERIFIED_BASE_TYPES:
-            raise IDRConfigError(
-                f"policy.base_policy_path={str(base)!r}: base type {kind!r} is not run under "
-                f"IDR yet: it builds offline only with a local {UNVERIFIED_BASE_TYPES[kind]} "
-                f"folder and is untested here. Supported: {', '.join(SUPPORTED_BASE_TYPES)}, "
-                "and policy types of third-party lerobot_policy_* plugins"
             )
         if kind not in SUPPORTED_BASE_TYPES and not is_third_party_type(kind):
             raise IDRConfigError(

@@ -48,6 +48,8 @@ _HISTORY_KEYS = (STATE_KEY, "observation.environment_state")
 QUEUE_FED_TYPES = ("vqbet", "multi_task_dit")
 #: batch entries that concatenate every row's image patches along dim 0 (Qwen-VL processors)
 FLAT_PATCH_KEYS = ("pixel_values", "pixel_values_videos")
+# one row per image (a batch row with several cameras has several), in batch-row order
+PER_IMAGE_KEYS = ("image_grid_thw", "video_grid_thw")
 
 
 class IDRPolicy(PreTrainedPolicy):
@@ -334,11 +336,15 @@ def _batch_rows(batch: dict[str, Any]) -> int:
 def _rows_of(value: Any, i: int, b: int, key: str = "") -> Any:
     """Third ``i`` of a 3B-row batch entry (tensors and per-row lists; others as they are).
     A Qwen-VL processor's ``pixel_values`` hold every row's image patches one after another
-    (EO1): the thirds are its thirds, the three thirds' images being of one size."""
+    (EO1): the thirds are its thirds, the three thirds' images being of one size; its
+    ``image_grid_thw`` has one row per image, so several per batch row with several cameras."""
     if isinstance(value, torch.Tensor) and value.ndim and value.shape[0] == 3 * b:
         return value[i * b : (i + 1) * b]
     if key in FLAT_PATCH_KEYS and isinstance(value, torch.Tensor) and value.shape[0] % 3 == 0:
         n = value.shape[0] // 3
+        return value[i * n : (i + 1) * n]
+    if key in PER_IMAGE_KEYS and isinstance(value, torch.Tensor) and value.shape[0] % (3 * b) == 0:
+        n = value.shape[0] // 3  # one row per image, several cameras per batch row
         return value[i * n : (i + 1) * n]
     if isinstance(value, list) and len(value) == 3 * b:
         return value[i * b : (i + 1) * b]

@@ -233,13 +233,20 @@ def build_qwen25vl_folder(out: str | Path) -> Path:
     return out
 
 
-def build_eo1(out: Path, vlm: Path, image: int = 64, state: int = 8, action: int = 7) -> Path:
+def build_eo1(
+    out: Path,
+    vlm: Path,
+    image: int = 64,
+    state: int = 8,
+    action: int = 7,
+    cams: tuple[str, ...] = ("agentview",),
+) -> Path:
     """lerobot's EO1 (random weights) on the toy Qwen2.5-VL folder ``vlm``: chunks of 4, 3
     denoising steps, float32, the toy pixel budget (a 64 px frame is 4 image tokens)."""
     from lerobot.policies.eo1.configuration_eo1 import EO1Config
     from lerobot.policies.eo1.modeling_eo1 import EO1Policy
 
-    inputs, outputs = _features(image, state, action, ("agentview",))
+    inputs, outputs = _features(image, state, action, cams)
     cfg = EO1Config(
         vlm_base=str(vlm),
         input_features=inputs,
@@ -254,7 +261,7 @@ def build_eo1(out: Path, vlm: Path, image: int = 64, state: int = 8, action: int
     )
     torch.manual_seed(0)
     policy = EO1Policy(cfg).eval()
-    return save_checkpoint(policy, cfg, _stats(image, state, action, ("agentview",)), out)
+    return save_checkpoint(policy, cfg, _stats(image, state, action, cams), out)
 
 
 # -- InternVL3 (EVO1) ----------------------------------------------------------------------------
@@ -361,13 +368,20 @@ def build_internvl3_folder(out: Path) -> Path:
     return out
 
 
-def build_evo1(out: Path, vlm: Path, image: int = 64, state: int = 8, action: int = 7) -> Path:
+def build_evo1(
+    out: Path,
+    vlm: Path,
+    image: int = 64,
+    state: int = 8,
+    action: int = 7,
+    cams: tuple[str, ...] = ("agentview",),
+) -> Path:
     """lerobot's EVO1 (random weights) on the toy InternVL3 folder ``vlm``: chunks of 4, 3
     sampling steps, float32, no flash attention."""
     from lerobot.policies.evo1.configuration_evo1 import Evo1Config
     from lerobot.policies.evo1.modeling_evo1 import Evo1Policy
 
-    inputs, outputs = _features(image, state, action, ("agentview",))
+    inputs, outputs = _features(image, state, action, cams)
     cfg = Evo1Config(
         vlm_model_name=str(vlm),
         vlm_num_layers=None,
@@ -390,4 +404,4 @@ def build_evo1(out: Path, vlm: Path, image: int = 64, state: int = 8, action: in
     )
     torch.manual_seed(0)
     policy = Evo1Policy(cfg).eval()
-    return save_checkpoint(policy, cfg, _stats(image, state, action, ("agentview",)), out)
+    return save_checkpoint(policy, cfg, _stats(image, state, action, cams), out)

@@ -198,6 +198,34 @@ def register_project_policies() -> None:
     register_third_party_plugins()
 
 
+def split_postprocessor(post: Any) -> tuple[Any, Any | None]:
+    """``post`` as (its steps up to and including the action unnormalizer, the steps after it
+    or None). IDR measures and refines physical actions, as the plugin's
+    ``refine_space=physical`` does; a step after the unnormalizer that changes values
+    (VLA-JEPA binarizes its gripper) then applies to the refined chunk the env executes, not
+    to the three passes. Device moves after it are kept in the first part: they change no
+    value."""
+    from lerobot.processor import DeviceProcessorStep, PolicyProcessorPipeline
+
+    names = [type(s).__name__ for s in post.steps]
+    if "UnnormalizerProcessorStep" not in names:
+        return post, None
+    cut = names.index("UnnormalizerProcessorStep") + 1
+    after = post.steps[cut:]
+    if all(isinstance(s, DeviceProcessorStep) for s in after):
+        return post, None
+
+    def part(steps: list[Any], name: str) -> Any:
+        return PolicyProcessorPipeline(
+            steps=steps,
+            name=name,
+            to_transition=post.to_transition,
+            to_output=post.to_output,
+        )
+
+    return part(post.steps[:cut], f"{post.name}_physical"), part(after, f"{post.name}_finish")
+
+
 class LerobotBackbone:
     """A lerobot policy checkpoint behind the Backbone protocol."""
 
@@ -248,9 +276,10 @@ class LerobotBackbone:
         # the device step runs where the policy runs, whatever device it was trained on (a
         # checkpoint saved on a GPU names cuda), as lerobot-eval overrides it
         overrides = {"device_processor": {"device": str(self.device)}}
-        self.pre, self.post = make_pre_post_processors(
+        self.pre, post = make_pre_post_processors(
             cfg, pretrained_path=path, preprocessor_overrides=overrides
         )
+        self.post, self.finish_chunk = split_postprocessor(post)
         self.name = f"lerobot:{cfg.type}"
         image_keys = [k for k in cfg.input_features if image_suffix(k) is not None]
         self._image_key = {str(image_suffix(k)): k for k in image_keys}  # suffix -> policy key
