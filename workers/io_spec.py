@@ -49,6 +49,9 @@ class EnvIO:
     # cameras rendered at another size than image_size: square px (CALVIN: static 200, gripper
     # 84) or (height, width) for a camera that is not square (ALOHA: 480x640)
     camera_sizes: Mapping[str, int | tuple[int, int]] = field(default_factory=dict)
+    # an env that renders no camera with these params: the setting that makes it render some
+    # (a lerobot plugin's ``image_obs``), named when a mode needs an image; None: none known
+    image_option: str | None = None
 
     def hw_of(self, camera: str) -> tuple[int, int]:
         """The (height, width) ``camera`` renders at."""

@@ -207,6 +207,31 @@ def _check_intervention_spaces(cfg: RunConfig) -> None:
         raise ConfigError(str(e)) from None
 
 
+def check_inputs_for_modes(
+    cfg: RunConfig, policy: PolicyIO | None, env: EnvIO | None = None
+) -> None:
+    """A cell that runs the counterfactual passes (every mode but ``baseline``) needs an env
+    that renders an image and a checkpoint that reads an image (do(V)) and a state (do(S))."""
+    modes = sorted({c.idr.mode for c in cfg.cells() if c.idr.needs_counterfactuals})
+    if not modes:
+        return
+    needs = f"grid: mode {', '.join(modes)} intervenes on the image and the state"
+    if env is not None and not env.cameras:
+        fix = f"set {env.image_option}, or " if env.image_option else ""
+        raise ConfigError(
+            f"{needs}, but env.suite={cfg.env.suite!r} with these params renders no camera; "
+            f"{fix}run it with mode baseline only"
+        )
+    if policy is None:
+        return
+    for missing, what in ((not policy.images, "no image"), (policy.state_dim is None, "no state")):
+        if missing:
+            raise ConfigError(
+                f"{needs}, but {policy.source} reads {what}; run this checkpoint with mode "
+                "baseline only, or use a checkpoint that reads both"
+            )
+
+
 def lerobot_eval_threads() -> int:
     """The torch thread count lerobot-eval runs with here: torch's default, the CPUs this
     process may use unless OMP_NUM_THREADS says otherwise."""
@@ -251,6 +276,7 @@ def fit_config(cfg: RunConfig) -> tuple[RunConfig, Fit]:
             f"backbone.params.camera_map must map env camera -> image key, got {camera_map!r}"
         )
     _check_intervention_spaces(cfg)
+    check_inputs_for_modes(cfg, policy, env)
     if env is None and policy is not None:  # an env without describe: its class's action dim
         from workers.envs.base import suite_info
         from workers.envs.factory import env_class

@@ -111,6 +111,22 @@ def test_bad_bases_are_refused_before_loading(bases, tmp_path) -> None:
             other,
             rf"base type {kind!r} .*{match}.*act, diffusion, pi0, pi05, smolvla, xvla, vqbet, multi_task_dit, eo1, evo1",
         )
+    for drop, what in (
+        ("observation.state", "no observation.state"),
+        ("observation.images.agentview", "no image"),
+    ):
+        blind = tmp_path / f"without_{drop}"
+        shutil.copytree(bases["act"], blind)
+        cfg = json.loads((blind / "config.json").read_text())
+        del cfg["input_features"][drop]
+        (blind / "config.json").write_text(json.dumps(cfg))
+        refused(blind, rf"the base reads {what} .*--policy.mode=baseline")
+        IDRConfig(mode="baseline", base_policy_path=str(blind)).resolve_base()  # no intervention
+    typo = tmp_path / "typo"
+    shutil.copytree(bases["act"], typo)
+    cfg = json.loads((typo / "config.json").read_text())
+    (typo / "config.json").write_text(json.dumps({**cfg, "type": "acts"}))
+    refused(typo, r"base type 'acts' \(did you mean act\b.*\?\) is not supported")
     truncated = tmp_path / "truncated"
     shutil.copytree(bases["act"], truncated)
     weights = truncated / "model.safetensors"

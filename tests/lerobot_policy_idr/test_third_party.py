@@ -139,3 +139,29 @@ def test_a_real_plugin_that_trains_at_test_time_is_refused_at_its_first_chunk(tm
     policy, pre, post = load(make_idr(base, tmp_path / "idr_b", "--mode", "baseline"))
     with torch.inference_mode():
         assert torch.isfinite(post(policy.select_action(pre(obs_batch(2, seed=0))))).all()
+
+
+def test_a_plugin_that_fails_to_import_is_named_with_its_own_error(tmp_path, monkeypatch) -> None:
+    """A checkpoint of a type whose plugin raises at import (lerobot only logs it): the idr
+    policy and idr-eval's lerobot backbone refuse it before loading, naming the plugin and its
+    error."""
+    import json
+
+    from lerobot_policy_idr.configuration_idr import IDRConfig, IDRConfigError
+
+    from workers.backbones.lerobot.adapter import check_checkpoint
+
+    monkeypatch.syspath_prepend(str(PLUGIN_SITE.parent / "broken_policy_plugin"))
+    base = tmp_path / "base"
+    base.mkdir()
+    (base / "config.json").write_text(json.dumps({"type": "fake_broken"}))
+    from safetensors.torch import save_file
+
+    save_file({"w": torch.zeros(1)}, str(base / "model.safetensors"))
+    want = r"lerobot_policy_fake_broken.*ModuleNotFoundError.*a_dependency_nobody_installed"
+    with pytest.raises(IDRConfigError, match=want):
+        IDRConfig(base_policy_path=str(base), mode="diagnose").resolve_base()
+    with pytest.raises(
+        ValueError, match=r"backbone.params.path: policy type 'fake_broken' .*" + want
+    ):
+        check_checkpoint(str(base))

@@ -166,7 +166,7 @@ def map_observation(
             raise ValueError(
                 f"{where}.images.{cam}: {path!r} is {leaves[path]}, not an (H, W, 3) uint8 image"
             )
-    if not cams:
+    if not cams and images is None:  # {}: a state-only env, asked for (lerobot's plugins)
         raise ValueError(f"{where}.images: no (H, W, 3) uint8 entry in {sorted(leaves)}")
     if not keys:
         raise ValueError(f"{where}.state: no 1-D numeric entry in {sorted(leaves)}")
@@ -402,7 +402,7 @@ def env_io(env: Any) -> EnvIO:
     """What a built gymnasium-suite env renders and accepts: each camera's (height, width)."""
     sizes = {c: (int(h), int(w)) for c, (h, w) in env.image_sizes.items()}
     square = {s[0] for s in sizes.values() if s[0] == s[1]}
-    first = min(square) if square else next(iter(sizes.values()))[0]
+    first = min(square) if square else next(iter(sizes.values()), (0, 0))[0]  # 0: no camera
     return EnvIO(
         cameras=env.cameras,
         image_size=first,

@@ -15,6 +15,7 @@ Two ways to run it, both with lerobot's own tools:
 
 from __future__ import annotations
 
+import difflib
 import functools
 import json
 import math
@@ -23,6 +24,7 @@ from pathlib import Path
 
 from idr_core.checkpoint import WEIGHTS, check_checkpoint_dir, sha256_file
 from idr_core.interventions import SPACES, STRATEGIES, InterventionConfig
+from idr_core.plugins import describe_failures, plugin_import_errors
 from idr_core.refiner import RefinerConfig
 from lerobot.configs import PreTrainedConfig
 from lerobot.configs.types import FeatureType, PolicyFeature
@@ -212,10 +214,16 @@ class IDRConfig(PreTrainedConfig):
                 f"{REFUSED_BASE_TYPES[kind]}. Supported: {', '.join(SUPPORTED_BASE_TYPES)}"
             )
         if kind not in SUPPORTED_BASE_TYPES and not is_third_party_type(kind):
+            close = difflib.get_close_matches(
+                str(kind), [*SUPPORTED_BASE_TYPES, *PreTrainedConfig.get_known_choices()], n=3
+            )
+            hint = f" (did you mean {', '.join(dict.fromkeys(close))}?)" if close else ""
             raise IDRConfigError(
-                f"policy.base_policy_path={str(base)!r}: base type {kind!r} is not supported by "
-                f"IDR: it is neither one of {', '.join(SUPPORTED_BASE_TYPES)} nor registered by "
-                "an installed lerobot_policy_* plugin"
+                f"policy.base_policy_path={str(base)!r}: base type {kind!r}{hint} is not "
+                f"supported by IDR: it is neither one of {', '.join(SUPPORTED_BASE_TYPES)} nor "
+                "registered by an installed lerobot_policy_* plugin; fix the type in its "
+                "config.json or install the plugin that registers it"
+                + describe_failures(plugin_import_errors())
             )
         if self.base_weights_sha256:
             have = sha256_file(base / WEIGHTS)
@@ -226,7 +234,26 @@ class IDRConfig(PreTrainedConfig):
                     "...): remake the folder with lerobot-idr-wrap, or point base_policy_path at "
                     "the original weights"
                 )
+        if self.mode != "baseline":
+            self._check_inputs(base)
         return base
+
+    def _check_inputs(self, base: Path) -> None:
+        """The counterfactual passes need an image (do(V)) and a state (do(S)) in the base's
+        inputs."""
+        from lerobot_policy_idr.processor_idr import STATE_KEY, is_image_key
+
+        keys = list(read_base_config(base).get("input_features") or {})
+        for missing, what in (
+            (not any(is_image_key(k) for k in keys), "no image"),
+            (STATE_KEY not in keys, f"no {STATE_KEY}"),
+        ):
+            if missing:
+                raise IDRConfigError(
+                    f"policy.base_policy_path={str(base)!r}: the base reads {what} (its inputs: "
+                    f"{keys}), but policy.mode={self.mode!r} intervenes on the image and the "
+                    "state; use --policy.mode=baseline, or a base that reads both"
+                )
 
     # -- PreTrainedConfig's abstract members ----------------------------------------------
     @property

@@ -184,3 +184,22 @@ def test_under_lerobots_protocol_the_run_says_its_torch_threads(monkeypatch) -> 
     assert four.notes[-1].startswith("torch threads 4, as lerobot-eval runs here")
     other = with_thread_note(Fit(4, protocol={"name": "openpi"}), load_config(conf))
     assert other.notes == () and "torch_threads" not in other.protocol
+
+
+@pytest.mark.parametrize(
+    ("over", "what"), [({"images": {}}, "no image"), ({"state_dim": None}, "no state")]
+)
+def test_counterfactual_modes_need_an_image_and_a_state(over, what) -> None:
+    """diagnose / E / F intervene on both; a checkpoint without one runs baseline only."""
+    from pipeline.planning.checkpoint_fit import check_inputs_for_modes
+    from pipeline.planning.config import load_config
+
+    conf = Path(__file__).resolve().parents[3] / "conf" / "smoke.yaml"
+    cfg = load_config(conf, ["tracking.enabled=false"])
+    with pytest.raises(
+        ConfigError, match=rf"grid: mode E intervenes .* reads {what}; .*mode baseline only"
+    ):
+        check_inputs_for_modes(cfg, _policy(**over))
+    baseline = load_config(conf, ["tracking.enabled=false", "grid=[{mode: [baseline]}]"])
+    check_inputs_for_modes(baseline, _policy(**over))  # baseline runs no counterfactual
+    check_inputs_for_modes(cfg, _policy())

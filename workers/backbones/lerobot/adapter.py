@@ -32,6 +32,7 @@ from typing import Any, ClassVar
 
 import torch
 from idr_core.checkpoint import check_checkpoint_dir
+from idr_core.plugins import import_error, policy_plugins
 from idr_core.sampling import crn_mode, noise_shape
 
 from workers.backbones.base import Observation
@@ -104,7 +105,8 @@ def check_checkpoint(path: str, allow_download: bool = False) -> Path | None:
             f"backbone.params.path={path!r} does not exist (a checkpoint folder or a hub id)"
             + rebuild_hint(p)
         )
-    check_checkpoint_dir(p, "backbone.params.path", known_policy_types())
+    kind = check_checkpoint_dir(p, "backbone.params.path", known_policy_types())["type"]
+    check_plugin_imports(str(kind))
     return p
 
 
@@ -157,34 +159,44 @@ def policy_io(path: Path, chunk_len: int | None = None) -> PolicyIO:
 _REGISTER = re.compile(r"@PreTrainedConfig\.register_subclass\(\s*[\"']([\w.-]+)[\"']")
 
 
-def plugin_packages() -> list[str]:
-    """The installed third-party lerobot policy plugins, by the rule lerobot's own discovery
-    (``register_third_party_plugins``) uses: distributions named ``lerobot_policy_*``, imported
-    by that name (the project's own plugin, lerobot_policy_idr, among them)."""
-    import importlib.metadata
+def policy_types_by_package() -> dict[str, set[str]]:
+    """The policy types each package registers (lerobot's own policies, the project's plugin,
+    each installed ``lerobot_policy_*`` plugin, found by lerobot's own rule), read from its
+    config modules' source without importing it: importing lerobot's policies costs 20-35 s on
+    a 2-core machine, too much for a pre-flight (the actors pay it once)."""
+    import importlib.util
 
-    names = {d.metadata.get("Name") or "" for d in importlib.metadata.distributions()}
-    return sorted(n for n in names if n.startswith("lerobot_policy_"))
+    found: dict[str, set[str]] = {}
+    for package in ("lerobot.policies", "lerobot_policy_idr", *policy_plugins()):
+        spec = importlib.util.find_spec(package)
+        if spec is None or not spec.submodule_search_locations:
+            continue
+        types = found.setdefault(package, set())
+        for root in spec.submodule_search_locations:
+            for f in Path(root).glob("**/configuration_*.py"):
+                types.update(_REGISTER.findall(f.read_text(errors="replace")))
+    return found
 
 
 def known_policy_types() -> set[str]:
     """Policy types lerobot's config registry holds, the project's own (tiny_vla) and installed
-    plugins' included, read from the policy config modules' source without importing them:
-    importing lerobot's policies costs 20-35 s on a 2-core machine, too much for a pre-flight
-    (the actors pay it once). Empty when lerobot's layout is not the expected one (the check
-    is then skipped)."""
-    import importlib.util
+    plugins' included (``policy_types_by_package``). Empty when lerobot's layout is not the
+    expected one (the check is then skipped)."""
+    return set().union(*policy_types_by_package().values())
 
-    found: set[str] = set()
-    roots = []
-    for package in ("lerobot.policies", "lerobot_policy_idr", *plugin_packages()):
-        spec = importlib.util.find_spec(package)
-        if spec is not None and spec.submodule_search_locations:
-            roots += [Path(p) for p in spec.submodule_search_locations]
-    for root in roots:
-        for f in root.glob("**/configuration_*.py"):
-            found.update(_REGISTER.findall(f.read_text(errors="replace")))
-    return found
+
+def check_plugin_imports(kind: str, field: str = "backbone.params.path") -> None:
+    """A type that only a third-party plugin registers needs that plugin to import in the
+    actors: import it here, on the driver, and refuse with the plugin's own error."""
+    owners = policy_types_by_package()
+    if any(kind in owners.get(p, ()) for p in ("lerobot.policies", "lerobot_policy_idr")):
+        return
+    for package, types in owners.items():
+        if kind in types and (err := import_error(package)) is not None:
+            raise ValueError(
+                f"{field}: policy type {kind!r} comes from the plugin {package!r}, which fails "
+                f"to import: {err}; fix or reinstall that plugin"
+            )
 
 
 @functools.cache

@@ -99,12 +99,24 @@ def env_config(type: str, config: Mapping[str, Any]) -> Any:
         raise ValueError(
             f"env.params (lerobot env type {type!r}): unexpected keyword argument "
             f"{named_with_hints(unknown, fields)}; the suite's own params are type, "
-            f"instruction and max_steps, the others go to lerobot's config: {fields}"
+            f"instruction, max_steps and success_key, the others go to lerobot's config: "
+            f"{fields}"
         )
     try:
         return make_env_config(type, **config)
     except TypeError as exc:
         raise ValueError(f"env.params (lerobot env type {type!r}): {exc}") from None
+
+
+def image_option(cfg: Any) -> str | None:
+    """The setting of lerobot env config ``cfg`` that makes its env render images (a boolean
+    field named for images or pixels, off), as ``env.params.<field>=true``; None if it has
+    none."""
+    for f in dataclasses.fields(cfg):
+        name = f.name.lower()
+        if ("image" in name or "pixel" in name) and getattr(cfg, f.name) is False:
+            return f"env.params.{f.name}=true"
+    return None
 
 
 def config_fields(type: str) -> list[str]:
@@ -120,8 +132,10 @@ def config_fields(type: str) -> list[str]:
 class _OneOfVector:
     """A lerobot vector env of one env, seen as a single Gymnasium env (obs unbatched)."""
 
-    def __init__(self, vec: Any) -> None:
+    def __init__(self, vec: Any, success_key: str = "is_success") -> None:
         self.vec = vec
+        self.success_key = success_key
+        self.info_keys: list[str] = []  # what the last step's info held (the pre-flight's check)
         self.observation_space = vec.single_observation_space
         self.action_space = vec.single_action_space
         self.spec = None
@@ -146,9 +160,12 @@ class _OneOfVector:
         ended = bool(terminated[0] or truncated[0])
         final = info.get("final_info") if ended else None
         source = final if isinstance(final, Mapping) else info
-        success = source.get("is_success")
+        self.info_keys = sorted(k for k in source if not str(k).startswith("_"))  # not masks
+        success = source.get(self.success_key)
         out = (
-            {"is_success": bool(np.asarray(success).reshape(-1)[0])} if success is not None else {}
+            {self.success_key: bool(np.asarray(success).reshape(-1)[0])}
+            if success is not None
+            else {}
         )
         last = info.get("final_obs") if ended else None
         obs = last[0] if last is not None else _unbatch(obs)
@@ -253,6 +270,13 @@ class LerobotEnvSuite(GymnasiumEnv):
             int | None,
             Doc("control steps per episode; None: the env's own (what lerobot-eval reads)"),
         ] = None,
+        success_key: Annotated[
+            str,
+            Doc(
+                "the info key that says the task is done (lerobot-eval reads is_success; a "
+                "plugin may report success under its own key)"
+            ),
+        ] = "is_success",
         **config: Any,
     ) -> None:
         if max_steps is not None and (not isinstance(max_steps, int) or max_steps <= 0):
@@ -272,7 +296,7 @@ class LerobotEnvSuite(GymnasiumEnv):
         self._vecs: dict[str, _OneOfVector] = {}
         for suite, tasks in built.items():
             for tid, vec in tasks.items():
-                one = _OneOfVector(vec)
+                one = _OneOfVector(vec, success_key)
                 key = _task_key(str(suite), tid, one.attr("task"), len(tasks))
                 self._suite_of[key], self._vecs[key] = str(suite), one
         first = next(iter(self._vecs.values()))
@@ -280,23 +304,28 @@ class LerobotEnvSuite(GymnasiumEnv):
         space = first.observation_space
         parts = getattr(space, "spaces", None) or {}
         pixels = parts.get("pixels")
-        if pixels is None or "agent_pos" not in parts:
+        if "agent_pos" not in parts:
             raise ValueError(
-                f"env.params.type={type!r}: its observation ({space}) is not lerobot's pixels + "
-                "agent_pos, which this suite reads; for LIBERO use env.suite=libero"
+                f"env.params.type={type!r}: its observation ({space}) has no agent_pos, which "
+                "this suite reads as the state; for LIBERO use env.suite=libero"
             )
+        # a state-only env (no pixels) runs the baseline mode; the pre-flight refuses the modes
+        # that intervene on an image, naming the config's image option (image_option)
         cams = (
-            {k: f"pixels/{k}" for k in pixels.spaces}
+            {}
+            if pixels is None
+            else {k: f"pixels/{k}" for k in pixels.spaces}
             if hasattr(pixels, "spaces")
             else {"image": "pixels"}
         )
+        self.image_option = image_option(self.cfg) if pixels is None else None
         budgets = {k: max_steps or _step_budget(v, self.cfg) for k, v in self._vecs.items()}
         self.env_type = self.env_id = type
         self._setup(
             cams,
             ["agent_pos"],
             instruction,
-            "is_success",
+            success_key,
             next(iter(budgets.values())),
             self.cfg.fps,
             "env.params",
@@ -380,14 +409,24 @@ class LerobotEnvSuite(GymnasiumEnv):
             # one reset, as check_env does: a type that imports its simulator only then (VLABench,
             # RoboTwin) is refused here, before any actor, naming what to install
             env.reset(env.tasks()[0].task_id, 0, 0)
+            env.step(np.zeros(env.action_dim, np.float32))  # its info names the success key
+            if env.success_key not in env._env.info_keys:
+                raise ValueError(
+                    f"env.params.success_key={env.success_key!r}: the info of the pre-flight's "
+                    f"step has no such key; env type {env.env_type!r} reports "
+                    f"{env._env.info_keys}: set env.params.success_key to the one that says "
+                    "the task is done"
+                )
             io = env_io(env)
             protocol = {
                 "name": "lerobot",
                 "type": env.env_type,
                 "max_steps": env._task_spec.max_steps,
-                "success": "info['is_success']",
+                "success": f"info[{env.success_key!r}]",
                 "seed": "run seed + episode index",
             }
-            return dataclasses.replace(io, replan="chunk", protocol=protocol)
+            return dataclasses.replace(
+                io, replan="chunk", protocol=protocol, image_option=env.image_option
+            )
         finally:
             env.close()
