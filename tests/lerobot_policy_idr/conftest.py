@@ -52,6 +52,21 @@ def rollout(policy, pre, post, steps: int) -> list[torch.Tensor]:
     return out
 
 
+def seeded_chunks(idr, base, obs: dict, seeds=(11, 12)) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Per seed: the IDR policy's chunk with that seed given as its noise (the forked-RNG
+    path), and the base's own chunk under the same torch seed, cut to the IDR policy's
+    n_action_steps. ``idr``, ``base``: (policy, pre, post)."""
+    (policy, pre, post), (theirs, pre0, post0) = idr, base
+    out = []
+    for seed in seeds:
+        with torch.inference_mode():
+            ours = post(policy.predict_action_chunk(pre(dict(obs)), noise=torch.tensor([seed])))
+            torch.manual_seed(seed)
+            chunk = post0(theirs.predict_action_chunk(pre0(dict(obs))))
+        out.append((ours, chunk[:, : policy.n_action_steps]))
+    return out
+
+
 def load(folder: Path):
     """The policy and its processors from an IDR folder, as lerobot's tools load it."""
     return load_idr(folder)

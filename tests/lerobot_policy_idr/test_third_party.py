@@ -11,7 +11,7 @@ import pytest
 import torch
 from idr_core.sidecar import read_sidecar
 
-from tests.lerobot_policy_idr.conftest import load, make_idr, obs_batch
+from tests.lerobot_policy_idr.conftest import load, make_idr, obs_batch, seeded_chunks
 
 PLUGIN_SITE = Path(__file__).resolve().parents[1] / "doubles" / "policy_plugin"
 
@@ -71,20 +71,12 @@ def test_generic_path_shares_the_sampling_noise_by_forking_the_rng(
         fake_sampler_base, tmp_path / "idr", "--mode", "diagnose", "--diagnostics-dir",
         str(tmp_path / "d"),
     )  # fmt: skip
-    policy, pre, post = load(folder)
+    idr = load(folder)
+    policy = idr[0]
     assert policy.crn == "seeded_rng"
-    base, pre0, post0 = _base(fake_sampler_base)
-    obs = obs_batch(2, seed=0)
-    chunks = []
-    for seed in (11, 12):
-        with torch.inference_mode():
-            ours = post(policy.predict_action_chunk(pre(dict(obs)), noise=torch.tensor([seed])))
-            torch.manual_seed(seed)
-            theirs = post0(base.predict_action_chunk(pre0(dict(obs))))
-        n = policy.n_action_steps
-        assert torch.equal(ours, theirs[:, :n])
-        chunks.append(ours)
-    assert not torch.equal(chunks[0], chunks[1])  # the policy does sample
+    chunks = seeded_chunks(idr, _base(fake_sampler_base), obs_batch(2, seed=0))
+    assert all(torch.equal(ours, theirs) for ours, theirs in chunks)
+    assert not torch.equal(chunks[0][0], chunks[1][0])  # the policy does sample
     policy.sidecar.flush()
     rows = read_sidecar(tmp_path / "d")
     first, second = rows.iloc[:2], rows.iloc[2:]

@@ -10,7 +10,7 @@ import pytest
 import torch
 from idr_core.sidecar import read_sidecar
 
-from tests.lerobot_policy_idr.conftest import load, make_idr, obs_batch, rollout
+from tests.lerobot_policy_idr.conftest import load, make_idr, obs_batch, rollout, seeded_chunks
 from tests.lerobot_policy_idr.test_modeling_idr import _base, _harness
 from tests.workers.backbones.vla_jepa_fixtures import build_qwen3vl_folder, build_vla_jepa
 from tests.workers.backbones.vlm_fixtures import (
@@ -109,18 +109,11 @@ def test_diagnose_executes_the_bases_own_chunk(vlms, tmp_path, kind) -> None:
     folder = make_idr(
         ckpt, tmp_path / "idr", "--mode", "diagnose", "--diagnostics-dir", str(tmp_path)
     )
-    (base, pre0, post0), (policy, pre, post) = _base(ckpt), load(folder)
-    obs = obs_batch(2, seed=0)
-    chunks = []
-    for seed in (11, 12):
-        with torch.inference_mode():
-            ours = post(policy.predict_action_chunk(pre(dict(obs)), noise=torch.tensor([seed])))
-            torch.manual_seed(seed)
-            theirs = post0(base.predict_action_chunk(pre0(dict(obs))))
-        assert torch.equal(ours, theirs[:, : policy.n_action_steps]), seed
-        chunks.append(ours)
-    assert not torch.equal(chunks[0], chunks[1])  # the base does sample
-    policy.sidecar.flush()
+    idr = load(folder)
+    chunks = seeded_chunks(idr, _base(ckpt), obs_batch(2, seed=0))
+    assert all(torch.equal(ours, theirs) for ours, theirs in chunks)
+    assert not torch.equal(chunks[0][0], chunks[1][0])  # the base does sample
+    idr[0].sidecar.flush()
     rows = read_sidecar(tmp_path)
     assert len(rows) == 2 * 2 and (rows["e_img"] > 0).all() and (rows["e_prop"] > 0).all()
 

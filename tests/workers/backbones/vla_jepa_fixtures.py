@@ -11,7 +11,6 @@ and the processor files ``AutoProcessor`` reads (image + video processor configs
 from __future__ import annotations
 
 import math
-import shutil
 from pathlib import Path
 
 import torch
@@ -19,8 +18,11 @@ import torch
 from tests.workers.backbones.lerobot_fixtures import _features, _stats, save_checkpoint
 from tests.workers.backbones.vlm_fixtures import (
     CHAT_TEMPLATE,
-    QWEN_SPECIAL_TOKENS,
-    _train_toy_tokenizer,
+    fresh_dir,
+    qwen_text_config,
+    qwen_vision_token_ids,
+    save_random,
+    toy_tokenizer_and_ids,
 )
 
 # ----------------------------------------------------------------------------------------------
@@ -68,14 +70,10 @@ def build_qwen3vl_folder(out: str | Path) -> Path:
         Qwen3VLVideoProcessor,
     )
 
-    out = Path(out)
-    shutil.rmtree(out, ignore_errors=True)
-    out.mkdir(parents=True)
+    out = fresh_dir(out)
 
     # 1) Tokenizer (Qwen2Tokenizer, as Qwen3-VL's).
-    tokenizer = _train_toy_tokenizer()
-    ids = {t: tokenizer.convert_tokens_to_ids(t) for t in QWEN_SPECIAL_TOKENS}
-    assert len(set(ids.values())) == len(QWEN_SPECIAL_TOKENS), ids
+    tokenizer, ids = toy_tokenizer_and_ids()
 
     # 2) Image / video processors: small pixel budget, real patch geometry and normalization.
     geometry = dict(
@@ -94,25 +92,18 @@ def build_qwen3vl_folder(out: str | Path) -> Path:
     # 3) Model config.
     vocab_size = int(math.ceil((len(tokenizer) + QWEN3VL_VOCAB_HEADROOM) / 64) * 64)
     config = Qwen3VLConfig(
-        text_config=dict(
-            vocab_size=vocab_size,
-            hidden_size=QWEN3VL_TEXT_HIDDEN,
-            intermediate_size=2 * QWEN3VL_TEXT_HIDDEN,
-            num_hidden_layers=2,
-            num_attention_heads=QWEN3VL_TEXT_HEADS,
-            num_key_value_heads=2,
+        text_config=qwen_text_config(
+            ids,
+            vocab_size,
+            QWEN3VL_TEXT_HIDDEN,
+            QWEN3VL_TEXT_HEADS,
             head_dim=QWEN3VL_HEAD_DIM,
-            max_position_embeddings=1024,
             rope_parameters={
                 "rope_type": "default",
                 "rope_theta": 10000.0,
                 "mrope_section": QWEN3VL_MROPE_SECTION,
                 "mrope_interleaved": True,
             },
-            bos_token_id=None,
-            eos_token_id=ids["<|im_end|>"],
-            pad_token_id=ids["<|endoftext|>"],
-            tie_word_embeddings=False,
             initializer_range=QWEN3VL_INIT_STD,
         ),
         vision_config=dict(
@@ -129,22 +120,10 @@ def build_qwen3vl_folder(out: str | Path) -> Path:
             deepstack_visual_indexes=QWEN3VL_DEEPSTACK,
             initializer_range=QWEN3VL_INIT_STD,
         ),
-        image_token_id=ids["<|image_pad|>"],
-        video_token_id=ids["<|video_pad|>"],
-        vision_start_token_id=ids["<|vision_start|>"],
-        vision_end_token_id=ids["<|vision_end|>"],
+        **qwen_vision_token_ids(ids),
         tie_word_embeddings=False,
     )
-
-    torch.manual_seed(0)
-    model = Qwen3VLForConditionalGeneration(config).to(torch.float32)
-    # Guard: no weight matrix may be all-zero (biases are zero by design and stay zero).
-    with torch.no_grad():
-        for p in model.parameters():
-            if p.dim() >= 2 and not p.any():
-                p.normal_(0.0, QWEN3VL_INIT_STD)
-    model.save_pretrained(out)
-    return out
+    return save_random(Qwen3VLForConditionalGeneration, config, out, QWEN3VL_INIT_STD)
 
 
 def build_vla_jepa(

@@ -145,6 +145,66 @@ def _train_toy_tokenizer(
     return qwen_tok
 
 
+def toy_tokenizer_and_ids(specials: list[str] = QWEN_SPECIAL_TOKENS, **kwargs: object):
+    """The toy tokenizer and the ids of its special tokens (each its own)."""
+    tokenizer = _train_toy_tokenizer(specials, **kwargs)
+    ids = {t: tokenizer.convert_tokens_to_ids(t) for t in specials}
+    assert len(set(ids.values())) == len(specials), ids
+    return tokenizer, ids
+
+
+def fresh_dir(out: str | Path) -> Path:
+    """``out``, emptied: no stale files from an earlier layout."""
+    out = Path(out)
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    return out
+
+
+def qwen_text_config(
+    ids: dict[str, int], vocab_size: int, hidden: int, heads: int, **extra: object
+) -> dict:
+    """A two-layer Qwen-family text model at toy widths, padded and ended by Qwen's tokens."""
+    return dict(
+        vocab_size=vocab_size,
+        hidden_size=hidden,
+        intermediate_size=2 * hidden,
+        num_hidden_layers=2,
+        num_attention_heads=heads,
+        num_key_value_heads=2,
+        max_position_embeddings=1024,
+        bos_token_id=None,
+        eos_token_id=ids["<|im_end|>"],
+        pad_token_id=ids["<|endoftext|>"],
+        tie_word_embeddings=False,
+        **extra,
+    )
+
+
+def qwen_vision_token_ids(ids: dict[str, int]) -> dict[str, int]:
+    """The vision special tokens' ids, as a Qwen-VL config names them."""
+    return dict(
+        image_token_id=ids["<|image_pad|>"],
+        video_token_id=ids["<|video_pad|>"],
+        vision_start_token_id=ids["<|vision_start|>"],
+        vision_end_token_id=ids["<|vision_end|>"],
+    )
+
+
+def save_random(model_cls: type, config: object, out: Path, std: float = 0.02) -> Path:
+    """``model_cls(config)`` with seed-0 random weights saved to ``out``. No weight matrix may
+    be all zero (InternViT zero-initializes its cls token and position embeddings); biases
+    stay as initialized."""
+    torch.manual_seed(0)
+    model = model_cls(config).to(torch.float32)
+    with torch.no_grad():
+        for param in model.parameters():
+            if param.dim() >= 2 and not param.any():
+                param.normal_(0.0, std)
+    model.save_pretrained(out)
+    return out
+
+
 def build_qwen25vl_folder(out: str | Path) -> Path:
     """Write a random-weight toy Qwen2.5-VL checkpoint + every processor file into `out`."""
     from transformers import (
@@ -154,14 +214,10 @@ def build_qwen25vl_folder(out: str | Path) -> Path:
         Qwen2VLVideoProcessor,
     )
 
-    out = Path(out)
-    shutil.rmtree(out, ignore_errors=True)  # no stale files from an earlier layout
-    out.mkdir(parents=True)
+    out = fresh_dir(out)
 
     # 1) Tokenizer.
-    tokenizer = _train_toy_tokenizer()
-    ids = {t: tokenizer.convert_tokens_to_ids(t) for t in QWEN_SPECIAL_TOKENS}
-    assert len(set(ids.values())) == len(QWEN_SPECIAL_TOKENS), ids
+    tokenizer, ids = toy_tokenizer_and_ids()
 
     # 2) Image / video processors (Qwen2VL*), small pixel budget and matching patch geometry.
     vision_kwargs = dict(
@@ -184,23 +240,16 @@ def build_qwen25vl_folder(out: str | Path) -> Path:
     # 3) Model config. Leave head-room for the 7 EO1 tokens that EO1QwenProcessorStep adds at load time.
     vocab_size = int(math.ceil((len(tokenizer) + 16) / 64) * 64)
     config = Qwen2_5_VLConfig(
-        text_config=dict(
-            vocab_size=vocab_size,
-            hidden_size=TEXT_HIDDEN,
-            intermediate_size=2 * TEXT_HIDDEN,
-            num_hidden_layers=2,
-            num_attention_heads=TEXT_HEADS,
-            num_key_value_heads=2,
-            max_position_embeddings=1024,
+        text_config=qwen_text_config(
+            ids,
+            vocab_size,
+            TEXT_HIDDEN,
+            TEXT_HEADS,
             rope_parameters={
                 "rope_type": "default",
                 "rope_theta": 10000.0,
                 "mrope_section": MROPE_SECTION,
             },
-            bos_token_id=None,
-            eos_token_id=ids["<|im_end|>"],
-            pad_token_id=ids["<|endoftext|>"],
-            tie_word_embeddings=False,
         ),
         vision_config=dict(
             depth=1,
@@ -215,22 +264,10 @@ def build_qwen25vl_folder(out: str | Path) -> Path:
             out_hidden_size=TEXT_HIDDEN,
             fullatt_block_indexes=[0],
         ),
-        image_token_id=ids["<|image_pad|>"],
-        video_token_id=ids["<|video_pad|>"],
-        vision_start_token_id=ids["<|vision_start|>"],
-        vision_end_token_id=ids["<|vision_end|>"],
+        **qwen_vision_token_ids(ids),
         tie_word_embeddings=False,
     )
-
-    torch.manual_seed(0)
-    model = Qwen2_5_VLForConditionalGeneration(config).to(torch.float32)
-    # Guard: no weight matrix may be all-zero (biases are zero by design and stay zero).
-    for p in model.parameters():
-        if p.dim() >= 2 and torch.count_nonzero(p) == 0:
-            with torch.no_grad():
-                p.normal_(0.0, 0.02)
-    model.save_pretrained(out)
-    return out
+    return save_random(Qwen2_5_VLForConditionalGeneration, config, out)
 
 
 def build_eo1(
@@ -302,9 +339,8 @@ def build_internvl3_folder(out: Path) -> Path:
         InternVLVideoProcessor,
     )
 
-    shutil.rmtree(out, ignore_errors=True)
-    out.mkdir(parents=True)
-    tokenizer = _train_toy_tokenizer(
+    out = fresh_dir(out)
+    tokenizer, ids = toy_tokenizer_and_ids(
         INTERNVL_SPECIAL_TOKENS,
         padding_side="right",  # EVO1 pools each row's last real token: right padding
         extra_special_tokens={
@@ -314,7 +350,6 @@ def build_internvl3_folder(out: Path) -> Path:
             "video_token": "<video>",
         },
     )
-    ids = {t: tokenizer.convert_tokens_to_ids(t) for t in INTERNVL_SPECIAL_TOKENS}
     size = {"height": INTERNVL_IMAGE, "width": INTERNVL_IMAGE}
     InternVLProcessor(
         image_processor=GotOcr2ImageProcessor(
@@ -337,20 +372,13 @@ def build_internvl3_folder(out: Path) -> Path:
             "norm_type": "layer_norm",
             "use_mean_pooling": True,
         },
-        text_config={
-            "model_type": "qwen2",
-            "vocab_size": int(math.ceil(len(tokenizer) / 64) * 64),
-            "hidden_size": INTERNVL_TEXT_HIDDEN,
-            "intermediate_size": 2 * INTERNVL_TEXT_HIDDEN,
-            "num_hidden_layers": 2,
-            "num_attention_heads": 4,
-            "num_key_value_heads": 2,
-            "max_position_embeddings": 1024,
-            "bos_token_id": None,
-            "eos_token_id": ids["<|im_end|>"],
-            "pad_token_id": ids["<|endoftext|>"],
-            "tie_word_embeddings": False,
-        },
+        text_config=qwen_text_config(
+            ids,
+            int(math.ceil(len(tokenizer) / 64) * 64),
+            INTERNVL_TEXT_HIDDEN,
+            4,
+            model_type="qwen2",
+        ),
         image_token_id=ids["<IMG_CONTEXT>"],
         image_seq_length=INTERNVL_SEQ,
         downsample_ratio=INTERNVL_DOWNSAMPLE,
@@ -358,14 +386,7 @@ def build_internvl3_folder(out: Path) -> Path:
         vision_feature_select_strategy="default",
         tie_word_embeddings=False,
     )
-    torch.manual_seed(0)
-    model = InternVLModel(config).to(torch.float32)
-    with torch.no_grad():  # InternViT zero-initializes its cls token and position embeddings
-        for param in model.parameters():
-            if param.dim() >= 2 and not param.any():
-                param.normal_(0.0, 0.02)
-    model.save_pretrained(out)
-    return out
+    return save_random(InternVLModel, config, out)
 
 
 def build_evo1(
