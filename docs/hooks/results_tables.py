@@ -796,6 +796,12 @@ def zoo_act_vision(d: Data) -> str:
     return _zoo_card(d, "zoo_act_vision")
 
 
+def zoo_metaworld_vision(d: Data) -> str:
+    """zoo_metaworld_vision.json: ACT trained on MetaWorld with black images at every step on
+    two of its tasks (the card's layout)."""
+    return _zoo_card(d, "zoo_metaworld_vision")
+
+
 def paper_observations(d: Data) -> str:
     """paper_observations.json (a copy of the study's observations.json): per arch@env, R_img
     with its interval, E_img and E_prop, diagnose's success and E − diagnose; R_img against
@@ -1017,6 +1023,7 @@ RENDERERS: dict[str, Callable[[Data], str]] = {
         zoo_metaworld,
         zoo_tabletop_pos,
         zoo_act_vision,
+        zoo_metaworld_vision,
         paper_observations,
         isa_spread,
         gpu_supply,
