@@ -73,3 +73,6 @@ class PolicyIO:
     chunk_len: int  # actions of each predicted chunk it executes (n_action_steps)
     resizes_images: bool  # resizes any image to its own resolution (pi0, pi0.5, SmolVLA...)
     source: str  # where this was read, for messages
+    # False: images and state_dim are not declared (a policy server's metadata names neither),
+    # so empty / None say nothing about what it reads
+    declares_inputs: bool = True

@@ -222,7 +222,7 @@ def check_inputs_for_modes(
             f"{needs}, but env.suite={cfg.env.suite!r} with these params renders no camera; "
             f"{fix}run it with mode baseline only"
         )
-    if policy is None:
+    if policy is None or not policy.declares_inputs:
         return
     for missing, what in ((not policy.images, "no image"), (policy.state_dim is None, "no state")):
         if missing:

@@ -203,3 +203,5 @@ def test_counterfactual_modes_need_an_image_and_a_state(over, what) -> None:
     baseline = load_config(conf, ["tracking.enabled=false", "grid=[{mode: [baseline]}]"])
     check_inputs_for_modes(baseline, _policy(**over))  # baseline runs no counterfactual
     check_inputs_for_modes(cfg, _policy())
+    # a policy server declares neither: nothing to refuse on
+    check_inputs_for_modes(cfg, _policy(**over, declares_inputs=False))

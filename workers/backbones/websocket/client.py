@@ -269,6 +269,7 @@ class WebsocketBackbone:
             chunk_len=probe.chunk_len or 1,
             resizes_images=True,
             source=f"the policy server ws://{probe.host}:{probe.port}",
+            declares_inputs=False,
         )
 
     @classmethod
