@@ -186,23 +186,27 @@ class EpisodeWorker:
             from workers.policy_actor import PolicyServiceClient
 
             policy = PolicyServiceClient(self.spec.policy_actor, self.policy.info)
-        if spec.task_id not in self.tasks:
-            raise ValueError(f"task_id={spec.task_id!r} not in suite {self.spec.env_suite!r}")
-        policy.set_config(spec.idr, spec.intervention)
-        policy.reset()
-        ep = _Rollout(obs=env.reset(spec.task_id, spec.episode_index, spec.seed))
-        ep.status = episode_status(env, ep.obs)
-        ep.video = self._video(spec, env)
-        if ep.video is not None:
-            ep.video.add(ep.obs)
-        instruction = ep.status.instruction  # the episode's first (CALVIN: one per subtask)
-        info = suite_info(env)
-        while not ep.status.done:
-            chunk = self._infer(policy, env, spec, ep, info.gripper_index)
-            self._execute(policy, env, chunk, ep, info.policy_reset_per_subtask)
-        if ep.video is not None:
-            ep.video.write()
-        return ep.steps, self._outcome(spec, env.control_hz, instruction, ep)
+        try:
+            if spec.task_id not in self.tasks:
+                raise ValueError(f"task_id={spec.task_id!r} not in suite {self.spec.env_suite!r}")
+            policy.set_config(spec.idr, spec.intervention)
+            policy.reset()
+            ep = _Rollout(obs=env.reset(spec.task_id, spec.episode_index, spec.seed))
+            ep.status = episode_status(env, ep.obs)
+            ep.video = self._video(spec, env)
+            if ep.video is not None:
+                ep.video.add(ep.obs)
+            instruction = ep.status.instruction  # the episode's first (CALVIN: one per subtask)
+            info = suite_info(env)
+            while not ep.status.done:
+                chunk = self._infer(policy, env, spec, ep, info.gripper_index)
+                self._execute(policy, env, chunk, ep, info.policy_reset_per_subtask)
+            if ep.video is not None:
+                ep.video.write()
+            return ep.steps, self._outcome(spec, env.control_hz, instruction, ep)
+        finally:
+            if policy is not self.policy:  # the episode's connection to the policy actor
+                policy.close()
 
     def _video(self, spec: EpisodeSpec, env: Any) -> Any:
         """The episode's video recorder, for the first ``video_episodes`` of a task and cell."""

@@ -14,8 +14,9 @@ actor that dies (``max_restarts``) and retries the calls it held (``max_task_ret
 request is a pure function of its content, so a retry gives the same answer.
 
 :class:`PolicyServiceClient` is what an episode worker holds instead of an ``IDRWrapper`` in shared
-mode: the same ``set_config`` / ``reset`` / ``infer``, one Ray call per inference (never per
-env step), the observation sent once as numpy.
+mode: the same ``set_config`` / ``reset`` / ``infer``, one request per inference (never per env
+step), the observation sent once as numpy: over a connection of its own to the actor's socket
+(``workers.policy_socket``, ``executor.policy_transport=socket``) or as a Ray call (``ray``).
 """
 
 from __future__ import annotations
@@ -32,6 +33,12 @@ from workers.idr import RefinerConfig
 from workers.idr_wrapper import IDRStep
 from workers.interventions import InterventionConfig
 from workers.policy_service import InferRequest, PolicyWorker
+from workers.policy_socket import (
+    PolicyServiceError,
+    PolicySocketConnection,
+    PolicySocketServer,
+    node_address,
+)
 
 
 class BatchingPolicyActor:
@@ -50,6 +57,7 @@ class BatchingPolicyActor:
         rows: int | str | None = None,
         threads: int | None = None,
         env: dict[str, str] | None = None,
+        transport: str = "socket",
     ) -> None:
         from workers.hardware import apply_numerics_env
         from workers.worker_log import log_to_file
@@ -67,12 +75,20 @@ class BatchingPolicyActor:
         # one forward at a time: the batcher's, or a lone client's run in its own Ray thread
         self._forward = threading.Lock()
         threading.Thread(target=self._batcher, name="batcher", daemon=True).start()
+        self._socket = (
+            PolicySocketServer(self.infer, node_address()) if transport == "socket" else None
+        )
 
     def describe(self) -> dict[str, Any]:
         import os
         import socket
 
-        return {**self.worker.describe(), "worker": f"{socket.gethostname()}:{os.getpid()}"}
+        return {
+            **self.worker.describe(),
+            "worker": f"{socket.gethostname()}:{os.getpid()}",
+            # where episode workers send requests (workers.policy_socket); None: Ray calls
+            "socket": list(self._socket.address) if self._socket is not None else None,
+        }
 
     def stats(self) -> dict[str, float]:
         sizes = list(self._batch_sizes)
@@ -153,6 +169,9 @@ class BatchingPolicyActor:
             p.done.set()
 
 
+#: times a request is sent again over a new connection to a policy actor that went away
+RECONNECTS = 10
+
 #: a client silent for longer (an episode worker done, or gone) is no longer waited for
 CLIENT_ACTIVE_S = 5.0
 
@@ -219,6 +238,7 @@ class PolicyServiceClient:
         self.cfg = RefinerConfig()
         self.intervention = InterventionConfig()
         self.batched = bool(info.get("batched"))
+        self._local = threading.local()  # each thread (closed loop) its own connection
 
     def set_config(
         self, cfg: RefinerConfig, intervention: InterventionConfig | None = None
@@ -231,9 +251,48 @@ class PolicyServiceClient:
         """Nothing to forget: the service calls the backbone on whole chunks, without state."""
 
     def infer(self, obs: Observation, step_seed: int = 0) -> IDRStep:
+        request = self.request(obs, step_seed)
+        if self.info.get("socket"):
+            return self._infer_on_socket(request)
         import ray
 
-        return ray.get(self.handle.infer.remote(self.request(obs, step_seed), self.client_id))
+        return ray.get(self.handle.infer.remote(request, self.client_id))
+
+    def _infer_on_socket(self, request: InferRequest) -> IDRStep:
+        """The request over this thread's connection to the policy actor. A connection that
+        breaks means the actor died: Ray starts it again (``max_restarts``), ``describe`` (a
+        Ray call, retried until it is back) says where it listens now, and the request is sent
+        again (a pure function of its content: the same answer), as Ray retries a call."""
+        for attempt in range(RECONNECTS + 1):
+            try:
+                return self._connection().infer(request, self.client_id)
+            except (OSError, ConnectionError) as exc:  # wire.WireError is a ConnectionError
+                self._drop_connection()
+                if attempt == RECONNECTS or self.handle is None:
+                    raise PolicyServiceError(
+                        f"the policy actor at {self.info['socket']} cannot be reached "
+                        f"({type(exc).__name__}: {exc}) after {attempt + 1} tries"
+                    ) from exc
+                import ray
+
+                self.info = {**self.info, **ray.get(self.handle.describe.remote())}
+        raise AssertionError("unreachable")
+
+    def _connection(self) -> PolicySocketConnection:
+        conn = getattr(self._local, "conn", None)
+        if conn is None:
+            conn = self._local.conn = PolicySocketConnection(tuple(self.info["socket"]))
+        return conn
+
+    def _drop_connection(self) -> None:
+        conn = getattr(self._local, "conn", None)
+        self._local.conn = None
+        if conn is not None:
+            conn.close()
+
+    def close(self) -> None:
+        """Close this thread's connection (the actor's thread for it ends)."""
+        self._drop_connection()
 
     @property
     def client_id(self) -> str:

@@ -45,9 +45,15 @@ def test_concurrent_requests_share_forwards_and_get_their_own_answers(ray_local)
         want = local.infer(o, 100 + i)
         assert np.array_equal(got.action, want.action.numpy())
         assert np.array_equal(got.diag.e_img, want.diag.e_img.numpy())
-    # the proxy's own path: one Ray call per inference, the same answer
+    # the proxy's own path, over the actor's socket: the same answer
+    assert remote.info["socket"] is not None
     again = remote.infer(observations[3], 103)
     assert np.array_equal(again.action, answers[3].action)
+    # and as one Ray call per inference (executor.policy_transport=ray)
+    by_ray = PolicyServiceClient(actor, {**remote.info, "socket": None})
+    by_ray.set_config(RefinerConfig(mode="E"))
+    assert np.array_equal(by_ray.infer(observations[3], 103).action, answers[3].action)
+    remote.close()
     ray_local.kill(actor)
 
 

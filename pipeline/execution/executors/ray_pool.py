@@ -168,6 +168,7 @@ class RayActorPool:
                 rows=spec.forward_rows,
                 threads=spec.torch_threads,
                 env=spec.numerics_env,
+                transport=ex.policy_transport,
             )
             for _ in range(ex.policy_actors)
         ]

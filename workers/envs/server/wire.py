@@ -1,4 +1,5 @@
-"""The env server's wire format: length-prefixed msgpack frames, numpy arrays as raw buffers.
+"""The wire format of the env servers and of the policy actors' sockets (``workers.policy_socket``):
+length-prefixed msgpack frames, numpy arrays as raw buffers.
 
 Both ends import this module: the actor (Python 3.12) and the env server (any Python >= 3.10
 with numpy and msgpack, e.g. 3.11 for PyBullet or SAPIEN), so it needs nothing else. A frame
@@ -33,7 +34,7 @@ class WireError(ConnectionError):
 def _default(obj: Any) -> Any:
     if isinstance(obj, np.ndarray):
         if obj.dtype.hasobject:
-            raise TypeError("an object array cannot cross the env-server boundary")
+            raise TypeError("an object array cannot cross a socket (env server or policy actor)")
         arr = obj if obj.flags.c_contiguous else np.ascontiguousarray(obj)  # keeps 0-d
         header = msgpack.packb([arr.dtype.str, list(arr.shape)])
         return msgpack.ExtType(_NDARRAY, _LEN.pack(len(header)) + header + arr.tobytes())
@@ -41,7 +42,9 @@ def _default(obj: Any) -> Any:
         return obj.item()
     if isinstance(obj, set | frozenset):
         return sorted(obj)
-    raise TypeError(f"cannot send a {type(obj).__name__} to or from an env server")
+    raise TypeError(
+        f"cannot send a {type(obj).__name__} over a socket (env server or policy actor)"
+    )
 
 
 def _ext_hook(code: int, data: bytes) -> Any:
