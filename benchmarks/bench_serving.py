@@ -6,7 +6,9 @@ the refinement) of one model through:
 
 - ``in_process``: each client holds its own copy of the model (the in-actor mode);
 - ``ours``: the shared policy service, a Ray policy actor (``workers.policy_actor``) reached
-  through ``PolicyServiceClient``, as an episode worker reaches it;
+  through ``PolicyServiceClient``, as an episode worker reaches it: over the actor's own socket
+  (``executor.policy_transport=socket``, the default);
+- ``ours_ray``: the same service with a Ray actor call per request (``policy_transport=ray``);
 - ``vla_eval``: vla-eval's batching model server (``PredictModelServer`` from the vla-eval
   package, ``predict_batch`` overridden to run the same ``PolicyWorker``), on 127.0.0.1 in a
   process of its own, raw images on the wire, no action-chunk buffering (``chunk_size=None``), so
@@ -25,8 +27,8 @@ tiny VLA (``checkpoints/tiny_vla``, two 96 px cameras, 8-d state) and the closed
 Per B concurrent clients: the round trip (median, p90), the throughput mu(B) (requests answered
 per second), and the per-request overhead, round trip minus the in-process compute of one forward
 of B requests (``PolicyWorker.infer_each`` in this process, nothing else running). The breakdown
-of ours at B = 1 splits the round trip into the client's work, the Ray transport, the handoff to
-and from the batching thread, and the forward. A peer that cannot be installed or reached is
+of ours at B = 1 (both transports) splits the round trip into the client's work, the transport,
+the handoff to and from the batching thread, and the forward. A peer that cannot be installed or reached is
 recorded as skipped, with the reason.
 
 Writes ``benchmarks/results/serving.json``.
@@ -71,7 +73,8 @@ MODELS: dict[str, dict[str, Any]] = {
         "state_dim": 8,
     },
 }
-PATHS = ("in_process", "ours", "vla_eval", "openpi", "ray_floor")
+PATHS = ("in_process", "ours", "ours_ray", "vla_eval", "openpi", "ray_floor")
+SERVICE = {"ours": "socket", "ours_ray": "ray"}  # our service's paths: their transport
 SIZE = 96
 OBSERVATIONS = 8  # distinct observations per client, cycled
 
@@ -207,7 +210,7 @@ def _run_job(job: dict[str, Any], state: _ClientState, ready: Any) -> dict[str, 
     def policy_obs(raw: Any) -> Any:
         return to_policy_observation(raw, INSTRUCTION, m["cameras"])
 
-    if path in ("ours", "ray_floor") and state.ray_address != ep["ray_address"]:
+    if path in (*SERVICE, "ray_floor") and state.ray_address != ep["ray_address"]:
         import ray
 
         ray.init(address=ep["ray_address"], namespace=NAMESPACE, log_to_driver=False)
@@ -221,7 +224,7 @@ def _run_job(job: dict[str, Any], state: _ClientState, ready: Any) -> dict[str, 
         policy = state.models[model]
         policy.set_config(RefinerConfig(mode="E"))
         return _timed(lambda raw, seed: policy.infer(policy_obs(raw), seed), raws, n, warmup, ready)
-    if path == "ours":
+    if path in SERVICE:
         import ray
 
         from workers.policy_actor import PolicyServiceClient
@@ -385,17 +388,19 @@ class Server:
         m = MODELS[model]
         if path == "in_process":
             self.endpoint: dict[str, Any] = {}
-        elif path == "ours":
+        elif path in SERVICE:
             import ray
 
             from workers.policy_actor import policy_actor_class
 
-            cls = policy_actor_class(1, 0).options(name=f"policy_{model}", namespace=NAMESPACE)
+            name = f"policy_{path}_{model}"
+            cls = policy_actor_class(1, 0).options(name=name, namespace=NAMESPACE)
             self.actor = cls.remote(
-                m["kind"], m["params"], None, args.max_batch, args.wait_ms, None, None, 1
-            )
+                m["kind"], m["params"], None, args.max_batch, args.wait_ms, None, None, 1,
+                transport=SERVICE[path],
+            )  # fmt: skip
             info = ray.get(self.actor.describe.remote())
-            self.endpoint = {"ray_address": ray_address, "actor": f"policy_{model}", "info": info}
+            self.endpoint = {"ray_address": ray_address, "actor": name, "info": info}
         elif path == "ray_floor":
             import ray
 
@@ -456,7 +461,7 @@ class Server:
     def stats(self) -> dict[str, Any]:
         import ray
 
-        if self.path == "ours":
+        if self.path in SERVICE:
             return ray.get(self.actor.stats.remote())
         return {}
 
@@ -569,11 +574,14 @@ def measure(
     return row
 
 
-def breakdown(model: str, args: argparse.Namespace, calls: int = 300) -> dict[str, Any]:
+def breakdown(
+    model: str, args: argparse.Namespace, transport: str, calls: int = 300
+) -> dict[str, Any]:
     """Where ours' round trip goes at B = 1, in this process (a client of its own): the client's
     work (to_policy_observation and the request built from it), the policy actor's time from
-    receiving the call to answering it (the forward, and the handoff to and from the batching
-    thread), the forward itself, and the rest (Ray: serialization, transport, scheduling)."""
+    receiving the request to answering it (the forward, and the handoff to and from the batching
+    thread), the forward itself, and the rest: the transport (``socket``: encoding, the
+    connection and decoding; ``ray``: Ray's serialization, transport and scheduling)."""
     import ray
 
     from workers.idr import RefinerConfig
@@ -583,8 +591,9 @@ def breakdown(model: str, args: argparse.Namespace, calls: int = 300) -> dict[st
     m = MODELS[model]
     raws = raw_observations(model, 0)
     actor = policy_actor_class(1, 0).remote(
-        m["kind"], m["params"], None, args.max_batch, args.wait_ms, None, None, 1
-    )
+        m["kind"], m["params"], None, args.max_batch, args.wait_ms, None, None, 1,
+        transport=transport,
+    )  # fmt: skip
     client = PolicyServiceClient(actor, ray.get(actor.describe.remote()))
     client.set_config(RefinerConfig(mode="E"))
     obs = [to_policy_observation(r, INSTRUCTION, m["cameras"]) for r in raws]
@@ -597,6 +606,7 @@ def breakdown(model: str, args: argparse.Namespace, calls: int = 300) -> dict[st
         client.infer(to_policy_observation(raws[i % len(raws)], INSTRUCTION, m["cameras"]), i)
         rtt.append(time.perf_counter() - t0)
     s1 = ray.get(actor.stats.remote())
+    client.close()
     ray.kill(actor)
     forward = (s1["busy_s"] - s0["busy_s"]) / max(s1["forwards"] - s0["forwards"], 1) * 1e3
 
@@ -642,7 +652,8 @@ def breakdown(model: str, args: argparse.Namespace, calls: int = 300) -> dict[st
         "client_ms": prep,
         "actor_forward_ms": forward,
         "actor_handoff_ms": served - forward,
-        "ray_ms": total - (prep or 0.0) - served,
+        "transport": transport,
+        "transport_ms": total - (prep or 0.0) - served,
         "request_image_bytes": sum(v.nbytes for v in request.obs.images.values()),
         "ray_floor_busy_ms": statistics.median(busy_rtt) * 1e3,
     }
@@ -726,9 +737,11 @@ def main() -> None:
                     server_stats = server.close()
                 entry[path] = {"rows": rows, **({"server": server_stats} if server_stats else {})}
             entry["ratios"] = ratios(entry, clients)
-            if "ours" in paths:
-                entry["breakdown_b1"] = breakdown(model, args)
-                print(f"{model} ours at B=1: {entry['breakdown_b1']}", flush=True)
+            entry["breakdown_b1"] = {}
+            for path, transport in SERVICE.items():
+                if path in paths:
+                    entry["breakdown_b1"][transport] = breakdown(model, args, transport)
+                    print(f"{model} {path} at B=1: {entry['breakdown_b1'][transport]}", flush=True)
             result["models"][model] = entry
     finally:
         pool.close()
@@ -747,7 +760,7 @@ def ratios(entry: dict[str, Any], clients: list[int]) -> dict[str, Any]:
         return next((r for r in rows if r["clients"] == b), None)
 
     out: dict[str, Any] = {}
-    for other in ("vla_eval", "openpi", "ray_floor"):
+    for other in ("ours_ray", "vla_eval", "openpi", "ray_floor"):
         per_b = {}
         for b in clients:
             ours, theirs = row("ours", b), row(other, b)

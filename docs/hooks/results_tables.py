@@ -897,12 +897,32 @@ def _zoo_card(d: Data, name: str) -> str:
     )  # fmt: skip
 
 
+def breakdown_table(bds: dict[str, Data]) -> str:
+    """Ours at B = 1 per transport (socket, ray): where the round trip goes."""
+    transports = list(bds)
+    lines = [
+        ("round trip (ms)", "round_trip_ms"),
+        ("client: observation and request (ms)", "client_ms"),
+        ("transport: encoding, connection or Ray call, decoding (ms)", "transport_ms"),
+        ("policy actor: handoff to and from the batching thread, batch wait (ms)",
+         "actor_handoff_ms"),
+        ("policy actor: the forward (ms)", "actor_forward_ms"),
+        ("a bare Ray call to an actor busy for the forward's time (ms)", "ray_floor_busy_ms"),
+    ]  # fmt: skip
+    rows = [[label, *(num(bds[t][key]) for t in transports)] for label, key in lines]
+    rows.append(
+        ["round trip / that bare Ray call",
+         *(f"{num(bds[t]['round_trip_ms'] / bds[t]['ray_floor_busy_ms'])}x" for t in transports)]
+    )  # fmt: skip
+    return table(["ours at B = 1", *(f"transport {t}" for t in transports)], rows)
+
+
 def serving(d: Data) -> str:
     """serving.json: one model through each serving path, B concurrent clients; ours' breakdown."""
     parts = []
     for model, e in d["models"].items():
         rows, skipped = [], []
-        for path in ("in_process", "ours", "vla_eval", "openpi", "ray_floor"):
+        for path in ("in_process", "ours", "ours_ray", "vla_eval", "openpi", "ray_floor"):
             p = e.get(path)
             if p is None:
                 continue
@@ -936,35 +956,8 @@ def serving(d: Data) -> str:
             )  # fmt: skip
         if skipped:
             parts.append("; ".join(skipped))
-        if bd := e.get("breakdown_b1"):
-            parts.append(
-                key_values(
-                    [
-                        ("ours at B = 1: round trip (ms)", bd["round_trip_ms"]),
-                        ("client: observation and request (ms)", bd["client_ms"]),
-                        ("Ray: serialization, transport, scheduling (ms)", bd["ray_ms"]),
-                        (
-                            "policy actor: handoff to and from the batching thread, batch wait (ms)",
-                            bd["actor_handoff_ms"],
-                        ),
-                        ("policy actor: the forward (ms)", bd["actor_forward_ms"]),
-                    ]
-                    + (
-                        [
-                            (
-                                "a bare Ray call to an actor busy for the forward's time (ms)",
-                                bd["ray_floor_busy_ms"],
-                            ),
-                            (
-                                "ours / that call",
-                                f"{num(bd['round_trip_ms'] / bd['ray_floor_busy_ms'])}x",
-                            ),
-                        ]
-                        if "ray_floor_busy_ms" in bd
-                        else []
-                    )
-                )
-            )
+        if bds := e.get("breakdown_b1"):
+            parts.append(breakdown_table(bds))
     tried_rows = []
     for model, e in d["models"].items():
         t = e.get("tried_adaptive_batcher")

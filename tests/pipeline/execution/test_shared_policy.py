@@ -78,6 +78,7 @@ def test_a_policy_actor_that_dies_is_restarted_and_its_requests_retried(tmp_path
             "batching=dynamic and forward_rows=12 disagree",
         ),
         (["executor.forward_rows=0"], "forward_rows"),
+        (["executor.policy=shared", "executor.policy_transport=grpc"], "policy_transport"),
     ],
 )
 def test_bad_policy_settings_are_refused_before_work(tmp_path, overrides, pattern) -> None:
