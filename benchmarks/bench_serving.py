@@ -669,6 +669,13 @@ def main() -> None:
     ap.add_argument("--paths", default=",".join(PATHS))
     ap.add_argument("--rounds", type=int, default=20, help="rounds of the in-process compute")
     ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument(
+        "--repeat-of",
+        type=Path,
+        default=None,
+        help="a results file to add this run's rows to as a repeat (its 'repeats' list), "
+        "instead of writing --out: the spread between runs on one machine",
+    )
     ap.add_argument("--serve-vla-eval", metavar="MODEL", help=argparse.SUPPRESS)
     ap.add_argument("--port", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--stats", type=Path, help=argparse.SUPPRESS)
@@ -747,6 +754,14 @@ def main() -> None:
         pool.close()
         ray.shutdown()
     result["machine"] = machine_record()
+    if args.repeat_of is not None:
+        base = json.loads(args.repeat_of.read_text())
+        if base["machine"]["cpu_model"] != result["machine"]["cpu_model"]:
+            raise SystemExit(f"{args.repeat_of} was measured on another CPU: not a repeat")
+        base.setdefault("repeats", []).append(result)
+        args.repeat_of.write_text(json.dumps(base, indent=2) + "\n")
+        print(f"added a repeat to {args.repeat_of}")
+        return
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"wrote {args.out}")

@@ -917,6 +917,29 @@ def breakdown_table(bds: dict[str, Data]) -> str:
     return table(["ours at B = 1", *(f"transport {t}" for t in transports)], rows)
 
 
+def repeats_table(d: Data, reps: list[Data]) -> str:
+    """The rows that later runs on the same machine repeated, beside the first run's: how far
+    one run's row can be trusted."""
+    rows = []
+    for k, run in enumerate([d, *reps]):
+        for model, e in run["models"].items():
+            for path in ("ours", "ours_ray", "vla_eval"):
+                for r in e.get(path, {}).get("rows", []):
+                    if not any(
+                        r["clients"] == q["clients"]
+                        for rep in reps
+                        for q in rep["models"].get(model, {}).get(path, {}).get("rows", [])
+                    ):
+                        continue  # not repeated
+                    rows.append([k + 1, model, path, r["clients"], r["rtt_ms_median"],
+                                 r["mu_per_s"], num(r["overhead_ms"])])  # fmt: skip
+    return table(
+        ["run", "model", "path", "B clients", "round trip median (ms)", "μ(B) (req/s)",
+         "overhead per request (ms)"],
+        rows,
+    )  # fmt: skip
+
+
 def serving(d: Data) -> str:
     """serving.json: one model through each serving path, B concurrent clients; ours' breakdown."""
     parts = []
@@ -975,6 +998,8 @@ def serving(d: Data) -> str:
             table(["model", "B", "round trip ours (ms)", "round trip tried (ms)", "μ ours",
                    "μ tried"], tried_rows)
         )  # fmt: skip
+    if reps := d.get("repeats"):
+        parts.append(repeats_table(d, reps))
     if d.get("noise"):
         parts.append(f"Noise: {d['noise']}.")
     note = (
