@@ -16,6 +16,7 @@ Requests are ``{"client": id, "request": ...}``; replies ``{"ok": True, "step": 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import socket
@@ -127,10 +128,8 @@ class PolicySocketServer:
     def close(self) -> None:
         """Stop listening (a thread blocked in ``accept`` is woken by the shutdown, not by
         ``close`` alone)."""
-        try:
+        with contextlib.suppress(OSError):  # already shut down, or never connected
             self._sock.shutdown(socket.SHUT_RDWR)
-        except OSError:
-            pass
         self._sock.close()
 
 

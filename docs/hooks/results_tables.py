@@ -797,8 +797,8 @@ def zoo_act_vision(d: Data) -> str:
 
 
 def zoo_metaworld_vision(d: Data) -> str:
-    """zoo_metaworld_vision.json: ACT trained on MetaWorld with black images at every step on
-    two of its tasks (the card's layout)."""
+    """zoo_metaworld_vision.json: members trained on MetaWorld with black images at every step
+    on two of their tasks (the card's layout)."""
     return _zoo_card(d, "zoo_metaworld_vision")
 
 
