@@ -266,7 +266,7 @@ class PolicyServiceClient:
         for attempt in range(RECONNECTS + 1):
             try:
                 return self._connection().infer(request, self.client_id)
-            except (OSError, ConnectionError) as exc:  # wire.WireError is a ConnectionError
+            except OSError as exc:  # refused, reset, or wire.WireError (a ConnectionError)
                 self._drop_connection()
                 if attempt == RECONNECTS or self.handle is None:
                     raise PolicyServiceError(

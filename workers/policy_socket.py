@@ -10,7 +10,8 @@ The socket only carries: a request is answered by the actor's ``infer``, the sam
 forward as a Ray call's, so both transports give the same tables. Messages hold plain values
 and arrays only (no pickle), so a peer can send nothing but data.
 
-Requests are ``{"client": id, "request": ...}``; replies ``{"ok": True, "step": ...}`` or
+A request is one flat map (``client``, ``seed``, ``idr``, ``intervention`` and the observation's
+fields: ``request_message``); replies ``{"ok": True, "step": ...}`` or
 ``{"ok": False, "type": exception class name, "message": ...}``.
 """
 
@@ -18,7 +19,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import logging
 import socket
 import threading
 from collections.abc import Callable
@@ -30,8 +30,6 @@ from workers.idr import Diagnostics, RefinerConfig
 from workers.idr_wrapper import IDRStep
 from workers.interventions import InterventionConfig
 from workers.policy_service import InferRequest
-
-log = logging.getLogger(__name__)
 
 Answer = Callable[[InferRequest, str | None], IDRStep]
 
