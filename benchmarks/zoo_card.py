@@ -1,6 +1,7 @@
 """The zoo's model card figures: each member's training record and its evaluation on the zoo
 preset (``conf/zoo/tabletop.yaml``), per task and cell with Wilson intervals, mean E_img, E_prop
-and R_img of its diagnose cell, and E − diagnose paired per member.
+and R_img of its diagnose cell (pooled over its inferences with a 95% interval, as the
+observations study pools it), and E − diagnose paired per member.
 
 Reads ``checkpoints/zoo/[<benchmark>/]<member>/train_meta.json`` and a finished run dir per
 member; writes ``benchmarks/results/zoo_<benchmark>.json`` (rendered in docs/zoo.md). A member evaluated again
@@ -16,6 +17,8 @@ import json
 from datetime import date
 from pathlib import Path
 
+import pandas as pd
+
 ROOT = Path(__file__).resolve().parents[1]
 PRESETS = {
     "tabletop": "conf/zoo/tabletop.yaml",
@@ -26,6 +29,32 @@ PRESETS = {
 
 def results_file(benchmark: str, name: str | None = None) -> Path:
     return ROOT / "benchmarks" / "results" / f"{name or f'zoo_{benchmark}'}.json"
+
+
+def diagnose_effects(run_dir: Path) -> dict:
+    """The reference diagnose cell's R_img as the observations study pools it (every inference;
+    an interval from resampling episodes), the image-zeroed control left out unless the run holds
+    nothing else (a black-images card: E_img 0)."""
+    from pipeline.reporting.run_data import load_run, reference_diagnose
+
+    steps = load_run(run_dir).steps
+    diag = reference_diagnose(steps)
+    if diag is None:
+        raise SystemExit(f"{run_dir}: no diagnose cell, so no E_img / E_prop to report")
+    return card_effects(
+        steps.loc[steps["cell_id"] == diag, ["task_id", "episode_index", "e_img", "e_prop"]].dropna(
+            subset=["e_img", "e_prop"]
+        )
+    )
+
+
+def card_effects(steps: pd.DataFrame) -> dict:
+    """``pooled_effects`` of one diagnose cell's inferences without the image-zeroed control's,
+    or of the control's where the run holds nothing else."""
+    from pipeline.reporting.observations import pooled_effects, without_control
+
+    seen = without_control(steps)
+    return pooled_effects(seen if len(seen) else steps)
 
 
 def member_entry(name: str, run_dir: Path, benchmark: str = "tabletop") -> dict:
@@ -50,13 +79,7 @@ def member_entry(name: str, run_dir: Path, benchmark: str = "tabletop") -> dict:
         }
         for r in rates.itertuples()
     ]
-    ok = episodes[episodes["error"].isna()]
-    diag = ok[ok["mode"] == "diagnose"]
-    effects = {
-        "e_img": float(diag["e_img_mean"].mean()),
-        "e_prop": float(diag["e_prop_mean"].mean()),
-    }
-    effects["r_img"] = effects["e_img"] / (effects["e_img"] + effects["e_prop"] + 1e-6)
+    effects = diagnose_effects(run_dir)
     paired = [
         {
             "cell": p.cell_id,
@@ -112,7 +135,12 @@ def main() -> None:
     old = json.loads(results.read_text()) if results.is_file() else {"members": {}}
     for item in args.runs:
         name, _, run = item.partition("=")
-        old["members"][name] = member_entry(name, Path(run), args.benchmark)
+        entry = member_entry(name, Path(run), args.benchmark)
+        before = old["members"].get(name)
+        if before is not None and before["eval"]["run_dir"] == entry["eval"]["run_dir"]:
+            # the same evaluation carded again: it ran when and where it did
+            entry["eval"].update({k: before["eval"][k] for k in ("machine", "date")})
+        old["members"][name] = entry
     old["preset"] = args.preset or PRESETS[args.benchmark]
     results.write_text(json.dumps(old, indent=2) + "\n")
     print(json.dumps(old, indent=2)[:3000])

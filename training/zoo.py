@@ -205,6 +205,11 @@ MEMBERS: dict[str, Member] = {
             "--policy.num_steps=10",
             "--policy.max_state_dim=8",
             "--policy.max_action_dim=7",
+            # lerobot's preset (1e-4 after 1,000 warmup steps, decay over 30,000) is meant for
+            # fine-tuning pretrained SmolVLM weights; these start random and small
+            "--policy.optimizer_lr=3e-4",
+            "--policy.scheduler_warmup_steps=200",
+            "--policy.scheduler_decay_steps=6000",
         ),
         steps=6000,
         batch_size=32,

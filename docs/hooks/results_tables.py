@@ -845,6 +845,16 @@ def carried(c: dict | None) -> str:
     )
 
 
+def card_rimg(eff: dict) -> str:
+    """A card's R_img: pooled over the diagnose cell's inferences with its interval, or, in an
+    entry recorded without one, the ratio of the episodes' mean effects (the image-zeroed
+    control's episodes included)."""
+    if "r_img_ci95" not in eff:
+        return f"{num(eff['r_img'])} (episode means, control included)"
+    lo, hi = eff["r_img_ci95"]
+    return f"{num(eff['r_img'])} [{num(lo)}, {num(hi)}]"
+
+
 def _zoo_card(d: Data, name: str) -> str:
     train_rows, task_rows, effect_rows = [], [], []
     for member, m in d["members"].items():
@@ -878,7 +888,7 @@ def _zoo_card(d: Data, name: str) -> str:
             for p in m["paired_vs_diagnose"]
         )
         effect_rows.append(
-            [member, num(eff["e_img"]), num(eff["e_prop"]), num(eff["r_img"]), paired or "–",
+            [member, num(eff["e_img"]), num(eff["e_prop"]), card_rimg(eff), paired or "–",
              f"{e['episodes_per_task']} per task, {machine(e)}, {e['date']}"]
         )  # fmt: skip
     return block(
@@ -889,7 +899,7 @@ def _zoo_card(d: Data, name: str) -> str:
         ),
         table(["member", "cell", "task", "successes", "success % [95% Wilson]"], task_rows),
         table(
-            ["member", "E_img", "E_prop", "R_img", "E − diagnose (paired, 95% CI, McNemar)",
+            ["member", "E_img", "E_prop", "R_img (95% CI)", "E − diagnose (paired, 95% CI, McNemar)",
              "evaluated"],
             effect_rows,
         ),

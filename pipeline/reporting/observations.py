@@ -70,6 +70,25 @@ def rimg_interval(
     return point, float(np.quantile(boots, 0.025)), float(np.quantile(boots, 0.975))
 
 
+def without_control(steps: pd.DataFrame) -> pd.DataFrame:
+    """``steps`` without the image-zeroed control's (black images at every step: E_img is ~0 by
+    construction), which shows in the heatmap, not in a pooled R_img."""
+    return steps[~steps["task_id"].astype(str).str.contains(CONTROL, regex=False)]
+
+
+def pooled_effects(steps: pd.DataFrame) -> dict:
+    """R_img of ``steps`` (one diagnose cell's inferences) with its 95% interval, and the mean
+    E_img and E_prop: the one estimator of a cell's R_img in the study and the zoo's cards."""
+    point, lo, hi = rimg_interval(steps)
+    return {
+        "r_img": point,
+        "r_img_ci95": [lo, hi],
+        "e_img": float(steps["e_img"].mean()),
+        "e_prop": float(steps["e_prop"].mean()),
+        "inferences": len(steps),
+    }
+
+
 def rank_correlation(x: list[float], y: list[float]) -> dict[str, float | int | str]:
     """Spearman's rho of (x, y) and its two-sided permutation p (exact up to 8 points)."""
     from scipy import stats
@@ -105,18 +124,8 @@ def _run_section(ref: RunRef) -> dict:
         str(t): ratio(g["e_img"].to_numpy(), g["e_prop"].to_numpy())
         for t, g in steps.groupby("task_id")
     }
-    # the image-zeroed control (black images at every step: E_img is ~0 by construction) shows
-    # in the heatmap, not in the environment's pooled R_img
-    steps = steps[~steps["task_id"].astype(str).str.contains(CONTROL, regex=False)]
-    point, lo, hi = rimg_interval(steps)
-    out.update(
-        r_img=point,
-        r_img_ci95=[lo, hi],
-        e_img=float(steps["e_img"].mean()),
-        e_prop=float(steps["e_prop"].mean()),
-        inferences=len(steps),
-        per_task=per_task,
-    )
+    steps = without_control(steps)
+    out.update(pooled_effects(steps), per_task=per_task)
     binned = np.minimum((steps["progress"].to_numpy() * BINS).astype(int), BINS - 1)
     out["progress"] = [
         ratio(steps["e_img"].to_numpy()[binned == b], steps["e_prop"].to_numpy()[binned == b])
