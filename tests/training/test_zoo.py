@@ -232,7 +232,12 @@ def test_a_tabletop_dataset_is_refused_for_the_metaworld_benchmark(tmp_path) -> 
     assert "observation.image: wants [96, 96, 3], dataset has None" in out.stderr
     assert "training.metaworld_demos" in out.stderr and not (tmp_path / "r").exists()
     rebuild = json.loads((zoo.ROOT / "checkpoints/zoo/metaworld/REBUILD.json").read_text())
-    assert set(rebuild) == set(zoo.MEMBERS)
+    # every member, and a second seed under <member>_seed<N> rebuilt with that seed
+    assert set(zoo.MEMBERS) <= set(rebuild)
+    for folder in set(rebuild) - set(zoo.MEMBERS):
+        member, _, seed = folder.rpartition("_seed")
+        assert member in zoo.MEMBERS and f"--seed {seed}" in rebuild[folder], folder
+        assert f"--dest checkpoints/zoo/metaworld/{folder}" in rebuild[folder]
     assert all("--benchmark metaworld" in c for c in rebuild.values())
 
 
