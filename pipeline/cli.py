@@ -13,6 +13,14 @@ from typing import TYPE_CHECKING
 # with it, 2.0 GB without (benchmarks/bench_report_scale.py). Read by Arrow when it is first
 # imported, hence here, before anything imports it; a user's own setting stands.
 os.environ.setdefault("ARROW_DEFAULT_MEMORY_POOL", "system")
+# Nothing downloads from a model or dataset hub at run time: a checkpoint that names a
+# sub-model by hub id (SmolVLA's VLM, X-VLA's tokenizer) resolves it from the local cache
+# (make setup installs the zoo's) instead of asking the hub first, which offline cost minutes
+# of retries per load. Read by huggingface_hub when first imported, hence here; a local Ray's
+# actors inherit it; a user's own setting stands (HF_HUB_OFFLINE=0 allows downloads).
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
+os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 
 from pipeline.errors import RunError, is_disk_full
 from pipeline.execution.signals import RunInterrupted, stop_on_signals

@@ -77,3 +77,23 @@ def test_a_grid_over_max_cells_needs_yes(tmp_path, capsys) -> None:
     assert cli.build_parser().parse_args(["run", alpha, "--yes"]).yes
     plan = plan_run(load_config(alpha, ["max_cells=4"]), out, yes=True)
     assert len({s.cell_id for s in plan.all_specs()}) == 9
+
+
+def _hub_offline_after_cli_import(env: dict[str, str]) -> str:
+    """huggingface_hub's own offline flag in a fresh process that imported the CLI first."""
+    code = "import pipeline.cli, huggingface_hub.constants as c; print(c.HF_HUB_OFFLINE)"
+    r = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120
+    )
+    assert r.returncode == 0, r.stderr
+    return r.stdout.strip()
+
+
+def test_cli_is_offline_unless_told_otherwise() -> None:
+    # nothing downloads from a hub at run time: a checkpoint naming a sub-model by hub id is
+    # resolved from the local cache, without the hub's retries
+    import os
+
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_OFFLINE")}
+    assert _hub_offline_after_cli_import(env) == "True"
+    assert _hub_offline_after_cli_import({**env, "HF_HUB_OFFLINE": "0"}) == "False"
