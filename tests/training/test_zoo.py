@@ -286,3 +286,34 @@ def test_the_open_loop_error_of_a_learned_policy_beats_the_mean_action(toy_datas
     assert out["frames"] == 20 and out["dims"] == [0, 1, 2, 6]  # dims 3-5 never vary
     assert len(out["mae_in_std"]) == len(out["mean_action_mae_in_std"]) == 4
     assert out["ratio_to_mean_action"] < 0.6  # the shipped zoo tiny VLA learned the actions
+
+
+@pytest.mark.sim
+@pytest.mark.slow
+def test_the_shipped_smolvla_solves_metaworld_from_another_folder_and_fails_without_images(
+    tmp_path,
+) -> None:
+    """The shipped SmolVLA (its VLM named by hub id, resolved from the local cache) run by the
+    real CLI from another working directory, offline by idr-eval's own default: it presses the
+    button, and with black images at every step it does not."""
+    from pipeline.results.store import RunStore
+
+    ckpt = zoo.ROOT / zoo.SHIPPED / "metaworld" / "smolvla"
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_OFFLINE")}
+    out = tmp_path / "run"
+    r = subprocess.run(
+        [
+            sys.executable, "-m", "pipeline.cli", "run",
+            str(zoo.ROOT / "conf" / "zoo" / "metaworld.yaml"), "--out", str(out),
+            f"backbone.params.path={ckpt}", "executor.kind=inline", "executor.workers=1",
+            "tracking.enabled=false", "episodes_per_task=3", "grid=[{mode: [diagnose]}]",
+            "env.tasks=[button-press-v3, button-press-v3@image_blackout:1]",
+        ],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr[-3000:]
+    episodes = RunStore(out, read_only=True).episodes().to_pandas()
+    wins = episodes.groupby("task_id")["success"].sum()
+    assert len(episodes) == 6 and wins["button-press-v3"] >= 2, wins
+    assert wins["button-press-v3@image_blackout:1"] == 0, wins
+    assert "huggingface.co" not in (out / "logs" / "driver.log").read_text()
