@@ -71,7 +71,7 @@ def test_malformed_studies_are_refused(tmp_path: Path, text: str, match: str) ->
 
 def test_the_shipped_observations_study_loads() -> None:
     study = load_study(CONF / "paper" / "observations.yaml")
-    assert {r.arch for r in study.runs} >= {"tiny_vla", "act", "xvla"}
+    assert {r.arch for r in study.runs} >= {"tiny_vla", "act", "xvla", "smolvla"}
     assert all(r.config.episodes_per_task == 10 for r in study.runs)
     for r in study.runs:
         # lerobot's architectures on the tabletop: the members trained without the orientation
