@@ -96,10 +96,23 @@ def rank_correlation(x: list[float], y: list[float]) -> dict[str, float | int | 
     n = len(x)
     if n < 3:
         return {"n": n, "rho": math.nan, "p": math.nan, "finding": "too few runs (< 3)"}
+
+    ry = stats.rankdata(y)
+    ry = ry - ry.mean()
+
+    def rho_of(rx: np.ndarray, axis: int) -> np.ndarray:
+        rx = rx - rx.mean(axis=axis, keepdims=True)
+        return (rx * ry).sum(axis=axis) / np.sqrt((rx * rx).sum(axis=axis) * (ry * ry).sum())
+
+    # Spearman's rho is Pearson's r of the (average) ranks; re-pairing the points permutes x's
+    # ranks against y's, so only x is permuted (n! pairings, not n!^2) and the statistic is
+    # vectorized over them: the exact test of 8 points (40,320 pairings) takes well under a
+    # second, where spearmanr called once per pairing took 27 ms each (about 18 minutes)
     res = stats.permutation_test(
-        (np.asarray(x), np.asarray(y)),
-        lambda a, b: stats.spearmanr(a, b).statistic,
+        (stats.rankdata(x),),
+        rho_of,
         permutation_type="pairings",
+        vectorized=True,
         n_resamples=np.inf if n <= 8 else 20000,
         alternative="two-sided",
         random_state=0,

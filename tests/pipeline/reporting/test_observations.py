@@ -116,3 +116,22 @@ runs:
     assert not (out / "fake@fake" / "episodes").is_dir() or not any(
         (out / "fake@fake" / "episodes").iterdir()
     )
+
+
+def test_rank_correlation_with_ties_matches_spearman_and_a_full_enumeration() -> None:
+    import itertools
+
+    from scipy import stats
+
+    x = [0.35, 0.38, 0.49, 0.49, 0.54, 0.70, 0.68, 0.41]  # ties, as two runs can give
+    y = [0.04, -0.02, -0.04, -0.04, -0.12, -0.10, -0.22, 0.0]
+    r = rank_correlation(x, y)  # 8 points: all 40,320 pairings
+    rho = stats.spearmanr(x, y).statistic
+    assert r["rho"] == pytest.approx(rho)
+    rx, ry = stats.rankdata(x), stats.rankdata(y)
+    perms = np.array(list(itertools.permutations(ry)))  # every pairing, by brute force
+    dx, dp = rx - rx.mean(), perms - perms.mean(axis=1, keepdims=True)
+    every = dp @ dx / np.sqrt((dx @ dx) * (dp * dp).sum(axis=1))
+    tol = 1e-12  # scipy's own two-sided p: twice the smaller tail, at most 1
+    expect = min(1.0, 2 * min(np.mean(every >= rho - tol), np.mean(every <= rho + tol)))
+    assert r["p"] == pytest.approx(expect, rel=1e-9)
