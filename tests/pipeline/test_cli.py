@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -92,8 +93,6 @@ def _hub_offline_after_cli_import(env: dict[str, str]) -> str:
 def test_cli_is_offline_unless_told_otherwise() -> None:
     # nothing downloads from a hub at run time: a checkpoint naming a sub-model by hub id is
     # resolved from the local cache, without the hub's retries
-    import os
-
     env = {k: v for k, v in os.environ.items() if not k.endswith("_OFFLINE")}
     assert _hub_offline_after_cli_import(env) == "True"
     assert _hub_offline_after_cli_import({**env, "HF_HUB_OFFLINE": "0"}) == "False"
