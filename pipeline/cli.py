@@ -100,20 +100,25 @@ def _cmd_study(args: argparse.Namespace) -> int:
     from pipeline.planning.study import load_study
     from pipeline.reporting.observations import OBS_MD, RunRef, write
 
-    study = load_study(args.study, args.overrides)
+    only = [s for s in args.only.split(",") if s] if args.only is not None else None
+    study = load_study(args.study, args.overrides, only)
     out = Path(args.out)
     plans = []
     for run in study.runs:
         _import_logging_libraries(run.config)
-        plans.append(
-            plan_run(
+        try:
+            plan = plan_run(
                 run.config,
                 out / run.label,
                 yes=args.yes,
                 allow_code_change=args.allow_code_change,
                 allow_numerics_change=args.allow_numerics_change,
             )
-        )
+        except ConfigError as e:
+            others = [r.label for r in study.runs if r is not run]
+            hint = f"\n  or leave the run out: --only {','.join(others)}" if others else ""
+            raise ConfigError(f"{run.label}: {e}{hint}") from None
+        plans.append(plan)
         print(f"{run.label}: {len(plans[-1].all_specs())} episodes -> {out / run.label}")
     for run, plan in zip(study.runs, plans, strict=True):
         try:
@@ -401,6 +406,12 @@ def _add_study(sub: Subparsers) -> None:
     )
     st.add_argument(
         "--allow-numerics-change", action="store_true", help="as for `run`, for every run"
+    )
+    st.add_argument(
+        "--only",
+        metavar="ARCH@ENV[,...]",
+        help="run and report only these runs of the study (e.g. those whose checkpoints this "
+        "machine holds); the report covers them alone",
     )
     st.set_defaults(func=_cmd_study)
 

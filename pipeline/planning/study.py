@@ -68,9 +68,12 @@ def _refuse_unknown(
         raise ConfigError(f"{where}: unknown keys {sorted(unknown)}; {what} has {sorted(allowed)}")
 
 
-def load_study(path: str | Path, extra: list[str] | None = None) -> Study:
+def load_study(
+    path: str | Path, extra: list[str] | None = None, only: list[str] | None = None
+) -> Study:
     """Read and check a study file; ``extra``: overrides given on the command line (after the
-    file's own, so they win)."""
+    file's own, so they win); ``only``: the labels (``arch@env``) of the runs to keep, e.g. those
+    whose checkpoints this machine holds (the others' configs are not loaded)."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"study file {path} does not exist")
@@ -84,6 +87,7 @@ def load_study(path: str | Path, extra: list[str] | None = None) -> Study:
     runs: list[StudyRun] = []
     if not isinstance(raw["runs"], list) or not raw["runs"]:
         raise ConfigError(f"{path}: runs must be a non-empty list of {{arch, env, config, set}}")
+    entries: list[tuple[str, str, dict]] = []
     for i, entry in enumerate(raw["runs"]):
         where = f"{path}: runs[{i}]"
         if not isinstance(entry, dict):
@@ -94,9 +98,19 @@ def load_study(path: str | Path, extra: list[str] | None = None) -> Study:
                 f"{where}: missing {sorted(missing)} (each run names arch, env, config)"
             )
         _refuse_unknown(entry, RUN_KEYS, where, "a run")
+        entries.append((where, f"{entry['arch']}@{entry['env']}", entry))
+    if only is not None:
+        labels = [label for _, label, _ in entries]
+        unknown = sorted(set(only) - set(labels))
+        if unknown or not only:
+            raise ConfigError(
+                f"--only {','.join(only)}: {unknown or 'no run'} not in {path}; "
+                f"its runs are {', '.join(labels)}"
+            )
+        entries = [e for e in entries if e[1] in only]
+    for where, label, entry in entries:
         own = _overrides(entry.get("set"), f"{where}.set")
         overrides = (*shared, *own, *(extra or []))
-        label = f"{entry['arch']}@{entry['env']}"
         try:
             cfg = load_config(entry["config"], list(overrides))
         except ConfigError as e:

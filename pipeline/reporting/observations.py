@@ -275,7 +275,8 @@ def write(study_dir: Path, refs: list[RunRef], name: str) -> dict:
             ax.plot(x, r["progress"], marker="o", ms=3, label=f"{r['arch']}@{r['env']}")
     ax.set(xlim=(0, 1), ylim=(0, 1), xlabel="normalized task progress", ylabel="R_img")
     ax.set_title("R_img over task progress (diagnose cells)")
-    ax.legend(fontsize=8)
+    if ax.get_legend_handles_labels()[0]:  # no run with a diagnose cell: no lines to name
+        ax.legend(fontsize=8)
     save(fig, figs / "observations_rimg_progress.png")
     (study_dir / OBS_MD).write_text(markdown(result, name))
     return result

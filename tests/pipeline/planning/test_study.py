@@ -81,3 +81,21 @@ def test_the_shipped_observations_study_loads() -> None:
         assert r.config.backbone.params["path"] == f"checkpoints/zoo/{sub}{r.arch}"
         assert r.config.env.params.get("state_dims") == ([0, 1, 2, 6, 7] if pos else None)
     assert {r.env for r in study.runs} == {"tabletop", "metaworld"}
+
+
+def test_only_keeps_the_named_runs_and_refuses_a_label_not_in_the_study(tmp_path: Path) -> None:
+    p = _write(
+        tmp_path,
+        f"""
+runs:
+  - {{arch: a, env: fake, config: {SMOKE}}}
+  - {{arch: b, env: fake, config: conf/nope.yaml}}
+  - {{arch: c, env: fake, config: {SMOKE}}}
+""",
+    )
+    # the runs left out are not loaded: b's config file does not exist
+    assert [r.label for r in load_study(p, only=["c@fake", "a@fake"]).runs] == ["a@fake", "c@fake"]
+    with pytest.raises(ConfigError, match=r"\['d@fake'\] not in .*a@fake, b@fake, c@fake"):
+        load_study(p, only=["a@fake", "d@fake"])
+    with pytest.raises(ConfigError, match="no run"):
+        load_study(p, only=[])

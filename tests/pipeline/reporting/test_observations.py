@@ -112,10 +112,17 @@ runs:
     )
     out = tmp_path / "obs"
     assert cli.main(["study", str(study), "--out", str(out)]) == 2
-    assert "checkpoints/zoo/nope" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "gone@tabletop: " in err and "checkpoints/zoo/nope" in err
+    assert "--only fake@fake" in err  # the other way on: the runs this machine can make
     assert not (out / "fake@fake" / "episodes").is_dir() or not any(
         (out / "fake@fake" / "episodes").iterdir()
     )
+    # --only: the runs named, and the report across them alone
+    assert cli.main(["study", str(study), "--out", str(out), "--only", "fake@fake"]) == 0
+    result = json.loads((out / "observations.json").read_text())
+    assert [(r["arch"], r["env"]) for r in result["runs"]] == [("fake", "fake")]
+    assert not (out / "gone@tabletop").exists()
 
 
 def test_rank_correlation_with_ties_matches_spearman_and_a_full_enumeration() -> None:
