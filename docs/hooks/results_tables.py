@@ -796,6 +796,12 @@ def zoo_act_vision(d: Data) -> str:
     return _zoo_card(d, "zoo_act_vision")
 
 
+def zoo_smolvla_vision(d: Data) -> str:
+    """zoo_smolvla_vision.json: the tabletop_pos SmolVLA on pick_color with and without images,
+    40 episodes each, diagnose only (the card's layout)."""
+    return _zoo_card(d, "zoo_smolvla_vision")
+
+
 def zoo_metaworld_vision(d: Data) -> str:
     """zoo_metaworld_vision.json: members trained on MetaWorld with black images at every step
     on two of their tasks (the card's layout)."""
@@ -1051,6 +1057,7 @@ RENDERERS: dict[str, Callable[[Data], str]] = {
         zoo_metaworld,
         zoo_tabletop_pos,
         zoo_act_vision,
+        zoo_smolvla_vision,
         zoo_metaworld_vision,
         paper_observations,
         isa_spread,
