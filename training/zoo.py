@@ -6,6 +6,13 @@ made the same way:
     python -m training.zoo train act          # lerobot-train, resumed from its last checkpoint
     python -m training.zoo export act         # checkpoints/zoo/act: the last checkpoint + card data
     python -m training.zoo list               # members, their flags and their state
+    python -m training.zoo train smolvla --init-from checkpoints/zoo/tabletop_pos/smolvla --steps 5000
+
+``--init-from`` continues training from an exported checkpoint's weights (lerobot-train's own
+``--policy.path``: the weights and config are loaded, the optimizer and its schedule start
+afresh, the normalization stats are the dataset's): how a member that was exported and whose run
+folder is gone (a new session on a new machine) is trained on. Its run folder is
+``NAME_seedS_continued``; ``export --init-from`` adds the stage to the checkpoint's card data.
 
 ``train`` runs ``lerobot-train`` (offline, CPU unless ``--device``) with the member's flags, and
 ``--resume=true`` when the run folder already holds a checkpoint: a session that is stopped
@@ -228,7 +235,11 @@ MEMBERS: dict[str, Member] = {
         batch_size=64,
         language=True,
         vocab=True,
-        benchmark_flags={"tabletop": ("--policy.ignored_state_dims=[3,4,5]",)},
+        benchmark_flags={
+            "tabletop": ("--policy.ignored_state_dims=[3,4,5]",),
+            # runs where lerobot's MetaWorld env renders 480 px (the parity test)
+            "metaworld": ("--policy.resize_images_to=96",),
+        },
     ),
 }
 
@@ -272,8 +283,36 @@ def check_features(name: str, bench: str, root: Path) -> None:
         )
 
 
-def run_dir(name: str, seed: int, runs: Path = RUNS) -> Path:
-    return runs / f"{name}_seed{seed}"
+def run_dir(name: str, seed: int, runs: Path = RUNS, init_from: Path | None = None) -> Path:
+    """The run folder: ``NAME_seedS``, or ``NAME_seedS_continued`` for a stage that starts from an
+    exported checkpoint's weights (so it neither resumes nor overwrites the first stage's run)."""
+    return runs / (f"{name}_seed{seed}" + ("_continued" if init_from is not None else ""))
+
+
+# the flags that size a learning-rate schedule to a run's steps: a continued stage decays over its
+# own steps (its optimizer and schedule start afresh)
+DECAY_FLAGS = ("--policy.scheduler_decay_steps=", "--scheduler.num_decay_steps=")
+
+
+def stage_flags(flags: tuple[str, ...], steps: int) -> list[str]:
+    """A member's flags with its schedule's decay sized to ``steps``."""
+    return [next((f"{d}{steps}" for d in DECAY_FLAGS if f.startswith(d)), f) for f in flags]
+
+
+def check_init_from(name: str, member: Member, init_from: Path) -> None:
+    """Refuse, before any work, a starting checkpoint that is missing or of another class."""
+    cfg = init_from / "config.json"
+    if not cfg.is_file() or not (init_from / "model.safetensors").is_file():
+        raise SystemExit(
+            f"--init-from {init_from} holds no exported checkpoint (config.json and "
+            f"model.safetensors); export one first: python -m training.zoo export {name}"
+        )
+    kind = json.loads(cfg.read_text()).get("type")
+    if kind != member.policy_type:
+        raise SystemExit(
+            f"--init-from {init_from} is a {kind!r} checkpoint; zoo member {name!r} is "
+            f"{member.policy_type!r}: pass a checkpoint of that member"
+        )
 
 
 def last_checkpoint(out: Path) -> Path | None:
@@ -297,7 +336,7 @@ def lerobot_train() -> str:
 
 
 def train_command(name: str, member: Member, args: argparse.Namespace) -> list[str]:
-    out = run_dir(name, args.seed, args.runs)
+    out = run_dir(name, args.seed, args.runs, args.init_from)
     exe = lerobot_train()
     last = last_checkpoint(out)
     if last is not None:
@@ -309,20 +348,30 @@ def train_command(name: str, member: Member, args: argparse.Namespace) -> list[s
             f"--steps={args.steps or member.steps}",
             f"--save_freq={args.save_freq or member.save_freq}",
         ]
+    steps = args.steps or member.steps
+    if args.init_from is not None:
+        # lerobot-train's fine-tuning path: config and weights from the folder, the flags
+        # override its config, the optimizer and schedule start afresh over this stage's steps
+        policy = [f"--policy.path={args.init_from}"]
+        flags = stage_flags(member.flags, steps)
+    else:
+        policy = [f"--policy.type={member.policy_type}"]
+        flags = list(member.flags)
     return [
         exe,
         f"--dataset.repo_id=local/zoo_{args.benchmark}",
         f"--dataset.root={args.dataset}",
-        f"--policy.type={member.policy_type}",
+        *policy,
         f"--policy.device={args.device}",
         "--policy.push_to_hub=false",
-        *member.flags,
+        *flags,
         *member.benchmark_flags.get(args.benchmark, ()),
-        *([vocab_flag(args.dataset)] if member.vocab else []),
+        # a continued stage keeps its checkpoint's vocabulary (its word embeddings are sized to it)
+        *([vocab_flag(args.dataset)] if member.vocab and args.init_from is None else []),
         f"--output_dir={out}",
         f"--job_name=zoo_{args.benchmark}_{name}",
         f"--seed={args.seed}",
-        f"--steps={args.steps or member.steps}",
+        f"--steps={steps}",
         f"--batch_size={member.batch_size}",
         f"--save_freq={args.save_freq or member.save_freq}",
         "--log_freq=100",
@@ -355,7 +404,9 @@ def device_name(device: str) -> str:
 def cmd_train(args: argparse.Namespace) -> None:
     member = _member(args.name)
     check_features(args.name, args.benchmark, args.dataset)
-    out = run_dir(args.name, args.seed, args.runs)
+    if args.init_from is not None:
+        check_init_from(args.name, member, args.init_from)
+    out = run_dir(args.name, args.seed, args.runs, args.init_from)
     install()  # the sub-model files the member names by hub id (no-op when present)
     cmd = train_command(args.name, member, args)
     print(" ".join(cmd), flush=True)
@@ -401,7 +452,7 @@ def cmd_train(args: argparse.Namespace) -> None:
 
 def cmd_export(args: argparse.Namespace) -> None:
     member = _member(args.name)
-    out = run_dir(args.name, args.seed, args.runs)
+    out = run_dir(args.name, args.seed, args.runs, args.init_from)
     last = last_checkpoint(out)
     if last is None:
         raise SystemExit(
@@ -409,6 +460,10 @@ def cmd_export(args: argparse.Namespace) -> None:
             f"python -m training.zoo train {args.name}"
         )
     dest = args.dest or BENCHMARKS[args.benchmark].shipped / args.name
+    # read before dest is replaced: a continued stage is usually exported over its start
+    before = None
+    if args.init_from is not None:
+        before = json.loads((args.init_from / "train_meta.json").read_text())
     if dest.exists():
         shutil.rmtree(dest)
     shutil.copytree(last / "pretrained_model", dest)
@@ -425,7 +480,7 @@ def cmd_export(args: argparse.Namespace) -> None:
         "member": args.name,
         "policy_type": member.policy_type,
         "language": member.language,
-        "flags": list(member.flags),
+        "flags": list(member.flags) if before is None else stage_flags(member.flags, step),
         "batch_size": member.batch_size,
         "steps": step,
         "seed": args.seed,
@@ -438,8 +493,39 @@ def cmd_export(args: argparse.Namespace) -> None:
         "dataset": json.loads(parts.read_text()) if parts.is_file() else str(args.dataset),
         "trainer": "lerobot-train (lerobot 0.6.1) via python -m training.zoo train",
     }
+    if before is not None:
+        meta = continued_meta(before, meta)
     (dest / "train_meta.json").write_text(json.dumps(meta, indent=2) + "\n")
     print(json.dumps(meta, indent=2))
+
+
+def continued_meta(before: dict, stage: dict) -> dict:
+    """The card data of a checkpoint trained in stages: totals over the stages (steps, wall time,
+    sessions, machines), each stage's own figures under ``stages`` (the first stage's included),
+    and the last stage's flags and dataset."""
+    stages = before.get("stages") or [_stage(before)]
+    return {
+        **stage,
+        "steps": before["steps"] + stage["steps"],
+        "train_seconds": round(before["train_seconds"] + stage["train_seconds"], 1),
+        "sessions": before["sessions"] + stage["sessions"],
+        "machines": sorted({*before["machines"], *stage["machines"]}),
+        "devices": sorted({*before.get("devices", ["cpu"]), *stage["devices"]}),
+        "threads": sorted({*before["threads"], *stage["threads"]}),
+        "stages": [*stages, {**_stage(stage), "init_from": "the stage before's weights"}],
+    }
+
+
+def _stage(meta: dict) -> dict:
+    data = meta["dataset"]
+    return {
+        "steps": meta["steps"],
+        "train_seconds": meta["train_seconds"],
+        "machines": meta["machines"],
+        "threads": meta["threads"],
+        "dataset_frames": data.get("frames") if isinstance(data, dict) else data,
+        "flags": meta["flags"],
+    }
 
 
 def cmd_list(args: argparse.Namespace) -> None:
@@ -501,6 +587,14 @@ def main(argv: list[str] | None = None) -> None:
     ls.set_defaults(func=cmd_list)
     for p in (t, e, ls):
         p.add_argument("--benchmark", choices=sorted(BENCHMARKS), default="tabletop")
+    for p in (t, e):
+        p.add_argument(
+            "--init-from",
+            type=Path,
+            default=None,
+            help="an exported checkpoint whose weights this stage starts from (lerobot-train's "
+            "--policy.path); its run folder is NAME_seedS_continued",
+        )
     args = ap.parse_args(argv)
     os.chdir(ROOT)
     bench = BENCHMARKS[args.benchmark]

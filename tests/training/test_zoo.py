@@ -103,6 +103,40 @@ def test_parts_merge_train_resume_export_and_load_through_lerobots_factory(
     assert type(post.steps[0]).__name__ == "UnnormalizerProcessorStep"
     assert sum(p.numel() for p in policy.parameters()) == meta["params"]
 
+    # a second stage from the exported weights (a new session whose run folder is gone):
+    # lerobot-train's --policy.path, exported over its start with the stages summed
+    wrong = _zoo("train", "act", "--init-from", str(dest), *common)
+    assert wrong.returncode != 0 and "is a 'tiny_vla' checkpoint" in wrong.stderr
+    from safetensors.torch import load_file
+
+    start = load_file(dest / "model.safetensors")
+    cont = _zoo("train", "tiny_vla", "--steps", "2", "--init-from", str(dest), *common)
+    assert cont.returncode == 0, cont.stderr[-3000:]
+    assert f"--policy.path={dest}" in cont.stdout and "--policy.type" not in cont.stdout
+    out = _zoo("export", "tiny_vla", "--init-from", str(dest), "--dest", str(dest), *common)
+    assert out.returncode == 0, out.stderr[-3000:]
+    after = load_file(dest / "model.safetensors")
+    # two steps from the exported weights move them a little; a fresh init would be far away
+    moved = max(
+        ((after[k] - start[k]).norm() / start[k].norm()).item()
+        for k in start
+        if start[k].is_floating_point() and start[k].norm() > 0
+    )
+    assert moved < 0.5, moved
+    meta2 = json.loads((dest / "train_meta.json").read_text())
+    assert meta2["steps"] == meta["steps"] + 2 and meta2["sessions"] == meta["sessions"] + 1
+    assert [st["steps"] for st in meta2["stages"]] == [meta["steps"], 2]
+    assert meta2["train_seconds"] > meta["train_seconds"]
+
+
+def test_a_continued_stage_decays_its_schedule_over_its_own_steps() -> None:
+    flags = zoo.stage_flags(zoo.MEMBERS["smolvla"].flags, 5000)
+    assert "--policy.scheduler_decay_steps=5000" in flags
+    assert not any(f.endswith("=6000") for f in flags)
+    xvla = zoo.stage_flags(zoo.MEMBERS["xvla"].flags, 700)
+    assert "--scheduler.num_decay_steps=700" in xvla
+    assert len(xvla) == len(zoo.MEMBERS["xvla"].flags)
+
 
 @pytest.mark.slow
 def test_a_dataset_that_does_not_fit_the_member_is_refused_before_training(tmp_path) -> None:

@@ -67,3 +67,28 @@ def test_ignored_state_dims_outside_the_state_are_refused() -> None:
     cfg.cnn_strides = (2, 2)
     with pytest.raises(ValueError, match=r"cnn_strides \[2, 2\] needs one stride per layer"):
         cfg.validate_features()
+
+
+def test_resize_images_to_feeds_the_net_the_size_it_was_trained_on() -> None:
+    """The zoo's MetaWorld tiny VLA (trained at 96 px, ``resize_images_to: 96``) given a 480 px
+    frame acts as on that frame resized to 96 px; the same net without the resize acts otherwise
+    (its CNN is fully convolutional, so it would run on 480 px, on features it never saw)."""
+    import torch.nn.functional as F
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import get_policy_class
+
+    path = ROOT / "checkpoints" / "zoo" / "metaworld" / "tiny_vla"
+    cfg = PreTrainedConfig.from_pretrained(path)
+    assert cfg.resize_images_to == 96
+    policy = get_policy_class("tiny_vla").from_pretrained(path, config=cfg).eval()
+    big = torch.rand(1, 3, 480, 480, generator=torch.Generator().manual_seed(0))
+    small = F.interpolate(big, size=(96, 96), mode="bilinear", antialias=True, align_corners=False)
+    batch = {"observation.state": torch.zeros(1, 4), "task": ["Press a button"]}
+    resized = policy.predict_action_chunk({**batch, "observation.image": big})
+    assert torch.equal(resized, policy.predict_action_chunk({**batch, "observation.image": small}))
+    policy.config.resize_images_to = None
+    as_given = policy.predict_action_chunk({**batch, "observation.image": big})
+    assert (as_given - resized).abs().max() > 1e-3
+    cfg.resize_images_to = 4
+    with pytest.raises(ValueError, match=r"resize_images_to=4: give a size of at least 8 px"):
+        cfg.validate_features()

@@ -6,7 +6,9 @@ The reference is lerobot's code path itself: its env config, ``make_env``, ``mak
 processors and ``eval_policy_all``. The checkpoint: ACT built offline with the env's keys
 (``observation.image``, ``observation.state``, the action), random weights, replanning every
 ``n_action_steps`` = 5. Ours: the run's pre-flight (``plan_run``) and episode worker on the
-``lerobot`` suite. PushT (pymunk, 96 px) and MetaWorld (MuJoCo, 480 px, ``assembly-v3``).
+``lerobot`` suite. PushT (pymunk, 96 px) and MetaWorld (MuJoCo, 480 px, ``assembly-v3``); and
+on MetaWorld a learned one, the zoo's tiny VLA trained at 96 px and resizing lerobot's 480 px
+frames to it (``resize_images_to``), on ``button-press-v3``.
 """
 
 from __future__ import annotations
@@ -43,7 +45,7 @@ def _act(tmp_path: Path, image: int | tuple[int, int], dims: int, cam: str) -> P
 
 
 def _our_episodes(
-    ckpt: Path, tmp_path: Path, env_params: dict[str, Any]
+    ckpt: Path, tmp_path: Path, env_params: dict[str, Any], replan: int = 5
 ) -> tuple[list[list[np.ndarray]], list]:
     from pipeline.execution.runner import plan_run
     from pipeline.planning.config import config_from_dict
@@ -62,7 +64,7 @@ def _our_episodes(
         }
     )
     plan = plan_run(cfg, tmp_path / "run")
-    assert plan.worker_spec.replan_steps == 5  # the checkpoint's n_action_steps
+    assert plan.worker_spec.replan_steps == replan  # the checkpoint's n_action_steps
     worker = EpisodeWorker(plan.worker_spec)
     actions: list[list[np.ndarray]] = []
     env = worker.env
@@ -154,3 +156,28 @@ def test_the_lerobot_suite_gives_lerobot_evals_aloha_episodes(tmp_path) -> None:
     ours, rows = _our_episodes(ckpt, tmp_path, {"type": "aloha", **env})
     theirs, info = lerobot_eval_env(AlohaEnv(**env), ckpt, episodes=EPISODES, seed=SEED)
     _assert_same_episodes(theirs, info, ours, rows, moves=0.02)  # it ranges over 0.06 here
+
+
+@pytest.mark.slow
+@pytest.mark.sim
+@_needs("metaworld", "metaworld")
+def test_a_zoo_checkpoint_trained_at_96px_gives_lerobot_evals_metaworld_episodes(tmp_path) -> None:
+    """A learned checkpoint, not random weights: the zoo's tiny VLA (trained by lerobot-train on
+    the zoo's MetaWorld demonstrations at 96 px; ``resize_images_to: 96`` in its config) reads
+    lerobot's 480 px frames, resized inside the policy, and lerobot's task description. The
+    pre-flight lets the size through because the policy resizes; both sides cut to STEPS."""
+    from lerobot.envs.configs import MetaworldEnv
+
+    from training.zoo import ROOT
+    from workers.rendering import configure_rendering
+
+    configure_rendering()
+    ckpt = ROOT / "checkpoints" / "zoo" / "metaworld" / "tiny_vla"
+    task = "button-press-v3"
+    ours, rows = _our_episodes(
+        ckpt, tmp_path, {"type": "metaworld", "task": task, "max_steps": STEPS}, replan=4
+    )
+    theirs, info = lerobot_eval_env(
+        MetaworldEnv(task=task), ckpt, episodes=EPISODES, seed=SEED, max_steps=STEPS
+    )
+    _assert_same_episodes(theirs, info, ours, rows)

@@ -306,6 +306,8 @@ class LerobotBackbone:
         self.camera_map = mapping
         self.cameras = tuple(mapping)  # env cameras to render
         self.image_shapes = {k: tuple(cfg.input_features[k].shape) for k in image_keys}
+        # a policy that resizes its images (RESIZE_KEYS) takes any size of its channel count
+        self.resizes_images = any(getattr(cfg, k, None) for k in RESIZE_KEYS)
         state = cfg.input_features.get(STATE_KEY)
         self.state_dim = int(state.shape[0]) if state is not None else 0
         self.action_dim = int(cfg.output_features["action"].shape[0])
@@ -368,9 +370,10 @@ class LerobotBackbone:
             img = torch.as_tensor(obs.images[env_cam]).float()
             policy_key = self._image_key[key]
             want = self.image_shapes[policy_key]
-            if tuple(img.shape[1:]) != want:
+            got = tuple(img.shape[1:])
+            if got != want and (not self.resizes_images or got[0] != want[0]):
                 raise ValueError(
-                    f"camera {env_cam!r} gives images {tuple(img.shape[1:])}, policy key "
+                    f"camera {env_cam!r} gives images {got}, policy key "
                     f"{policy_key!r} expects {want}: set env.params.image_size to match"
                 )
             batch[policy_key] = img

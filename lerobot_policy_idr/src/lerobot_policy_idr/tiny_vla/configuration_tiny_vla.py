@@ -42,6 +42,10 @@ class TinyVLAConfig(PreTrainedConfig):
     # The tabletop state's end-effector orientation (dims 3-5) only moves by a few milliradians
     # with the commanded motion, which a net fed it learns to read as "the last action"
     ignored_state_dims: list[int] = field(default_factory=list)
+    # square size (px) every camera image is resized to before its CNN, where it differs
+    # (bilinear, antialiased); None: images are used as given. A checkpoint trained at 96 px
+    # then runs where an env renders larger (lerobot's MetaWorld renders 480 px)
+    resize_images_to: int | None = None
     optimizer_lr: float = 1e-3
     optimizer_weight_decay: float = 1e-4
 
@@ -79,5 +83,10 @@ class TinyVLAConfig(PreTrainedConfig):
         bad = [d for d in self.ignored_state_dims if not 0 <= d < n_state]
         if bad:
             raise ValueError(f"ignored_state_dims {bad} outside the state's {n_state} dims")
+        if self.resize_images_to is not None and self.resize_images_to < 8:
+            raise ValueError(
+                f"resize_images_to={self.resize_images_to}: give a size of at least 8 px (or "
+                "null to use images as given)"
+            )
         if self.n_action_steps > self.chunk_size:
             raise ValueError(f"n_action_steps={self.n_action_steps} > chunk_size={self.chunk_size}")

@@ -137,9 +137,18 @@ class TinyVLAPolicy(PreTrainedPolicy):
         if isinstance(texts, str):
             texts = [texts] * state.shape[0]
         text = self.encode_text(list(texts), state.device)
-        feats = [self.cameras[k.replace(".", "_")](batch[k], text) for k in self.image_keys]
+        feats = [
+            self.cameras[k.replace(".", "_")](self._sized(batch[k]), text) for k in self.image_keys
+        ]
         out = self.head(torch.cat([*feats, state * self.state_mask, text], dim=-1))
         return out.view(-1, self.config.chunk_size, self.action_dim)
+
+    def _sized(self, img: Tensor) -> Tensor:
+        """The image at ``resize_images_to`` px where it is set and the image differs."""
+        n = self.config.resize_images_to
+        if n is None or tuple(img.shape[-2:]) == (n, n):
+            return img
+        return F.interpolate(img, size=(n, n), mode="bilinear", antialias=True, align_corners=False)
 
     def forward(self, batch: dict) -> tuple[Tensor, dict]:
         pred = self._predict(batch)
