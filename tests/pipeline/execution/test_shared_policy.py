@@ -157,6 +157,8 @@ def test_a_policy_actor_out_of_device_memory_splits_and_loses_nothing(
 REAL = [  # the tiny VLA on two tabletop tasks, diagnose and E with tau calibrated: 8 episodes
     "tracking.enabled=false",
     "env.tasks=[pick_color,stack_color]",  # instructions of two lengths
+    # 15 inferences an episode at most: enough arrivals to batch, a third of the tasks' budgets
+    "env.params.max_steps={pick_color: 60, stack_color: 60}",
     "episodes_per_task=2",
     "grid=[{mode: [diagnose, E]}]",
     "executor.max_batch=4",
