@@ -468,6 +468,14 @@ def cmd_export(args: argparse.Namespace) -> None:
         shutil.rmtree(dest)
     shutil.copytree(last / "pretrained_model", dest)
     (dest / "train_config.json").unlink(missing_ok=True)  # holds this machine's paths
+    # lerobot-train records the folder it loaded from in the config (--policy.path for a
+    # continued stage, the run's own checkpoint on --resume): a path on this machine, not the
+    # checkpoint's (a continued stage's start is in train_meta's stages)
+    cfg_file = dest / "config.json"
+    cfg = json.loads(cfg_file.read_text())
+    if cfg.get("pretrained_path") is not None:
+        cfg["pretrained_path"] = None
+        cfg_file.write_text(json.dumps(cfg, indent=4) + "\n")
     step = json.loads((last / "training_state" / "training_step.json").read_text())["step"]
     sessions = [
         json.loads(line) for line in (out / "zoo_sessions.jsonl").read_text().splitlines() if line

@@ -123,6 +123,8 @@ def test_parts_merge_train_resume_export_and_load_through_lerobots_factory(
         if start[k].is_floating_point() and start[k].norm() > 0
     )
     assert moved < 0.5, moved
+    # no path of this machine in the config (lerobot-train recorded the start folder there)
+    assert json.loads((dest / "config.json").read_text())["pretrained_path"] is None
     meta2 = json.loads((dest / "train_meta.json").read_text())
     assert meta2["steps"] == meta["steps"] + 2 and meta2["sessions"] == meta["sessions"] + 1
     assert [st["steps"] for st in meta2["stages"]] == [meta["steps"], 2]
@@ -351,3 +353,13 @@ def test_the_shipped_smolvla_solves_metaworld_from_another_folder_and_fails_with
     assert len(episodes) == 6 and wins["button-press-v3"] >= 2, wins
     assert wins["button-press-v3@image_blackout:1"] == 0, wins
     assert "huggingface.co" not in (out / "logs" / "driver.log").read_text()
+
+
+def test_no_shipped_checkpoint_names_a_folder_of_the_machine_that_trained_it() -> None:
+    """lerobot-train writes the folder it loaded from into config.json (pretrained_path); a
+    shipped checkpoint must not carry it, since that path exists only where it was trained."""
+    configs = sorted((zoo.ROOT / zoo.SHIPPED).rglob("config.json"))
+    shipped = [c for c in configs if (c.parent / "model.safetensors").is_file()]
+    assert len(shipped) >= 7
+    named = [str(c) for c in shipped if json.loads(c.read_text()).get("pretrained_path")]
+    assert not named, named
