@@ -339,16 +339,16 @@ def train_command(name: str, member: Member, args: argparse.Namespace) -> list[s
     out = run_dir(name, args.seed, args.runs, args.init_from)
     exe = lerobot_train()
     last = last_checkpoint(out)
+    steps = args.steps or member.steps
     if last is not None:
         # lerobot resumes from the saved train config (policy, optimizer, step, data order)
         return [
             exe,
             f"--config_path={last / 'pretrained_model' / 'train_config.json'}",
             "--resume=true",
-            f"--steps={args.steps or member.steps}",
+            f"--steps={steps}",
             f"--save_freq={args.save_freq or member.save_freq}",
         ]
-    steps = args.steps or member.steps
     if args.init_from is not None:
         # lerobot-train's fine-tuning path: config and weights from the folder, the flags
         # override its config, the optimizer and schedule start afresh over this stage's steps
