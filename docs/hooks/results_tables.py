@@ -3,11 +3,15 @@
 A page asks for a table with a line of its own, ``<!-- results: NAME -->``; the line is replaced
 by the Markdown that ``RENDERERS[NAME]`` makes of ``benchmarks/results/NAME.json``. A name without
 a renderer, or a missing file, raises: the build fails instead of showing an empty table.
+
+A figure quoted in prose is a marker too, ``{{ NAME:PATH | OPS }}``, replaced by one value of
+``benchmarks/results/NAME.json`` (see :func:`figure`), so the prose cannot drift from its file.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import re
 import statistics
 from collections.abc import Callable, Iterable, Mapping
@@ -23,6 +27,7 @@ if TYPE_CHECKING:
 
 RESULTS = Path(__file__).resolve().parents[2] / "benchmarks" / "results"
 MARKER = re.compile(r"^<!--\s*results:\s*(.*?)\s*-->[ \t]*$", re.MULTILINE)
+FIGURE = re.compile(r"\{\{\s*(\w+):([^|{}]+?)\s*(?:\|\s*([^{}]*?)\s*)?\}\}")
 
 Data = dict[str, Any]
 
@@ -1079,10 +1084,154 @@ def render(name: str, results: Path = RESULTS) -> str:
         raise PluginError(f"results marker {name!r}: {path} has another shape ({e!r})") from e
 
 
+# -- one figure in prose ------------------------------------------------------------------------
+
+
+class _Each(list):
+    """The items a filter selected: a key after it is looked up in each of them."""
+
+
+_SEGMENT = re.compile(r"([^.\[\]]+)|\[([^\]]*)\]")
+
+
+def lookup(data: Any, path: str) -> Any:
+    """The value at ``path`` in ``data``: dotted keys; ``[KEY]`` for a key holding dots;
+    ``[3]`` an index; ``[2:5]`` a slice; ``[*]`` every item; ``[cell=diagnose,task=pick_color]`` the list items whose
+    fields equal those values (a key after a filter is looked up in each item it selected)."""
+    value, pos = data, 0
+    for m in _SEGMENT.finditer(path):
+        if path[pos : m.start()].strip(".") or m.start() < pos:
+            break
+        pos = m.end()
+        key, inner = m.group(1), m.group(2)
+        if key is not None:
+            value = _key(value, key.strip())
+        elif re.fullmatch(r"-?\d+", inner.strip()):
+            value = _each(value, lambda v, i=int(inner): v[i])
+        elif re.fullmatch(r"-?\d*:-?\d*", inner.strip()):
+            lo, hi = (int(x) if x else None for x in inner.split(":"))
+            value = _each(value, lambda v, lo=lo, hi=hi: list(v)[lo:hi])
+        elif inner.strip() == "*":
+            value = _Each(value)
+        elif "=" in inner:
+            want = dict(kv.split("=", 1) for kv in inner.split(","))
+            items = [x for x in value if all(str(x.get(k)) == v for k, v in want.items())]
+            if not items:
+                raise KeyError(f"no item of {path!r} has {want}")
+            value = _Each(items)
+        else:
+            value = _key(value, inner)
+    if path[pos:].strip(".") or pos == 0:
+        raise KeyError(f"cannot read the path {path!r} past {path[:pos]!r}")
+    return value
+
+
+def _each(value: Any, get: Callable[[Any], Any]) -> Any:
+    """``get`` of the value, or of each item a filter selected."""
+    return _Each(get(v) for v in value) if isinstance(value, _Each) else get(value)
+
+
+def _key(value: Any, key: str) -> Any:
+    return _each(value, lambda v: v[key])
+
+
+def _one(items: Any) -> Any:
+    if len(items) != 1:
+        raise ValueError(f"the filter selected {len(items)} items, not one")
+    return items[0]
+
+
+def _successes(items: Any) -> tuple[int, int]:
+    return sum(int(t["successes"]) for t in items), sum(int(t["n"]) for t in items)
+
+
+def wilson(k: int, n: int, z: float = 1.959963984540054) -> list[float]:
+    """The Wilson score interval of ``k`` successes in ``n`` (the cards' per-task intervals)."""
+    p, d = k / n, 1 + z * z / n
+    half = z * (p * (1 - p) / n + z * z / (4 * n * n)) ** 0.5
+    return [max(0.0, (p + z * z / (2 * n) - half) / d), min(1.0, (p + z * z / (2 * n) + half) / d)]
+
+
+def fisher(rows: Any) -> float:
+    """Fisher's exact test, two-sided, of two task rows' successes over n."""
+    (k1, n1), (k2, n2) = (_successes([r]) for r in rows)
+    k, n = k1 + k2, n1 + n2
+
+    def prob(x: int) -> float:
+        return math.comb(k, x) * math.comb(n - k, n1 - x) / math.comb(n, n1)
+
+    seen = prob(k1)
+    return sum(
+        prob(x) for x in range(max(0, k - n2), min(k, n1) + 1) if prob(x) <= seen * 1.0000001
+    )
+
+
+def _scale(value: Any, f: float) -> Any:
+    return [_scale(v, f) for v in value] if isinstance(value, list) else value * f
+
+
+OPS: dict[str, Callable[[Any], Any]] = {
+    "one": lambda v: _one(v),
+    "sum": lambda v: sum(v.values() if isinstance(v, Mapping) else v),
+    "min": lambda v: min(v),
+    "max": lambda v: max(v),
+    "mean": lambda v: statistics.fmean(v),
+    "len": lambda v: len(v),
+    "range": lambda v: [min(v), max(v)],
+    "rate": lambda v: (lambda k, n: k / n)(*_successes(v)),
+    "wilson": lambda v: wilson(*_successes(v)),
+    "fisher": fisher,
+    "x100": lambda v: _scale(v, 100),
+    "minutes": lambda v: _scale(v, 1 / 60),
+}
+
+
+def spell(value: Any, spec: str | None) -> str:
+    """One value as prose writes it: ``spec`` a Python format spec (:func:`num` without one); a
+    minus is U+2212, a zero carries no sign; a pair is ``[a, b]`` (an interval), ``a-b`` after the
+    ``range`` op."""
+    if isinstance(value, list):
+        return "[" + ", ".join(spell(v, spec) for v in value) + "]"
+    if spec is None:
+        text = num(value)
+    else:
+        if value == 0:
+            spec = spec.replace("+", "")
+        text = format(value, spec)
+    text = re.sub(r"^-(?=0(?:\.0*)?%?$)", "", text)
+    return text.replace("-", "\u2212")
+
+
+def figure(name: str, path: str, ops: str = "", results: Path | None = None) -> str:
+    """A ``{{ NAME:PATH | OPS }}`` marker's text: the value at PATH in ``benchmarks/results/NAME.json``
+    through OPS, words applied in turn (``one`` of a filter's items, ``sum`` of a list or a map's values, ``min``, ``max``, ``mean``, ``len``, ``range``;
+    ``rate`` and ``wilson`` of task rows' successes over n, ``fisher`` of two rows; ``x100``; ``minutes`` of seconds), the
+    last word a format spec when it is no op (``.2f``, ``+.1f``, ``.0%``, ``.2g``)."""
+    file = (results or RESULTS) / f"{name}.json"
+    if not file.is_file():
+        raise PluginError(f"figure {name}:{path}: {file} does not exist")
+    try:
+        value = lookup(json.loads(file.read_text()), path)
+        words = ops.split()
+        spec = words.pop() if words and words[-1] not in OPS else None
+        for word in words:
+            if word not in OPS:
+                raise KeyError(f"unknown op {word!r}; known: {sorted(OPS)}")
+            value = OPS[word](value)
+        if isinstance(value, _Each):
+            raise TypeError("a filter selected several values: add an op that makes one (sum)")
+        ranged = "range" in words
+        text = spell(list(value) if isinstance(value, list) else value, spec)
+        return text.strip("[]").replace(", ", "-") if ranged else text
+    except (KeyError, TypeError, ValueError, IndexError, ZeroDivisionError) as e:
+        raise PluginError(f"figure {name}:{path} | {ops}: {e}") from e
+
+
 def on_page_markdown(
     markdown: str, page: Page | None, config: MkDocsConfig | None, files: Files | None
 ) -> str:
-    """MkDocs event: replace every results marker of the page by its table."""
+    """MkDocs event: replace every results marker of the page by its table, every figure marker
+    by its value."""
     where = page.file.src_uri if page is not None else "<markdown>"
 
     def one(m: re.Match[str]) -> str:
@@ -1091,4 +1240,10 @@ def on_page_markdown(
         except PluginError as e:
             raise PluginError(f"{where}: {e}") from e
 
-    return MARKER.sub(one, markdown)
+    def value(m: re.Match[str]) -> str:
+        try:
+            return figure(m.group(1), m.group(2).strip(), m.group(3) or "")
+        except PluginError as e:
+            raise PluginError(f"{where}: {e}") from e
+
+    return FIGURE.sub(value, MARKER.sub(one, markdown))
