@@ -22,8 +22,8 @@ the env lacks (never read them with a getattr of one's own: every reader agrees,
 
 - ``suite_info(env_or_cls) -> SuiteInfo``: static metadata of the suite (``gripper_index``,
   ``render_backend``, ``policy_reset_per_subtask``, ``perturbation_kinds``,
-  ``server_setup_hint``, the class's ``action_dim``); off a class, a member only a built env
-  knows (a property) reads as its default;
+  ``server_setup_hint``, the class's ``action_dim``, ``renders_hidden_objects``); off a class,
+  a member only a built env knows (a property) reads as its default;
 - ``suite_hooks(env_or_cls) -> SuiteHooks``: what the suite can do without an episode,
   callables or None (``suite_tasks``, ``check_runtime``, ``describe``, ``check_tasks``: class
   methods the driver's pre-flight calls; ``set_perturbation``: the env's, before a reset);
@@ -187,6 +187,16 @@ class SuiteInfo:
             "doc": "int: the Env protocol's action dim, where the class declares it (the "
             "pre-flight checks a checkpoint against it before any env is built); None: known "
             "only once built"
+        },
+    )
+    renders_hidden_objects: bool = field(
+        default=False,
+        metadata={
+            "doc": "bool: the env has ``object_hidden_images() -> dict[str, np.ndarray]``, the "
+            "current state from the observation's cameras (same size, dtype and look as its "
+            "images) with the instruction's objects hidden and nothing else changed, the "
+            "simulation untouched (Policy Contrastive Decoding's object-removed image; the "
+            "tabletop); False: it has none"
         },
     )
 

@@ -144,6 +144,29 @@ def check_optional_members(env: Env, obs: EnvObservation) -> None:
     _require(
         isinstance(info.policy_reset_per_subtask, bool), "policy_reset_per_subtask must be a bool"
     )
+    _require(isinstance(info.renders_hidden_objects, bool), "renders_hidden_objects must be a bool")
+    if info.renders_hidden_objects:
+        check_object_hidden_images(env, obs)
+
+
+def check_object_hidden_images(env: Env, obs: EnvObservation) -> None:
+    """An env that says ``renders_hidden_objects`` renders, for the current observation, an
+    image per camera of it with the same shape and dtype."""
+    render = getattr(env, "object_hidden_images", None)
+    _require(callable(render), "renders_hidden_objects is True but object_hidden_images is missing")
+    hidden = render()
+    _require(
+        isinstance(hidden, dict) and set(hidden) == set(obs.images),
+        f"object_hidden_images: cameras {sorted(hidden) if isinstance(hidden, dict) else hidden!r}"
+        f" differ from the observation's {sorted(obs.images)}",
+    )
+    for cam, img in hidden.items():
+        ref = obs.images[cam]
+        _require(
+            isinstance(img, np.ndarray) and img.dtype == ref.dtype and img.shape == ref.shape,
+            f"object_hidden_images: image {cam!r} must be {ref.dtype} {ref.shape} like the "
+            f"observation's, got {getattr(img, 'dtype', type(img))} {getattr(img, 'shape', '')}",
+        )
 
 
 def check_episode_info_after_reset(episode: EpisodeInfo) -> None:

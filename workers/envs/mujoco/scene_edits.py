@@ -1,9 +1,12 @@
-"""Scene perturbations on a MuJoCo model (camera moved or pitched, lights dimmed, table
-recoloured): applied after a reset, restored before the next, so ``none`` stays the unperturbed
-scene to the bit."""
+"""Scene edits on a MuJoCo model that leave the physics alone: perturbations (camera moved or
+pitched, lights dimmed, table recoloured), applied after a reset and restored before the next,
+so ``none`` stays the unperturbed scene to the bit; and geoms hidden for one render
+(:func:`geoms_hidden`: object-hidden images), restored right after it."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -103,3 +106,23 @@ class MujocoScenePerturber:
         elif p.kind not in ("init_jitter", "distractors"):  # the env's layout, not the model
             raise ValueError(f"{p.kind} is not a scene perturbation of a MuJoCo model")
         mujoco.mj_camlight(m, data)
+
+
+@contextmanager
+def geoms_hidden(model: Any, geoms: Sequence[int]) -> Iterator[None]:
+    """``geoms`` (ids) of ``model`` invisible inside the block, as they were to the bit after it
+    (even when the block raises).
+
+    A geom whose rgba alpha is 0 is left out of the scene by ``mjv_updateScene``: not drawn,
+    not in a segmentation render, no shadow or reflection, and what it covered is seen. Its own
+    alpha 0 also outranks its material's colour (MuJoCo uses the material's only while the
+    geom's rgba is the default), so textured geoms hide too. Only ``model.geom_rgba`` is
+    written, which no physics reads; renders made inside the block see the edit, nothing
+    else does once it ends. Not thread-safe on a shared model (one env, one thread)."""
+    ids = np.asarray(list(geoms), dtype=np.intp)
+    saved = model.geom_rgba[ids].copy()
+    model.geom_rgba[ids, 3] = 0.0
+    try:
+        yield
+    finally:
+        model.geom_rgba[ids] = saved

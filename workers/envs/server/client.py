@@ -254,6 +254,7 @@ class EnvServerClient:
         self.render_backend: str | None = info["render_backend"]
         self.policy_reset_per_subtask: bool = info["policy_reset_per_subtask"]
         self.perturbation_kinds: tuple[str, ...] = tuple(info.get("perturbation_kinds", ()))
+        self.renders_hidden_objects: bool = bool(info.get("renders_hidden_objects", False))
         self._tasks = [TaskSpec(**t) for t in info["tasks"]]
         self._generation += 1  # observations of the old server are stale
 
@@ -298,6 +299,16 @@ class EnvServerClient:
 
     def step(self, action: np.ndarray) -> EnvObservation:
         return self._observation(self._call("step", action=np.asarray(action)))
+
+    def object_hidden_images(self) -> dict[str, np.ndarray]:
+        """The env's object-hidden images of its current state, rendered in the server (one
+        request for every camera)."""
+        if not self.renders_hidden_objects:
+            raise NotImplementedError(
+                f"{self.entry} in the env server renders no object-hidden images "
+                "(SuiteInfo.renders_hidden_objects is False)"
+            )
+        return dict(self._call("object_hidden_images"))
 
     def _observation(self, reply: dict[str, Any]) -> EnvObservation:
         self._generation += 1

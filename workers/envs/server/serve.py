@@ -47,6 +47,7 @@ def env_info(env: Any) -> dict[str, Any]:
         "render_backend": info.render_backend,
         "policy_reset_per_subtask": bool(info.policy_reset_per_subtask),
         "perturbation_kinds": list(info.perturbation_kinds),
+        "renders_hidden_objects": bool(info.renders_hidden_objects),
         "tasks": [asdict(t) for t in env.tasks()],
     }
 
@@ -100,6 +101,12 @@ class EnvServer:
         if self.obs is None:
             raise RuntimeError("render: no observation yet (reset first)")
         return self.obs.images[req["camera"]]
+
+    def op_object_hidden_images(self, _: dict[str, Any]) -> dict[str, Any]:
+        """The env's object-hidden render of its current state (SuiteInfo.renders_hidden_objects)."""
+        if self.obs is None:
+            raise RuntimeError("object_hidden_images: no observation yet (reset first)")
+        return dict(self._env().object_hidden_images())
 
     def op_privileged(self, _: dict[str, Any]) -> dict[str, Any]:
         if self.obs is None or self.obs.privileged is None:

@@ -21,11 +21,12 @@ MuJoCo scene edits in ``workers.envs.mujoco.scene_edits``; this module holds the
 from __future__ import annotations
 
 import zlib
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
-from workers.envs.wrappers.image_ops import PerturbedImages
+from workers.envs.wrappers.image_ops import PerturbedImages, perturb_image
 from workers.envs.wrappers.perturbation_grammar import (
     IMAGE_KINDS,
     Perturbation,
@@ -54,13 +55,16 @@ class PerturbedEnv:
 
     Scene kinds go to the env (its optional ``set_perturbation``, before its reset); image
     kinds are applied here to every image the env renders, lazily, seeded per (seed, task,
-    episode, perturbation, step, camera). Everything else is the wrapped env's."""
+    episode, perturbation, step, camera), its object-hidden images included. Everything else
+    is the wrapped env's."""
 
     def __init__(self, env: Any, perturbations: list[Perturbation | None]) -> None:
         self._env = env
         self._perturbations = list(perturbations) or [None]
         self._p: Perturbation | None = None
         self._episode: tuple[str, int, int] = ("", 0, 0)
+        # the image kind's draw of the current observation, per camera (object_hidden_images)
+        self._rng_for: Callable[[str], np.random.Generator] | None = None
 
     def __getattr__(self, name: str) -> Any:  # the env's members (optional ones included)
         return getattr(self._env, name)
@@ -98,6 +102,7 @@ class PerturbedEnv:
         task_id, episode, seed = self._episode
         status = episode_status(self._env, obs)
         obs = replace(obs, status=replace(status, task_id=task_id))  # the perturbed task's id
+        self._rng_for = None
         if p is None or p.scene:
             return obs
         step = status.steps
@@ -105,4 +110,24 @@ class PerturbedEnv:
         def rng_for(camera: str) -> np.random.Generator:
             return p.rng(seed, task_id, episode, step, zlib.crc32(camera.encode()))
 
+        self._rng_for = rng_for
         return replace(obs, images=PerturbedImages(obs.images, p, rng_for))
+
+    def object_hidden_images(self) -> dict[str, np.ndarray]:
+        """The env's ``object_hidden_images`` of the current observation, under this episode's
+        perturbation as that observation's images are: scene kinds are in the env's render
+        already; an image kind is applied here with the same draw per camera (seeded by the same
+        seed, task, episode, step and camera), so image_noise adds the very noise the
+        observation got and the two images differ only where the objects are."""
+        from workers.envs.base import suite_info
+
+        if not suite_info(self._env).renders_hidden_objects:
+            raise NotImplementedError(
+                f"suite {getattr(self._env, 'suite', '?')!r} renders no object-hidden images "
+                "(SuiteInfo.renders_hidden_objects is False)"
+            )
+        images = self._env.object_hidden_images()
+        p, rng_for = self._p, self._rng_for
+        if p is None or p.scene or rng_for is None:
+            return images
+        return {cam: perturb_image(img, p, rng_for(cam)) for cam, img in images.items()}

@@ -15,7 +15,9 @@ position, axis-angle, two gripper joint positions); an agent-view and a wrist ca
 
 Initial states come from (seed, episode index, task), so every cell of a grid sees the same
 scenes. The env also exposes privileged simulator state (``EnvObservation.privileged``) for
-the scripted experts; policies never see it. Beside this module: ``episodes`` (the layouts,
+the scripted experts; policies never see it. ``object_hidden_images`` renders the current state
+with the objects the instruction names left out (Policy Contrastive Decoding's object-removed
+image, arXiv 2505.13255). Beside this module: ``episodes`` (the layouts,
 instructions and scoring rules), ``sim`` (the robosuite scene), ``layout`` (its dimensions).
 """
 
@@ -46,6 +48,8 @@ class TabletopEnv:
     action_dim = 7
     state_dim = 8
     gripper_index = 6
+    #: object_hidden_images: the current state rendered without the instruction's objects
+    renders_hidden_objects = True
 
     #: scene perturbations this suite applies (workers/envs/wrappers/perturbations.py)
     perturbation_kinds = (
@@ -282,6 +286,44 @@ class TabletopEnv:
             privileged=LazyState(self.privileged, current),
             status=status,
         )
+
+    def hidden_object_geoms(self) -> tuple[int, ...]:
+        """Ids of the geoms ``object_hidden_images`` hides in the current episode: every geom
+        (collision and visual) of each object the instruction names, the objects a policy
+        must see to do the task, which Policy Contrastive Decoding takes out of the image:
+
+        - ``pick_color``: the named cube;
+        - ``stack_color``: the cube to stack and the cube to stack it on;
+        - ``organize``: the five cubes and the bin's five parts (floor and walls).
+
+        Cubes the instruction does not name (the third cube of pick_color and stack_color)
+        and the grey cubes of the ``distractors`` perturbation stay: they are the scene the
+        objects are contrasted against. The robot, table and arena stay."""
+        ep = self._require_episode("hidden_object_geoms")
+        scene = self._scenes[ep.scene_key]
+        return scene.object_geoms(ep.targets, with_bin=ep.task_id == "organize")
+
+    def object_hidden_images(self) -> dict[str, np.ndarray]:
+        """The current state from every camera of the observation, with the instruction's
+        objects hidden (``hidden_object_geoms``): uint8 (H, W, 3) like ``EnvObservation.images``
+        (same renderer, size and look, not flipped; scene perturbations included, since they
+        edit the model), and equal to them to the bit wherever the objects are not seen. What
+        the objects covered shows; their shadows and reflections are off in the fast look,
+        with ``fast_render=False`` those go too.
+
+        The objects' geoms get alpha 0 for this render only
+        (``workers.envs.mujoco.scene_edits.geoms_hidden``), their rgba restored to the bit
+        after it: the simulation is not touched, and every later observation is what it would
+        have been without the call. Image perturbations (image_noise...) are the wrapper's
+        (``PerturbedEnv.object_hidden_images``). It renders every camera (about one camera's
+        render each, docs/suites/tabletop.md); call it after a reset, before the next step."""
+        ep = self._require_episode("object_hidden_images")
+        return self._renderers[ep.scene_key].render_without(self.hidden_object_geoms())
+
+    def _require_episode(self, what: str) -> Episode:
+        if self._ep is None:
+            raise RuntimeError(f"{what}() before reset()")
+        return self._ep
 
     def privileged(self) -> dict[str, Any]:
         """Simulator state for the scripted experts (never for learned policies)."""

@@ -5,10 +5,14 @@ place. Robosuite builds the MJCF model and runs the OSC_POSE controller at 20 Hz
 positions come from our own seeded RNG (``place_cubes``), not robosuite's samplers, so every
 cell of a grid sees identical scenes. Images are rendered with ``mujoco.Renderer`` on the same
 model with a fast look (no MSAA, reflections or skybox): about 3x cheaper than robosuite's
-own camera path on OSMesa, and the tiny VLA is trained on exactly this look.
+own camera path on OSMesa, and the tiny VLA is trained on exactly this look. The same
+renderer makes the object-hidden images (``FastRenderer.render_without``, the env's
+``object_hidden_images``): the chosen objects' geoms left out of one render.
 """
 
 from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 import robosuite
@@ -62,9 +66,8 @@ class TabletopScene(SingleArmEnv):
             )
             for i in range(self.n_distractors)
         ]
-        objects: list = [*self.cubes, *self.distractors]
-        if self.with_bin:
-            objects += self._bin_parts()
+        self.bin_parts = self._bin_parts() if self.with_bin else []
+        objects: list = [*self.cubes, *self.distractors, *self.bin_parts]
         self.model = ManipulationTask(
             mujoco_arena=arena, mujoco_robots=[robot], mujoco_objects=objects
         )
@@ -94,6 +97,7 @@ class TabletopScene(SingleArmEnv):
     def _setup_references(self) -> None:
         super()._setup_references()
         self.cube_body_ids = [self.sim.model.body_name2id(c.root_body) for c in self.cubes]
+        self.bin_body_ids = [self.sim.model.body_name2id(p.root_body) for p in self.bin_parts]
 
     # -- placement -----------------------------------------------------------------------
     def place_cubes(self, xy: np.ndarray, distractor_xy: np.ndarray | None = None) -> None:
@@ -132,6 +136,17 @@ class TabletopScene(SingleArmEnv):
     # -- queries -------------------------------------------------------------------------
     def cube_positions(self) -> np.ndarray:
         return np.array([self.sim.data.body_xpos[i] for i in self.cube_body_ids])
+
+    def object_geoms(self, cubes: Iterable[int], with_bin: bool = False) -> tuple[int, ...]:
+        """Ids of every geom of the cubes ``cubes`` (indices into ``colors``) and, with
+        ``with_bin``, of the bin's five parts: each object's collision geom (group 0, drawn by
+        the default render options) and its visual one (group 1), and any geom of a body under
+        its root body."""
+        m = self.sim.model._model
+        roots = {self.cube_body_ids[i] for i in cubes}
+        if with_bin:
+            roots |= set(self.bin_body_ids)
+        return tuple(g for g in range(m.ngeom) if int(m.body_rootid[m.geom_bodyid[g]]) in roots)
 
     def is_grasped(self, index: int) -> bool:
         return bool(
@@ -191,6 +206,15 @@ class FastRenderer:
 
     def render(self) -> dict[str, np.ndarray]:
         return {name: self.render_one(name) for name in self.cameras}
+
+    def render_without(self, geoms: Sequence[int]) -> dict[str, np.ndarray]:
+        """Every camera's image of the current state with ``geoms`` left out (alpha 0 for
+        this render only: ``workers.envs.mujoco.scene_edits.geoms_hidden``), from the same
+        renderer and look as ``render_one``: the same pixels wherever they do not show them."""
+        from workers.envs.mujoco.scene_edits import geoms_hidden
+
+        with geoms_hidden(self.model, geoms):
+            return self.render()
 
     def close(self) -> None:
         self.renderer.close()
