@@ -69,6 +69,7 @@ class _Rollout:
     success_step: int | None = None  # the first step at which the env said success
     crn: Any = None  # the last inference's common-random-numbers flag
     video: Any = None  # workers.videos.EpisodeVideo of a recorded episode
+    ensemble: Any = None  # temporal ensembling's averager (lerobot_policy_idr.runtime)
 
 
 class EpisodeWorker:
@@ -200,7 +201,9 @@ class EpisodeWorker:
             info = suite_info(env)
             while not ep.status.done:
                 chunk = self._infer(policy, env, spec, ep, info.gripper_index)
-                self._execute(policy, env, chunk, ep, info.policy_reset_per_subtask)
+                ep.steps[-1].executed_steps = self._execute(
+                    policy, env, chunk[: self._horizon(spec)], ep, info.policy_reset_per_subtask
+                )
             if ep.video is not None:
                 ep.video.write()
             return ep.steps, self._outcome(spec, env.control_hz, instruction, ep)
@@ -221,20 +224,45 @@ class EpisodeWorker:
         path = video_path(s.video_dir, spec.cell_id, spec.task_id, spec.episode_index)
         return EpisodeVideo(path, camera, s.video_fps or env.control_hz)
 
+    def _horizon(self, spec: EpisodeSpec) -> int | None:
+        """Actions executed per inference: the cell's ``horizon``, else the run's replan_steps
+        (None: the whole chunk); 1 for a method that infers at every step."""
+        from idr_core.methods import method_of
+
+        if method_of(spec.idr).every_step:
+            return 1
+        return spec.idr.horizon or self.spec.replan_steps
+
     def _infer(
         self, policy: Any, env: Any, spec: EpisodeSpec, ep: _Rollout, gripper_index: int | None
     ) -> np.ndarray:
         """One inference on the current observation: its step row appended to ``ep``; the
-        refined chunk (T, D)."""
+        chunk to execute (T, D) (temporal ensembling: the averaged action, (1, D))."""
+        from idr_core.methods import method_of
+
         from workers.observation import to_policy_observation
 
         k = len(ep.steps)  # one row per inference
-        out = policy.infer(
-            to_policy_observation(ep.obs, ep.status.instruction, self.cameras),
-            step_seed(spec.seed, spec.task_id, spec.episode_index, k),
-        )
+        method = method_of(spec.idr)
+        obs = to_policy_observation(ep.obs, ep.status.instruction, self.cameras)
+        render_ms = 0.0
+        if method.hidden_objects:  # its render is part of the method's cost
+            from workers.idr_wrapper import NO_OBJECTS_KEY
+            from workers.observation import image_to_tensor
+
+            t0 = time.perf_counter()
+            hidden = env.object_hidden_images()
+            obs.extras[NO_OBJECTS_KEY] = {cam: image_to_tensor(hidden[cam]) for cam in obs.images}
+            render_ms = (time.perf_counter() - t0) * 1e3
+        out = policy.infer(obs, step_seed(spec.seed, spec.task_id, spec.episode_index, k))
         ep.crn = out.crn
         chunk = _to_numpy(out.action)[0]
+        if method.every_step:  # lerobot's temporal ensembler, then the base's finishing steps
+            from lerobot_policy_idr.runtime import TemporalEnsemble
+
+            if ep.ensemble is None:
+                ep.ensemble = TemporalEnsemble(spec.idr.te_coeff, chunk.shape[0])
+            chunk = _to_numpy(policy.finish(ep.ensemble.update(out.action)))
         base = _to_numpy(out.a_base)[0]
         d = out.diag.to_numpy() if out.diag is not None else {}
         ep.steps.append(
@@ -249,24 +277,27 @@ class EpisodeWorker:
                 action_base=base[0].tolist(),
                 action_final=chunk[0].tolist(),
                 gripper=None if gripper_index is None else float(chunk[0][gripper_index]),
-                inference_ms=out.inference_ms,
+                inference_ms=out.inference_ms + render_ms,
+                pass_rows=out.pass_rows,
             )
         )
         return chunk
 
     def _execute(
         self, policy: Any, env: Any, chunk: np.ndarray, ep: _Rollout, per_subtask: bool
-    ) -> None:
-        """The first ``replan_steps`` actions of ``chunk``, open loop, until the env is done or
-        (``per_subtask``) a subtask is: then the policy is reset and the rest dropped."""
+    ) -> int:
+        """The actions of ``chunk``, open loop, until the env is done or (``per_subtask``) a
+        subtask is: then the policy is reset and the rest dropped. Returns how many ran."""
         subtasks_before = ep.status.subtasks_done
-        for action in chunk[: self.spec.replan_steps]:
+        executed = 0
+        for action in chunk:
             if not np.isfinite(action).all():
                 raise NonFiniteActionError(
                     f"non-finite action at step {ep.status.steps}: {action.tolist()}; "
                     "not sent to the env"
                 )
             ep.obs = env.step(action)
+            executed += 1
             ep.status = st = episode_status(env, ep.obs)
             if ep.video is not None:
                 ep.video.add(ep.obs)
@@ -281,7 +312,9 @@ class EpisodeWorker:
                 break
             if per_subtask and st.subtasks_done != subtasks_before:
                 policy.reset()  # the next subtask is a rollout of its own (CALVIN)
+                ep.ensemble = None
                 break
+        return executed
 
     def _outcome(
         self, spec: EpisodeSpec, control_hz: float, instruction: str, ep: _Rollout

@@ -233,7 +233,11 @@ class StepRow:
     action_base: list[F32] = field(default_factory=list)  # first action of the base chunk
     action_final: list[F32] = field(default_factory=list)  # first action executed
     gripper: F32 | None = None
-    inference_ms: F32 | None = None
+    inference_ms: F32 | None = None  # the forwards and the method's arithmetic (pcd: its render)
+    # what the inference cost: rows of the base's forward its method's passes took (3 for
+    # IDR at batch 1), and env steps executed from its chunk (null in older run dirs)
+    pass_rows: int | None = None
+    executed_steps: int | None = None
 
 
 @dataclass

@@ -14,6 +14,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
+from idr_core.methods import passes, sample_seeds
 from idr_core.three_pass import PassRequest, PassResult, infer_requests
 
 from workers.backbones.base import Backbone, Observation, backbone_member, concat_observations
@@ -34,6 +35,7 @@ class IDRStep:
     inference_ms: float  # wall time of the backbone call(s) + refinement
     batched: bool  # whether the three passes were one 3B forward
     crn: bool  # whether the three passes shared one noise draw
+    pass_rows: int = 0  # rows of the base's forward its passes cost (passes x batch)
 
 
 def check_intervention_spaces(backbone: Any, name: str, intervention: InterventionConfig) -> None:
@@ -123,20 +125,32 @@ class IDRWrapper:
         cfg: RefinerConfig | None = None,
         intervention: InterventionConfig | None = None,
     ) -> PassRequest:
-        """One inference's inputs (rows, noise, settings); ``cfg`` / ``intervention`` default to
-        the wrapper's own."""
+        """One inference's inputs (the method's passes, noise, settings); ``cfg`` /
+        ``intervention`` default to the wrapper's own."""
         obs.validate()
         cfg = cfg or self.cfg
         intervention = intervention or self.intervention
         if intervention is not self.intervention:
             self._check_spaces(intervention)
         b = obs.batch_size
-        cf = (
-            self.counterfactuals(obs, step_seed, intervention)
-            if cfg.needs_counterfactuals
-            else None
+        names = passes(cfg)
+        factual = _without(obs, NO_OBJECTS_KEY)
+        noise = self.backbone.make_noise(b, step_seed)
+        noises = None
+        if "sample" in names:  # independent draws: the first is the factual pass's
+            seeds = sample_seeds(step_seed, len(names))
+            noises = (noise, *(self.backbone.make_noise(b, s) for s in seeds[1:]))
+        others: list[Observation] = []
+        if "no_img" in names:
+            others += self.counterfactuals(factual, step_seed, intervention)
+            if "no_prop" not in names:
+                others.pop()
+        if "no_objects" in names:
+            others.append(objects_hidden(obs))
+        others += [factual] * names.count("sample")
+        return PassRequest(
+            factual, tuple(others) or None, noise, cfg, b, seed=step_seed, noises=noises
         )
-        return PassRequest(obs, cf, self.backbone.make_noise(b, step_seed), cfg, b)
 
     def forward(self, intervention: InterventionConfig) -> Any:
         """The backbone call for rows of ``intervention``'s cells: (rows, noise) -> actions."""
@@ -155,6 +169,7 @@ class IDRWrapper:
         """Several requests of one intervention through ``idr_core``'s one IDR inference (one
         forward when the backbone batches)."""
         needs = any(r.counterfactuals is not None for r in requests)
+        temporal = [r.cfg.mode == "temporal" for r in requests]
         results = infer_requests(
             self.forward(intervention or self.intervention),
             requests,
@@ -166,7 +181,17 @@ class IDRWrapper:
         finish = backbone_member(self.backbone, "finish_chunk")
         if finish is None:
             return results
-        return [replace(r, action=finish(r.action)) for r in results]
+        # temporal ensembling: the finishing steps run after the averaging (the actor's)
+        return [
+            r if t else replace(r, action=finish(r.action))
+            for r, t in zip(results, temporal, strict=True)
+        ]
+
+    def finish(self, action: Any) -> Any:
+        """The base's steps after its action unnormalizer, on an executed chunk (identity where
+        it has none)."""
+        finish = backbone_member(self.backbone, "finish_chunk")
+        return action if finish is None else finish(action)
 
     def infer(
         self,
@@ -187,5 +212,31 @@ class IDRWrapper:
         return step_of(res, ms, batched=self.batched and three, crn=req.noise is not None)
 
 
+#: ``Observation.extras`` key of the object-hidden renders (camera -> (B, 3, H, W)), which the
+#: episode loop adds for a method with a ``no_objects`` pass (``pcd``)
+NO_OBJECTS_KEY = "no_objects_images"
+
+
+def _without(obs: Observation, key: str) -> Observation:
+    if key not in obs.extras:
+        return obs
+    extras = {k: v for k, v in obs.extras.items() if k != key}
+    return replace(obs, extras=extras)
+
+
+def objects_hidden(obs: Observation) -> Observation:
+    """``obs`` with its images rendered with the task's objects hidden (``pcd``'s pass)."""
+    hidden = obs.extras.get(NO_OBJECTS_KEY)
+    if hidden is None:
+        raise ValueError(
+            "this mode contrasts against object-hidden renders, but the observation carries "
+            f"none (extras[{NO_OBJECTS_KEY!r}]): the env must render them"
+        )
+    images = {cam: hidden[cam] for cam in obs.images}
+    return replace(_without(obs, NO_OBJECTS_KEY), images=images)
+
+
 def step_of(res: PassResult, ms: float, batched: bool, crn: bool) -> IDRStep:
-    return IDRStep(res.action, res.a_base, res.a_no_img, res.a_no_prop, res.diag, ms, batched, crn)
+    return IDRStep(
+        res.action, res.a_base, res.a_no_img, res.a_no_prop, res.diag, ms, batched, crn, res.rows
+    )

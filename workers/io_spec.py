@@ -76,3 +76,6 @@ class PolicyIO:
     # False: images and state_dim are not declared (a policy server's metadata names neither),
     # so empty / None say nothing about what it reads
     declares_inputs: bool = True
+    # whether inference samples (its draws differ under other noise): False for deterministic
+    # policies (ACT, the tiny VLA), None where unknown
+    samples: bool | None = None

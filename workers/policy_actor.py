@@ -250,6 +250,17 @@ class PolicyServiceClient:
     def reset(self) -> None:
         """Nothing to forget: the service calls the backbone on whole chunks, without state."""
 
+    def finish(self, action: Any) -> Any:
+        """The base's steps after its unnormalizer, on an averaged action (temporal
+        ensembling): none for a base without them; refused for one with them."""
+        if self.info.get("finishes_chunks"):
+            raise ValueError(
+                f"mode 'temporal' with the shared policy service: the base {self.info['name']!r} "
+                "post-processes chunks after its unnormalizer, which must run after the "
+                "averaging; run it with executor.policy: in_actor"
+            )
+        return action
+
     def infer(self, obs: Observation, step_seed: int = 0) -> IDRStep:
         request = self.request(obs, step_seed)
         if self.info.get("socket"):

@@ -171,6 +171,9 @@ class PolicyWorker:
             "name": self.backbone.name,
             "cameras": backbone_member(self.backbone, "cameras"),
             "batched": self.policy.batched,
+            # steps after the base's action unnormalizer (temporal ensembling runs them after
+            # its averaging, in the episode loop: not possible across the service)
+            "finishes_chunks": backbone_member(self.backbone, "finish_chunk") is not None,
             "numerics": self.numerics,
             "hardware": hardware_class(hardware_record(self.device)),
         }

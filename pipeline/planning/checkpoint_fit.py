@@ -210,9 +210,12 @@ def _check_intervention_spaces(cfg: RunConfig) -> None:
 def check_inputs_for_modes(
     cfg: RunConfig, policy: PolicyIO | None, env: EnvIO | None = None
 ) -> None:
-    """A cell that runs the counterfactual passes (every mode but ``baseline``) needs an env
-    that renders an image and a checkpoint that reads an image (do(V)) and a state (do(S))."""
-    modes = sorted({c.idr.mode for c in cfg.cells() if c.idr.needs_counterfactuals})
+    """A cell that runs the counterfactual passes (IDR's modes, ``diagnose``, its controls,
+    ``cfg``) needs an env that renders an image and a checkpoint that reads an image (do(V))
+    and a state (do(S))."""
+    from idr_core.methods import passes
+
+    modes = sorted({c.idr.mode for c in cfg.cells() if {"no_img", "no_prop"} & set(passes(c.idr))})
     if not modes:
         return
     needs = f"grid: mode {', '.join(modes)} intervenes on the image and the state"
@@ -230,6 +233,29 @@ def check_inputs_for_modes(
                 f"{needs}, but {policy.source} reads {what}; run this checkpoint with mode "
                 "baseline only, or use a checkpoint that reads both"
             )
+
+
+def check_methods(cfg: RunConfig, policy: PolicyIO | None) -> None:
+    """Every cell's test-time method runs on this base and suite (``idr_core.methods``): an
+    ensemble needs a base that samples, temporal ensembling a base with chunks, the
+    object-hidden contrast a suite that renders it. Refused here, before any episode."""
+    from idr_core.methods import refusal
+
+    from workers.envs.base import suite_info
+    from workers.envs.factory import env_class
+
+    hidden = getattr(suite_info(env_class(cfg.env.suite)), "renders_hidden_objects", None)
+    for cell in cfg.cells():
+        why = refusal(
+            cell.idr,
+            samples=None if policy is None else policy.samples,
+            chunk_len=None if policy is None else policy.chunk_len,
+            hidden_objects=hidden,
+            base=policy.source if policy is not None else cfg.backbone.kind,
+            suite=cfg.env.suite,
+        )
+        if why is not None:
+            raise ConfigError(f"grid: cell {cell.cell_id!r}: {why}")
 
 
 def lerobot_eval_threads() -> int:
@@ -277,6 +303,7 @@ def fit_config(cfg: RunConfig) -> tuple[RunConfig, Fit]:
         )
     _check_intervention_spaces(cfg)
     check_inputs_for_modes(cfg, policy, env)
+    check_methods(cfg, policy)
     if env is None and policy is not None:  # an env without describe: its class's action dim
         from workers.envs.base import suite_info
         from workers.envs.factory import env_class

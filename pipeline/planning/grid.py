@@ -23,6 +23,8 @@ import re
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
+from idr_core.methods import SETTINGS, method_of, unread_settings
+
 from workers.idr import RefinerConfig
 from workers.interventions import InterventionConfig
 
@@ -43,12 +45,17 @@ SHORT_NAMES = {
     "image_space": "isp",
     "state_space": "ssp",
     "noise_scale": "ns",
+    "w": "w",
+    "samples": "k",
+    "te_coeff": "tec",
+    "horizon": "h",
 }
+#: modes that keep today's rule for IDR's settings on a grid axis (baseline and diagnose
+#: collapse over them; E's ablations ignore what they drop): the other methods refuse a
+#: setting they do not read, and every mode refuses the methods' own settings it ignores
+_LENIENT_MODES = frozenset({"baseline", "diagnose", "A", "B", "C", "D", "E", "F"})
+_METHOD_SETTINGS = frozenset({"w", "samples", "te_coeff", "horizon"})
 
-
-#: Parameters a refining mode's ablation leaves unused (workers/idr.py): D has no gate, A no
-#: stabilizer term, B no clip of the stabilizer.
-_UNUSED_BY_MODE = {"D": {"tau"}, "A": {"beta", "lam"}, "B": {"lam"}}
 
 CALIBRATED = "calibrated"
 #: Parameters a diagnose cell keeps in its id: those that change what it measures.
@@ -142,11 +149,16 @@ class Cell:
 
     @property
     def role(self) -> str:
-        """``baseline`` (backbone only), ``diagnose`` (measures, executes a_base) or ``idr``
-        (a refining mode, A-F): what the cell is, for filters in tables and in the UI."""
-        if self.idr.mode in ("baseline", "diagnose"):
-            return self.idr.mode
-        return "idr"
+        """``baseline`` (backbone only), ``diagnose`` (measures, executes a_base), ``idr`` (a
+        refining mode, A-F), ``control`` (E's controls: random, shuffled, scale_free) or
+        ``method`` (another test-time method): what the cell is, for filters in tables and in
+        the UI."""
+        mode = self.idr.mode
+        if mode in ("baseline", "diagnose"):
+            return mode
+        if mode in ("random", "shuffled", "scale_free"):
+            return "control"
+        return "idr" if mode in "ABCDEF" else "method"
 
     def meaningful_params(self) -> dict[str, Any]:
         """``params()`` less what the cell's mode does not use, so that a comparison never
@@ -157,12 +169,18 @@ class Cell:
         (D: no gate, so no tau; A: no stabilizer, so no beta or lam; B: no clip, so no
         lam). ``noise_scale`` only with the gaussian intervention."""
         params = self.params()
+        reads = method_of(self.idr).reads
+        keep = {"mode", *(k for k in params if k not in SETTINGS or k in reads)}
         if self.role == "baseline":
-            keep = {"mode"}
+            keep = {"mode", *(reads & {"horizon"})}
         elif self.role == "diagnose":
-            keep = {"mode", *DIAGNOSE_KEYS}
-        else:
-            keep = set(params) - _UNUSED_BY_MODE.get(self.idr.mode, set())
+            keep = {"mode", *DIAGNOSE_KEYS, *(reads & {"horizon"})}
+        if self.idr.horizon is None:
+            keep.discard("horizon")
+        if not method_of(self.idr).diagnoses and self.role != "baseline":
+            keep -= set(INTERVENTION_KEYS) - {"image_space"}  # no do(S) pass
+            if "no_img" not in method_of(self.idr).passes:
+                keep -= set(INTERVENTION_KEYS)
         if self.intervention.strategy != "gaussian":
             keep.discard("noise_scale")  # the std of the gaussian intervention only
         return {k: v for k, v in params.items() if k in keep}
@@ -249,12 +267,28 @@ def expand_grid(groups: list[dict[str, Any]], base: dict[str, Any] | None = None
             iv = InterventionConfig(**{k: params[k] for k in INTERVENTION_KEYS if k in params})
         except (TypeError, ValueError) as e:
             raise ValueError(f"grid cell {dict(varied)}: {e}") from None
+        given = [k for k, _ in varied]
+        unread = [
+            k
+            for k in unread_settings(idr, given)
+            if idr.mode not in _LENIENT_MODES or k in _METHOD_SETTINGS
+        ]
+        if unread:
+            m = method_of(idr)
+            raise ValueError(
+                f"grid cell {dict(varied)}: mode {idr.mode!r} does not read {unread} (it reads "
+                f"{sorted(m.reads) or 'no setting'}); put those values in a group of their own "
+                "with the modes that read them (idr_core.methods)"
+            )
         collapsed = idr.mode in ("baseline", "diagnose")
+        horizon = [kv for kv in varied if kv[0] == "horizon"]
         if idr.mode == "baseline":
-            cid = "baseline"
-            varied = [("mode", "baseline")]
+            varied = [("mode", "baseline"), *horizon]
+            cid = cell_name(varied) if horizon else "baseline"
         elif idr.mode == "diagnose":
-            varied = [("mode", "diagnose")] + [kv for kv in varied if kv[0] in DIAGNOSE_KEYS]
+            varied = [("mode", "diagnose")] + [
+                kv for kv in varied if kv[0] in DIAGNOSE_KEYS or kv[0] == "horizon"
+            ]
             cid = cell_name(varied)
         else:
             cid = cell_name(varied)
@@ -262,7 +296,8 @@ def expand_grid(groups: list[dict[str, Any]], base: dict[str, Any] | None = None
             if collapsed:
                 continue
             raise ValueError(f"grid gives two cells named {cid!r}: a value is listed twice")
+        # E's gated modes (D included, as before: its tau is recorded though unused)
         cells[cid] = Cell(
-            cid, idr, iv, tuple(varied), calibrated_tau=tau_spec if idr.refines else None
+            cid, idr, iv, tuple(varied), calibrated_tau=tau_spec if idr.gated else None
         )
     return list(cells.values())

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from pipeline.reporting.methods import methods_table
 from pipeline.reporting.suite_sections import suite_sections
 from pipeline.results import aggregate as agg
 from pipeline.results.calibration import read_calibration
@@ -296,6 +297,18 @@ def numerics_lines(episodes: pd.DataFrame) -> list[str]:
     ]
 
 
+def _methods_section(store: RunStore, episodes: pd.DataFrame, focus: str | None) -> list[str]:
+    """The methods table (``pipeline.reporting.methods``) of a run with several methods."""
+    if focus is not None:
+        return []
+    columns = ["cell_id", "pass_rows", "executed_steps", "inference_ms"]
+    built = methods_table(episodes, store.steps(columns=columns))
+    if built is None:
+        return []
+    title, headers, rows = built
+    return ["", f"## {title}", "", _md(headers, rows)]
+
+
 def build_report(
     run_dir: str | Path,
     figures: tuple[dict[str, Path], dict[str, str]] | str | None = None,
@@ -335,6 +348,7 @@ def build_report(
         "## Success rate (%) by suite, with the paired difference against baseline",
         "",
         main_table(paired if focus is not None else episodes),
+        *_methods_section(store, episodes, focus),
         *perturbation_section(paired if focus is not None else episodes),
         *suite_sections(episodes),
     ]

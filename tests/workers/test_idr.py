@@ -10,8 +10,9 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from idr_core.refiner import REFINER_MODES, derangement
 
-from workers.idr import MODES, RefinerConfig, refine
+from workers.idr import RefinerConfig, refine
 
 
 def test_hand_computed_case_full_method() -> None:
@@ -137,18 +138,55 @@ def test_modes_against_the_equations() -> None:
         "D": a_base + 1.0 * (al * d_img + w * u),
         "E": a_base + g * (al * d_img + w * u),
         "F": a_base + g * (-al * d_img - w * u),
+        "scale_free": a_base + g * (al * d_img / (e_img[:, None] + 1e-6) + w * u),
+        "shuffled": a_base + g * (al * d_img + w * u)[:, derangement(4, 11)],
         "diagnose": a_base,
         "baseline": a_base,
     }
-    assert set(expected) == set(MODES)
+    # the methods that are not refinements of three passes are idr_core.methods' (their tests:
+    # tests/lerobot_policy_idr/test_methods.py); random's direction is tested below
+    assert set(expected) | {"random"} == {*REFINER_MODES, "diagnose", "baseline"}
     for mode, want in expected.items():
         got, _ = refine(
             a_base,
             a_no_img,
             a_no_prop,
             RefinerConfig(alpha=al, beta=be, lam=lam, tau=tau, mode=mode),
+            seed=11,
         )
         np.testing.assert_allclose(got, want, atol=1e-12, err_msg=mode)
+
+
+def test_random_placebo_has_es_gate_and_norm_in_a_seeded_direction() -> None:
+    rng = np.random.default_rng(1)
+    a_base, a_no_img, a_no_prop = rng.normal(size=(3, 64, 4, 3))
+    cfg = RefinerConfig(alpha=0.3, beta=0.2, tau=6.0)
+    e, diag = refine(a_base, a_no_img, a_no_prop, cfg)
+    r1, d1 = refine(a_base, a_no_img, a_no_prop, cfg.with_(mode="random"), seed=5)
+    r1b, _ = refine(a_base, a_no_img, a_no_prop, cfg.with_(mode="random"), seed=5)
+    r2, _ = refine(a_base, a_no_img, a_no_prop, cfg.with_(mode="random"), seed=6)
+    np.testing.assert_array_equal(r1, r1b)  # reproducible from the seed
+    np.testing.assert_array_equal(d1.gate, diag.gate)
+    norm = lambda x: np.linalg.norm((x - a_base).reshape(64, -1), axis=1)  # noqa: E731
+    np.testing.assert_allclose(norm(r1), norm(e), rtol=1e-9)  # E's size, sample by sample
+    on = diag.gate > 0
+    assert 0 < on.sum() < 64 and (norm(r1)[~on] == 0).all()
+    # a different direction than E's (cosine near 0 on average) and than another seed's
+    unit = lambda x: ((x - a_base)[on].reshape(on.sum(), -1).T / norm(x)[on]).T  # noqa: E731
+    assert abs(np.mean(np.sum(unit(r1) * unit(e), axis=1))) < 0.2
+    assert not np.allclose(r1, r2)
+
+
+def test_shuffled_placebo_keeps_values_and_time_structure() -> None:
+    rng = np.random.default_rng(2)
+    a_base, a_no_img, a_no_prop = rng.normal(size=(3, 8, 5, 7))
+    cfg = RefinerConfig(alpha=0.3, beta=0.2, tau=1e9)
+    e, _ = refine(a_base, a_no_img, a_no_prop, cfg)
+    s, _ = refine(a_base, a_no_img, a_no_prop, cfg.with_(mode="shuffled"), seed=3)
+    c_e, c_s = e - a_base, s - a_base
+    perm = derangement(7, 3)
+    assert (perm != np.arange(7)).all() and sorted(perm) == list(range(7))
+    np.testing.assert_allclose(c_s, c_e[..., perm])  # each dim's time series moved whole
 
 
 def test_diagnose_mode_reports_the_gate_it_would_apply() -> None:

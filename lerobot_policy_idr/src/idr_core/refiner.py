@@ -16,6 +16,19 @@ Equations (guidance ``visual``; ``proprio`` swaps the roles of image and state):
     u_prop = clip(d_prop, -lam, lam)
     a_final = a_base + g * (alpha * d_img + w_prop * u_prop)
     r_img  = e_img / (e_img + e_prop + eps)
+
+Besides the paper's modes (E and the ablations A-D, F), three controls keep E's gate and
+change only its correction ``c = alpha * d_img + w_prop * u_prop``:
+
+    random      a_final = a_base + g * ||c|| * r / ||r||,  r ~ N(0, I) over the chunk (seeded)
+    shuffled    a_final = a_base + g * c[..., perm],       perm a derangement of the action dims
+    scale_free  a_final = a_base + g * (alpha * d_img / (e_img + eps) + w_prop * u_prop)
+
+``random`` and ``shuffled`` are placebos: a push of E's size (and, for ``shuffled``, E's time
+structure and values) in a direction unrelated to the diagnosed effect; ``scale_free`` keeps
+E's direction but fixes the main term's norm to alpha, so its size does not grow with the
+base's action scale. The methods that are not a refinement of three passes (image guidance,
+ensembles, the object-hidden contrast) are in ``idr_core.methods``.
 """
 
 from __future__ import annotations
@@ -26,7 +39,23 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 
-Mode = Literal["baseline", "diagnose", "A", "B", "C", "D", "E", "F"]
+Mode = Literal[
+    "baseline",
+    "diagnose",
+    "A",
+    "B",
+    "C",
+    "D",
+    "E",
+    "F",
+    "random",
+    "shuffled",
+    "scale_free",
+    "cfg",
+    "ensemble",
+    "temporal",
+    "pcd",
+]
 Guidance = Literal["visual", "proprio"]
 
 MODES: tuple[str, ...] = get_args(Mode)
@@ -42,7 +71,16 @@ MODE_DESCRIPTIONS: dict[str, str] = {
     "D": "no gate: refinement at every step (g = 1)",
     "E": "full method",
     "F": "alpha and beta negated (refines against the diagnosed effect)",
+    "random": "placebo: E's gate and correction norm, in a random direction (step seed)",
+    "shuffled": "placebo: E's correction with its action dims permuted (time structure kept)",
+    "scale_free": "E with the visual term divided by E_img (its norm is alpha)",
+    "cfg": "image guidance, classifier-free style: a_base + w * d_img, no gate, no stabilizer",
+    "ensemble": "the mean of `samples` chunks drawn with independent noise (sampling bases)",
+    "temporal": "temporal ensembling (lerobot's ACTTemporalEnsembler): inference every step",
+    "pcd": "policy contrastive decoding: a_base + w * (a_base - a_objects_hidden)",
 }
+#: Modes that refine three passes with E's gate (the paper's modes and the controls of E).
+REFINER_MODES: tuple[str, ...] = ("A", "B", "C", "D", "E", "F", "random", "shuffled", "scale_free")
 
 
 @dataclass(frozen=True)
@@ -60,6 +98,11 @@ class RefinerConfig:
     eps: float = 1e-6  # keeps ratios finite when an effect is exactly zero
     mode: str = "E"  # one of MODES
     guidance: str = "visual"  # which modality's effect drives the correction
+    # the settings of the methods beside IDR (idr_core.methods says which mode reads which)
+    w: float = 0.08  # guidance weight of cfg and pcd (default: IDR's alpha, the same push)
+    samples: int = 3  # chunks averaged by ensemble (3: IDR's forwards)
+    te_coeff: float = 0.01  # temporal ensembling's coefficient (lerobot's ACT default)
+    horizon: int | None = None  # actions executed per inference; None: the runtime's default
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -79,6 +122,25 @@ class RefinerConfig:
                 )
         if not isinstance(self.eps, int | float) or not (0 < self.eps < math.inf):
             raise ValueError(f"RefinerConfig.eps={self.eps!r} must be a finite number > 0")
+        for name in ("w", "te_coeff"):
+            value = getattr(self, name)
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, int | float)
+                or not math.isfinite(value)
+            ):
+                raise ValueError(f"RefinerConfig.{name}={value!r} must be a finite number")
+        if isinstance(self.samples, bool) or not isinstance(self.samples, int) or self.samples < 2:
+            raise ValueError(
+                f"RefinerConfig.samples={self.samples!r} must be an integer >= 2 (chunks averaged)"
+            )
+        if self.horizon is not None and (
+            isinstance(self.horizon, bool) or not isinstance(self.horizon, int) or self.horizon < 1
+        ):
+            raise ValueError(
+                f"RefinerConfig.horizon={self.horizon!r} must be an integer >= 1 or null "
+                "(null: the runtime's default, executor replan_steps / n_action_steps)"
+            )
 
     @property
     def needs_counterfactuals(self) -> bool:
@@ -89,6 +151,11 @@ class RefinerConfig:
     def refines(self) -> bool:
         """Whether the executed action may differ from a_base."""
         return self.mode not in ("baseline", "diagnose")
+
+    @property
+    def gated(self) -> bool:
+        """Whether the mode refines three passes under E's gate (so reads tau, except D)."""
+        return self.mode in REFINER_MODES
 
     def with_(self, **changes: Any) -> RefinerConfig:
         return replace(self, **changes)
@@ -209,13 +276,15 @@ def _validate(a_base: Any, a_no_img: Any, a_no_prop: Any) -> _Ops:
 
 
 def refine(
-    a_base: Any, a_no_img: Any, a_no_prop: Any, cfg: RefinerConfig
+    a_base: Any, a_no_img: Any, a_no_prop: Any, cfg: RefinerConfig, seed: int = 0
 ) -> tuple[Any, Diagnostics]:
     """Refine ``a_base`` from the two counterfactual actions; see the module docstring.
 
     Returns ``(a_final, diag)``; ``a_final`` has the shape, dtype and device of ``a_base``.
-    In modes ``baseline`` and ``diagnose`` ``a_final`` is ``a_base`` (diagnostics still computed).
-    """
+    In modes ``baseline`` and ``diagnose`` ``a_final`` is ``a_base`` (diagnostics still computed);
+    the modes of ``idr_core.methods`` that are not refinements give ``a_base`` here too.
+    ``seed`` draws the placebo's direction (``random``) or permutation (``shuffled``): the
+    harness passes the step seed, the lerobot policy a draw from torch's RNG."""
     ops = _validate(a_base, a_no_img, a_no_prop)
     d_img = a_base - a_no_img
     d_prop = a_base - a_no_prop
@@ -242,11 +311,44 @@ def refine(
     u_aux = d_aux if cfg.mode == "B" else ops.clip(d_aux, -cfg.lam, cfg.lam)
 
     diag = Diagnostics(e_img=e_img, e_prop=e_prop, r_img=r_img, gate=gate, w_prop=w_aux)
-    if not cfg.refines:
+    if not cfg.gated:
         return a_base, diag
 
     trailing = (1,) * (a_base.ndim - 1)
     g = gate.reshape(-1, *trailing)
     w = w_aux.reshape(-1, *trailing)
-    a_final = a_base + g * (alpha * d_main + w * u_aux)
-    return a_final, diag
+    if cfg.mode == "scale_free":
+        main = alpha * d_main / (e_main.reshape(-1, *trailing) + cfg.eps)
+    else:
+        main = alpha * d_main
+    correction = main + w * u_aux
+    if cfg.mode == "random":
+        correction = _random_push(ops, correction, seed)
+    elif cfg.mode == "shuffled":
+        correction = correction[..., derangement(correction.shape[-1], seed)]
+    return a_base + g * correction, diag
+
+
+def derangement(n: int, seed: int) -> np.ndarray:
+    """A permutation of ``n`` indices that moves every index (drawn from ``seed``); the
+    identity for ``n == 1``, which has no other."""
+    rng = np.random.default_rng(seed)
+    if n == 1:
+        return np.zeros(1, dtype=np.int64)
+    while True:
+        perm = rng.permutation(n)
+        if not (perm == np.arange(n)).any():
+            return perm
+
+
+def _random_push(ops: _Ops, correction: Any, seed: int) -> Any:
+    """``correction``'s per-sample norm in a direction drawn isotropically over the sample's
+    trailing dims (the chunk's steps and action dims) from ``seed``."""
+    r = np.random.default_rng(seed).standard_normal(tuple(correction.shape))
+    r /= np.linalg.norm(r.reshape(r.shape[0], -1), axis=1).reshape(-1, *(1,) * (r.ndim - 1))
+    if ops.torch:
+        r = ops._t.as_tensor(r, dtype=correction.dtype, device=correction.device)
+    else:
+        r = r.astype(correction.dtype)
+    size = ops.norm(correction).reshape(-1, *(1,) * (correction.ndim - 1))
+    return size * r

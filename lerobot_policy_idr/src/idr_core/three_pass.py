@@ -3,8 +3,10 @@
 One forward runs the factual rows and the two counterfactual rows together: a batch of 3B
 rows ordered ``[factual (B) | do(V) (B) | do(S) (B)]``, with the same noise for the three
 thirds (common random numbers), so the action differences measure a modality's effect and not
-sampling noise. The harness's wrapper (``workers.idr_wrapper``) and its policy service run IDR
-through :func:`infer_requests`; the lerobot policy type ``idr`` (``modeling_idr``), whose
+sampling noise. The same packing serves every test-time method (``idr_core.methods``): a
+request carries its method's passes, factual first. The harness's wrapper
+(``workers.idr_wrapper``) and its policy service run every method through
+:func:`infer_requests`; the lerobot policy type ``idr`` (``modeling_idr``), whose
 counterfactual rows its preprocessor builds, splits its batch with :func:`split3`.
 """
 
@@ -16,7 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from idr_core.refiner import Diagnostics, RefinerConfig, refine
+from idr_core.methods import combine, passes
+from idr_core.refiner import Diagnostics, RefinerConfig
 
 
 def _is_torch(x: Any) -> bool:
@@ -65,15 +68,31 @@ def three_passes(
 
 @dataclass(frozen=True)
 class PassRequest:
-    """One request's inputs to an IDR inference: the factual rows, and (for a cell that needs
-    them) the do(V) and do(S) rows, its noise (shared by its passes) and its refiner settings.
-    Settings travel with the request, never as state on a shared policy object."""
+    """One request's inputs to an inference of a test-time method (``idr_core.methods``): the
+    factual rows and the rows of the method's other passes (do(V) and do(S) for IDR), its
+    noise (shared by its passes) and its settings. Settings travel with the request, never as
+    state on a shared policy object."""
 
     factual: Any
-    counterfactuals: tuple[Any, Any] | None  # (do(V), do(S)); None: the factual pass only
+    counterfactuals: tuple[Any, ...] | None  # the other passes' rows; None: the factual alone
     noise: Any
     cfg: RefinerConfig
     b: int  # rows of the factual input
+    seed: int = 0  # the step seed: a placebo's direction (idr_core.refiner)
+    # one noise per pass where the passes must not share it (ensemble's independent draws)
+    noises: tuple[Any, ...] | None = None
+
+    @property
+    def parts(self) -> list[Any]:
+        return [self.factual, *(self.counterfactuals or ())]
+
+    def noise_of(self, i: int) -> Any:
+        return self.noise if self.noises is None else self.noises[i]
+
+    @property
+    def rows(self) -> int:
+        """Rows this request costs the base's forward."""
+        return len(self.parts) * self.b
 
 
 @dataclass(frozen=True)
@@ -82,9 +101,10 @@ class PassResult:
 
     action: Any
     a_base: Any
-    a_no_img: Any | None  # None when only the factual pass ran
+    a_no_img: Any | None  # None where the method ran no do(V) pass
     a_no_prop: Any | None
     diag: Diagnostics | None
+    rows: int = 0  # rows the request cost the base's forward
 
 
 def infer_requests(
@@ -95,48 +115,41 @@ def infer_requests(
     concat_noise: Callable[[list[Any]], Any],
     batched: bool,
 ) -> list[PassResult]:
-    """IDR's infer, diagnose and refine for many requests: the one implementation that the
-    harness's wrapper (one request) and its policy service (many) use.
+    """The inference of each request's method: the one implementation that the harness's
+    wrapper (one request) and its policy service (many) use.
 
-    ``batched``: one forward over every request's rows, ``[factual | do(V) | do(S)]`` per
-    request, each row with its own request's noise; else each request's passes in turn with
-    its noise (:func:`three_passes`). The outputs are split per request and refined with the
-    request's own settings."""
+    ``batched``: one forward over every request's rows, its passes' rows in order per request,
+    each row with its own request's (and pass's) noise; else each pass of each request in turn
+    with its noise. The outputs are split per request and turned into the executed chunk with
+    the request's own settings (``idr_core.methods.combine``)."""
     if not batched:
-        out = []
-        for r in requests:
-            if r.counterfactuals is None:
-                out.append(_answer(r, call(r.factual, r.noise)))
-            else:
-                no_img, no_prop = r.counterfactuals
-                thirds = three_passes(
-                    call, r.factual, no_img, no_prop, r.noise, b=r.b, batched=False, concat=concat
-                )
-                out.append(_answer(r, *thirds))
-        return out
+        return [
+            _answer(r, [call(part, r.noise_of(i)) for i, part in enumerate(r.parts)])
+            for r in requests
+        ]
     rows: list[Any] = []
     noises: list[Any] = []
     spans: list[tuple[int, int]] = []  # first row, rows
     first = 0
     for r in requests:
-        parts = [r.factual] if r.counterfactuals is None else [r.factual, *r.counterfactuals]
+        parts = r.parts
         spans.append((first, len(parts) * r.b))
         first += len(parts) * r.b
         rows += parts
-        if r.noise is not None:
-            noises += [r.noise] * len(parts)
+        noises += [r.noise_of(i) for i in range(len(parts)) if r.noise_of(i) is not None]
     if noises and len(noises) != len(rows):
         raise ValueError("requests packed into one forward either all carry noise or none does")
     out_all = call(concat(rows), concat_noise(noises) if noises else None)
     answers = []
     for r, (start, n) in zip(requests, spans, strict=True):
         a = out_all[start : start + n]
-        answers.append(_answer(r, a) if r.counterfactuals is None else _answer(r, *split3(a, r.b)))
+        answers.append(_answer(r, [a[i * r.b : (i + 1) * r.b] for i in range(len(r.parts))]))
     return answers
 
 
-def _answer(r: PassRequest, a_base: Any, a_no_img: Any = None, a_no_prop: Any = None) -> PassResult:
-    if a_no_img is None:
-        return PassResult(a_base, a_base, None, None, None)
-    action, diag = refine(a_base, a_no_img, a_no_prop, r.cfg)
-    return PassResult(action, a_base, a_no_img, a_no_prop, diag)
+def _answer(r: PassRequest, outputs: list[Any]) -> PassResult:
+    action, diag = combine(r.cfg, outputs, seed=r.seed)
+    named = dict(zip(passes(r.cfg), outputs, strict=True))
+    return PassResult(
+        action, outputs[0], named.get("no_img"), named.get("no_prop"), diag, rows=r.rows
+    )

@@ -33,7 +33,7 @@ from typing import Any, ClassVar
 import torch
 from idr_core.checkpoint import check_checkpoint_dir
 from idr_core.plugins import import_error, policy_plugins
-from idr_core.sampling import crn_mode, noise_shape
+from idr_core.sampling import DETERMINISTIC_TYPES, crn_mode, noise_shape
 
 from workers.backbones.base import Observation
 from workers.interventions import intervene
@@ -153,6 +153,7 @@ def policy_io(path: Path, chunk_len: int | None = None) -> PolicyIO:
         chunk_len=int(steps),
         resizes_images=any(cfg.get(k) for k in RESIZE_KEYS),
         source=f"{cfg_path} (policy type {cfg.get('type')!r})",
+        samples=cfg.get("type") not in DETERMINISTIC_TYPES,
     )
 
 

@@ -1,0 +1,102 @@
+"""The methods table: test-time methods side by side per backbone x suite, each with its
+success, its paired difference against the reference cell (baseline, else diagnose) and
+against IDR's mode E, and what it cost per executed env step (rows of the base's forward and
+inference ms), since methods infer at different rates."""
+
+from __future__ import annotations
+
+import math
+
+import pandas as pd
+import pyarrow as pa
+import pyarrow.compute as pc
+
+from pipeline.results import aggregate as agg
+
+HEADERS = [
+    "backbone",
+    "suite",
+    "cell",
+    "mode",
+    "success % [95% CI]",
+    "Δ vs {ref} pp [95% CI], p",
+    "Δ vs E pp [95% CI], p",
+    "rows / env step",
+    "ms / env step",
+]
+
+
+def method_costs(steps: pa.Table) -> pd.DataFrame:
+    """Per cell: the base's forward rows and the inference ms per executed env step (sums over
+    the cell's inferences; NaN where the run dir predates the columns)."""
+    cols = ("cell_id", "pass_rows", "executed_steps", "inference_ms")
+    if steps.num_rows == 0 or any(c not in steps.column_names for c in cols):
+        return pd.DataFrame(columns=["rows_per_step", "ms_per_step"])
+    out = {}
+    for cell in pc.unique(steps["cell_id"]).to_pylist():
+        t = steps.filter(pc.equal(steps["cell_id"], cell))
+        executed = pc.sum(t["executed_steps"]).as_py() or 0
+        rows = pc.sum(t["pass_rows"]).as_py()
+        ms = pc.sum(t["inference_ms"]).as_py()
+        out[cell] = {
+            "rows_per_step": rows / executed if executed and rows is not None else math.nan,
+            "ms_per_step": ms / executed if executed and ms is not None else math.nan,
+        }
+    return pd.DataFrame.from_dict(out, orient="index")
+
+
+def _diff(d: agg.PairedDiff | None) -> str:
+    if d is None:
+        return "–"
+    return (
+        f"{100 * d.diff:+.1f} [{100 * d.ci_low:+.1f}, {100 * d.ci_high:+.1f}], "
+        f"p={d.p_value:.2g} (n={d.n_pairs})"
+    )
+
+
+def _fmt(x: float, digits: int) -> str:
+    return "–" if x is None or math.isnan(x) else f"{x:.{digits}f}"
+
+
+def methods_table(
+    episodes: pd.DataFrame, steps: pa.Table
+) -> tuple[str, list[str], list[list[object]]] | None:
+    """(title, headers, rows), or None for a run with fewer than two methods beside its
+    reference cell (the main table says it all then)."""
+    ok = episodes[episodes["error"].isna()]
+    if ok["mode"].nunique() < 3:
+        return None
+    costs = method_costs(steps)
+    rows: list[list[object]] = []
+    ref_name = "reference"
+    for (backbone, suite), g in ok.groupby(["backbone", "suite"], sort=True):
+        ref = agg.reference_cell(set(g["cell_id"]))
+        ref_name = ref or ref_name
+        e_cells = sorted(set(g.loc[g["mode"] == "E", "cell_id"]))
+        vs_ref = {d.cell_id: d for d in agg.paired_vs_baseline(g, baseline=ref)} if ref else {}
+        vs_e = (
+            {d.cell_id: d for d in agg.paired_vs_baseline(g, baseline=e_cells[0])}
+            if e_cells
+            else {}
+        )
+        overall = agg.success_overall(g).set_index("cell_id")
+        for cell in sorted(overall.index, key=lambda c: (c != ref, c)):
+            o = overall.loc[cell]
+            mode = str(g.loc[g["cell_id"] == cell, "mode"].iloc[0])
+            cost = costs.loc[cell] if cell in costs.index else None
+            rows.append(
+                [
+                    backbone,
+                    suite,
+                    cell,
+                    mode,
+                    f"{100 * o['success_rate']:.1f} "
+                    f"[{100 * o['ci_low']:.1f}, {100 * o['ci_high']:.1f}]",
+                    _diff(vs_ref.get(cell)),
+                    _diff(vs_e.get(cell)),
+                    _fmt(cost["rows_per_step"], 2) if cost is not None else "–",
+                    _fmt(cost["ms_per_step"], 1) if cost is not None else "–",
+                ]
+            )
+    headers = [h.format(ref=ref_name) for h in HEADERS]
+    return ("Test-time methods side by side", headers, rows)
