@@ -125,6 +125,27 @@ def test_paired_difference_on_shared_keys() -> None:
     assert d.ci_low <= 0.4 <= d.ci_high
 
 
+def test_paired_difference_says_what_it_could_detect() -> None:
+    # 5 pairs, 2 discordant: even both one way (40 pp) is below 80% power; planning pairs at
+    # its 40% discordance rate (Connor 1987, see test_power) needs 31,394 for 1 pp, 1,254 for 5
+    (d,) = agg.paired_vs_baseline(_episodes())
+    assert math.isinf(d.mde_pp) and (d.pairs_for_1pp, d.pairs_for_5pp) == (31394, 1254)
+    assert "all 2 discordant pairs of 5" in d.power_note
+    # 200 pairs on one task, 30 won only by E and 10 only by the baseline: 20% discordant
+    rows = []
+    for i in range(200):
+        e, base = (i < 100 or i >= 170), (i < 110)
+        for cell, won in (("baseline", base), ("E", e)):
+            rows.append(
+                {"cell_id": cell, "suite": "s", "task_id": "a", "episode_index": i}
+                | {"success": won, "error": None}
+            )
+    (d,) = agg.paired_vs_baseline(pd.DataFrame(rows), n_boot=200)
+    assert (d.n_pairs, d.only_cell, d.only_baseline) == (200, 30, 10)
+    assert d.mde_pp == pytest.approx(8.8073, abs=1e-4)
+    assert (d.pairs_for_1pp, d.pairs_for_5pp, d.power_note) == (15696, 626, "")
+
+
 def test_completion_time_over_successes_only() -> None:
     t = agg.completion_times(_episodes()).set_index("cell_id")
     assert t.loc["baseline", "sim_seconds_to_success"] == pytest.approx(np.mean([2.0, 3.0]))
