@@ -1,6 +1,7 @@
 """The methods table: test-time methods side by side per backbone x suite, each with its
 success, its paired difference against the reference cell (baseline, else diagnose) and
-against IDR's mode E, and what it cost per executed env step (rows of the base's forward and
+against IDR's mode E (with the minimum detectable effect at 80% power of each pairing,
+``pipeline.results.power``), and what it cost per executed env step (rows of the base's forward and
 inference ms), since methods infer at different rates."""
 
 from __future__ import annotations
@@ -48,9 +49,11 @@ def method_costs(steps: pa.Table) -> pd.DataFrame:
 def _diff(d: agg.PairedDiff | None) -> str:
     if d is None:
         return "–"
+    # "none": no effect this pairing's size and discordance could detect at 80% power
+    mde = f", MDE {d.mde_pp:.0f}" if math.isfinite(d.mde_pp) else ", MDE none"
     return (
         f"{100 * d.diff:+.1f} [{100 * d.ci_low:+.1f}, {100 * d.ci_high:+.1f}], "
-        f"p={d.p_value:.2g} (n={d.n_pairs})"
+        f"p={d.p_value:.2g} (n={d.n_pairs}{mde})"
     )
 
 

@@ -26,8 +26,8 @@ def _base(path):
     return policy, pre, post
 
 
-def _harness(base, tau: float):
-    """idr-eval's IDRWrapper around its lerobot backbone of ``base``, mode E, do(S) in
+def _harness(base, tau: float, mode: str = "E"):
+    """idr-eval's IDRWrapper around its lerobot backbone of ``base``, mode ``mode``, do(S) in
     normalized space (the plugin's default)."""
     from workers.backbones.lerobot import LerobotBackbone
     from workers.idr import RefinerConfig
@@ -36,7 +36,7 @@ def _harness(base, tau: float):
 
     backbone = LerobotBackbone(str(base))
     policy = IDRWrapper(
-        backbone, RefinerConfig(mode="E", tau=tau), InterventionConfig(state_space="normalized")
+        backbone, RefinerConfig(mode=mode, tau=tau), InterventionConfig(state_space="normalized")
     )
     return backbone, policy
 
@@ -161,10 +161,21 @@ def test_postprocessor_steps_after_the_unnormalizer_apply_to_the_refined_chunk(
         assert np.array_equal(rows[key].to_numpy()[-2:].astype(np.float32), diag[key]), key
 
 
-@pytest.mark.parametrize("kind", ["act", "diffusion"])
-def test_mode_E_equals_the_harness_exactly(bases, tmp_path, kind) -> None:
-    """The same checkpoint, observation and noise: the plugin's refined chunk and diagnostics
-    equal idr-eval's IDRWrapper around its lerobot backbone, bit for bit."""
+@pytest.mark.parametrize(
+    ("kind", "mode"),
+    [
+        ("act", "E"),
+        ("diffusion", "E"),
+        ("act", "random"),
+        ("diffusion", "shuffled"),
+        ("act", "scale_free"),
+        ("diffusion", "cfg"),
+    ],
+)
+def test_mode_equals_the_harness_exactly(bases, tmp_path, kind, mode) -> None:
+    """The same checkpoint, observation, noise and placebo seed: the plugin's refined chunk and
+    diagnostics equal idr-eval's IDRWrapper around its lerobot backbone, bit for bit, for E,
+    its controls and image guidance."""
     from workers.backbones.base import Observation
 
     tau = "1e9"  # the gate on for every row: the refinement is exercised
@@ -173,11 +184,13 @@ def test_mode_E_equals_the_harness_exactly(bases, tmp_path, kind) -> None:
         tmp_path / "idr",
         "--tau",
         tau,
+        "--mode",
+        mode,
         "--no-clip",
         "--diagnostics-dir",
         str(tmp_path / "d"),
     )
-    backbone, harness = _harness(bases[kind], float(tau))
+    backbone, harness = _harness(bases[kind], float(tau), mode)
     policy, pre, post = load(folder)
     for seed in range(3):
         obs = obs_batch(2, seed=seed)
@@ -192,9 +205,11 @@ def test_mode_E_equals_the_harness_exactly(bases, tmp_path, kind) -> None:
         noise = backbone.make_noise(2, seed)
         policy.reset()
         with torch.inference_mode():
-            ours = post(policy.predict_action_chunk(pre(obs), noise=noise))
+            ours = post(policy.predict_action_chunk(pre(obs), noise=noise, seed=seed))
         assert torch.equal(ours[:, : backbone.chunk_len], step.action), f"seed {seed}"
         assert not torch.equal(step.action, step.a_base)  # refined: the comparison is not vacuous
+    if step.diag is None:  # cfg: no diagnostics without the do(S) pass
+        return
     policy.sidecar.flush()
     rows = read_sidecar(tmp_path / "d")
     diag = step.diag.to_numpy()

@@ -67,6 +67,15 @@ REFUSED_BASE_TYPES = {
     "checkpoint from the hub",
 }
 REFINE_SPACES = ("physical", "normalized")
+#: modes of idr_core.methods that lerobot's tools cannot run through this policy, and why
+PLUGIN_REFUSED_MODES = {
+    "pcd": "the object-hidden contrast needs a simulator that renders the scene without the "
+    "task's objects; on a robot there is no such render (idr-eval runs it: env.suite tabletop)",
+    "ensemble": "sample ensembling runs in idr-eval's harness (the idr policy's preprocessor "
+    "builds the three IDR passes, not K draws)",
+    "temporal": "temporal ensembling runs in idr-eval's harness; in lerobot's tools use an ACT "
+    "base's own temporal_ensemble_coeff with mode baseline",
+}
 
 
 class IDRConfigError(ValueError):
@@ -90,13 +99,16 @@ class IDRConfig(PreTrainedConfig):
 
     # The refiner (paper defaults; tau has none: it is the mean E_img of the baseline, which
     # depends on the backbone and the action space; calibrate it with mode=diagnose).
-    mode: str = "E"  # baseline, diagnose, A-F (E: the full method)
+    # baseline, diagnose, A-F (E: the full method), E's controls (random, shuffled,
+    # scale_free) or image guidance (cfg); idr_core.methods lists every mode
+    mode: str = "E"
     guidance: str = "visual"  # which modality's effect drives the correction
     alpha: float = 0.08
     beta: float = 0.05
     lam: float = 0.1
     tau: float | None = None
     eps: float = 1e-6
+    w: float = 0.08  # the guidance weight of mode cfg (a_base + w * d_img)
 
     # The interventions do(V) and do(S).
     intervention_strategy: str = "zero"  # zero (the paper's), mean, gaussian
@@ -164,10 +176,16 @@ class IDRConfig(PreTrainedConfig):
                 eps=self.eps,
                 mode=self.mode,
                 guidance=self.guidance,
+                w=self.w,
             )
         except ValueError as e:
             raise IDRConfigError(str(e).replace("RefinerConfig.", "policy.")) from None
-        if cfg.refines and self.tau is None:
+        if self.mode in PLUGIN_REFUSED_MODES:
+            raise IDRConfigError(
+                f"policy.mode={self.mode!r}: {PLUGIN_REFUSED_MODES[self.mode]}; the idr policy "
+                "runs baseline, diagnose, A-F, random, shuffled, scale_free and cfg"
+            )
+        if cfg.gated and self.tau is None:
             raise IDRConfigError(
                 f"policy.mode={self.mode!r} refines actions and needs policy.tau: run mode "
                 "'diagnose' for a few rollouts and calibrate it (lerobot-idr-calibrate), or set "

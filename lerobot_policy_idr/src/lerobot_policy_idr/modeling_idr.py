@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from idr_core.methods import combine, method_of
 from idr_core.refiner import refine
 from idr_core.sampling import crn_mode, noise_shape
 from idr_core.sidecar import SidecarWriter
@@ -135,7 +136,7 @@ class IDRPolicy(PreTrainedPolicy):
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, torch.Tensor], **kwargs: Any) -> torch.Tensor:
-        actions, rows = self._infer(batch, kwargs.get("noise"))
+        actions, rows = self._infer(batch, kwargs.get("noise"), kwargs.get("seed"))
         self.sidecar.add(rows)
         return actions
 
@@ -160,7 +161,11 @@ class IDRPolicy(PreTrainedPolicy):
         return self._queue.popleft()
 
     # -- the three passes, the diagnosis and the refinement ---------------------------------
-    def _infer(self, batch: dict[str, Any], noise: Any = None) -> tuple[torch.Tensor, list[dict]]:
+    def _infer(
+        self, batch: dict[str, Any], noise: Any = None, seed: int | None = None
+    ) -> tuple[torch.Tensor, list[dict]]:
+        """``seed``: a placebo's direction (modes random, shuffled), as idr-eval passes its step
+        seed; None draws it from torch's RNG, as the base's own noise is drawn."""
         t0 = time.perf_counter()
         mode = self.config.mode
         if mode == "baseline":
@@ -201,7 +206,9 @@ class IDRPolicy(PreTrainedPolicy):
         # that will run (n_action_steps), as idr-eval does
         out = out[:, : self.n_action_steps]
         a_base, a_no_img, a_no_prop = split3(self._physical(out), b)
-        final, diag, clipped, fallback = self._refine(a_base, a_no_img, a_no_prop)
+        if seed is None and self.config.mode in ("random", "shuffled"):
+            seed = int(torch.randint(0, 2**31 - 1, ()))
+        final, diag, clipped, fallback = self._refine(a_base, a_no_img, a_no_prop, seed or 0)
         now = time.perf_counter()
         total = (now - t0) * 1e3
         if self.refiner_cfg.refines and self.config.deadline_ms and total > self.config.deadline_ms:
@@ -231,13 +238,18 @@ class IDRPolicy(PreTrainedPolicy):
                 outs.append(self._predict(part, slice(i * b, (i + 1) * b)))
         return torch.cat(outs, dim=0)
 
-    def _refine(self, a_base: torch.Tensor, a_no_img: torch.Tensor, a_no_prop: torch.Tensor):
+    def _refine(
+        self, a_base: torch.Tensor, a_no_img: torch.Tensor, a_no_prop: torch.Tensor, seed: int
+    ):
         b = a_base.shape[0]
         if not bool(torch.isfinite(a_base).all()):
             raise ValueError("the base policy's action is not finite; nothing safe to execute")
         if not (bool(torch.isfinite(a_no_img).all()) and bool(torch.isfinite(a_no_prop).all())):
             return a_base, None, [0] * b, ["nonfinite"] * b
-        final, diag = refine(a_base, a_no_img, a_no_prop, self.refiner_cfg)
+        if method_of(self.refiner_cfg).diagnoses:
+            final, diag = refine(a_base, a_no_img, a_no_prop, self.refiner_cfg, seed=seed)
+        else:  # cfg: the factual and do(V) thirds (the do(S) third is not read)
+            final, diag = combine(self.refiner_cfg, [a_base, a_no_img])
         if not self.refiner_cfg.refines:
             return final, diag, [0] * b, [""] * b
         if not bool(torch.isfinite(final).all()):
