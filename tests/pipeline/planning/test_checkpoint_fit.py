@@ -205,3 +205,42 @@ def test_counterfactual_modes_need_an_image_and_a_state(over, what) -> None:
     check_inputs_for_modes(cfg, _policy())
     # a policy server declares neither: nothing to refuse on
     check_inputs_for_modes(cfg, _policy(**over, declares_inputs=False))
+
+
+@pytest.mark.parametrize(
+    ("mode", "over", "words"),
+    [
+        ("ensemble", [], r"'ensemble' averages chunks .*'tiny_vla'.* is deterministic"),
+        (
+            "pcd",
+            ["env.suite=fake_marker", "env.tasks=[reach]", "env.params={}"],
+            r"'pcd' contrasts .* suite 'fake_marker' does not make",
+        ),
+    ],
+)
+def test_a_method_the_base_or_suite_cannot_run_is_refused_before_any_episode(
+    tmp_path, mode, over, words
+) -> None:
+    """Ensembling a deterministic policy (the default's tiny VLA), the object-hidden contrast
+    on a suite that renders no such image: one message naming the method, base or suite, why."""
+    from pipeline.execution.runner import plan_run
+    from pipeline.planning.config import load_config
+
+    conf = Path(__file__).resolve().parents[3] / "conf" / "default.yaml"
+    cfg = load_config(
+        conf, [f"grid=[{{mode: [diagnose, {mode}]}}]", "tracking.enabled=false", *over]
+    )
+    with pytest.raises(ConfigError, match=words):
+        plan_run(cfg, tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+def test_temporal_ensembling_needs_a_base_with_chunks() -> None:
+    from pipeline.planning.checkpoint_fit import check_methods
+    from pipeline.planning.config import load_config
+
+    conf = Path(__file__).resolve().parents[3] / "conf" / "smoke.yaml"
+    cfg = load_config(conf, ["tracking.enabled=false", "grid=[{mode: [baseline, temporal]}]"])
+    with pytest.raises(ConfigError, match=r"cell 'temporal': mode 'temporal' .* one action"):
+        check_methods(cfg, _policy(chunk_len=1))
+    check_methods(cfg, _policy(chunk_len=8))

@@ -212,3 +212,31 @@ def test_presets_point_at_the_tiny_vla_with_overrides() -> None:
     )
     assert cfg.backbone.params == {"path": "checkpoints/tiny_vla", "device": "cpu"}
     assert [c.cell_id for c in cfg.cells()][-1] == "F"
+
+
+@pytest.mark.parametrize(
+    ("groups", "words"),
+    [
+        ([{"mode": ["E", "cfg"], "w": [0.1, 0.2]}], r"mode 'E' does not read \['w'\]"),
+        ([{"mode": ["cfg"]}, {"alpha": [0.05, 0.1]}], r"mode 'cfg' does not read \['alpha'\]"),
+        ([{"mode": ["temporal"], "horizon": [2]}], r"mode 'temporal' does not read \['horizon'\]"),
+        ([{"mode": ["diagnose"], "samples": [4]}], r"mode 'diagnose' does not read \['samples'\]"),
+    ],
+)
+def test_a_method_setting_on_an_axis_its_mode_ignores_is_refused(groups, words) -> None:
+    with pytest.raises(ValueError, match=words):
+        expand_grid(groups)
+
+
+def test_method_settings_name_their_cells_and_horizon_splits_the_baseline() -> None:
+    cells = expand_grid(
+        [{"mode": ["baseline", "baseline", "cfg", "ensemble"], "horizon": [1, 8, 4, 4]}]
+    )
+    assert [c.cell_id for c in cells] == ["baseline_h1", "baseline_h8", "cfg_h4", "ensemble_h4"]
+    assert cells[2].meaningful_params().keys() >= {"mode", "w", "horizon"}
+    assert "alpha" not in cells[2].meaningful_params() and "tau" not in cells[3].meaningful_params()
+    assert [c.role for c in expand_grid([{"mode": ["random", "pcd", "F"]}])] == [
+        "control",
+        "method",
+        "idr",
+    ]
