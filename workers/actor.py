@@ -16,6 +16,7 @@ import sys
 import time
 import traceback
 import zlib
+from collections import deque
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any
@@ -70,6 +71,7 @@ class _Rollout:
     crn: Any = None  # the last inference's common-random-numbers flag
     video: Any = None  # workers.videos.EpisodeVideo of a recorded episode
     ensemble: Any = None  # temporal ensembling's averager (lerobot_policy_idr.runtime)
+    frames: Any = None  # a history-fed base's last frames (policy observations), every env step
 
 
 class EpisodeWorker:
@@ -100,6 +102,7 @@ class EpisodeWorker:
             self.backbone = None
             self.policy: Any = PolicyServiceClient(spec.policy_actor, info)
             self.cameras = info["cameras"]
+            self.history_steps = int(info.get("history_steps") or 1)
             self.numerics = info["numerics"]
             self.hardware = info.get("hardware")
         else:
@@ -108,6 +111,7 @@ class EpisodeWorker:
             self.policy = IDRWrapper(self.backbone, batched=spec.batched)
             self.numerics = fix_forward_shape(self.policy, spec.forward_rows, spec.torch_threads)
             self.cameras = backbone_member(self.backbone, "cameras")  # None: all the env has
+            self.history_steps = int(backbone_member(self.backbone, "history_steps"))
             from workers.hardware import hardware_class, hardware_record
 
             device = (spec.backbone_params or {}).get("device")
@@ -194,6 +198,9 @@ class EpisodeWorker:
             policy.reset()
             ep = _Rollout(obs=env.reset(spec.task_id, spec.episode_index, spec.seed))
             ep.status = episode_status(env, ep.obs)
+            if self.history_steps > 1:
+                ep.frames = deque(maxlen=self.history_steps)
+                self._remember(ep)
             ep.video = self._video(spec, env)
             if ep.video is not None:
                 ep.video.add(ep.obs)
@@ -224,6 +231,13 @@ class EpisodeWorker:
         path = video_path(s.video_dir, spec.cell_id, spec.task_id, spec.episode_index)
         return EpisodeVideo(path, camera, s.video_fps or env.control_hz)
 
+    def _remember(self, ep: _Rollout) -> None:
+        """The current frame joins a history-fed base's frames (as its own select_action
+        queues every step's observation)."""
+        from workers.observation import to_policy_observation
+
+        ep.frames.append(to_policy_observation(ep.obs, ep.status.instruction, self.cameras))
+
     def _horizon(self, spec: EpisodeSpec) -> int | None:
         """Actions executed per inference: the cell's ``horizon``, else the run's replan_steps
         (None: the whole chunk); 1 for a method that infers at every step."""
@@ -244,7 +258,11 @@ class EpisodeWorker:
 
         k = len(ep.steps)  # one row per inference
         method = method_of(spec.idr)
-        obs = to_policy_observation(ep.obs, ep.status.instruction, self.cameras)
+        if ep.frames is not None:  # the current frame and the past ones it travels with
+            obs = ep.frames[-1]
+            obs.extras.update(past_frames(list(ep.frames)[:-1]))
+        else:
+            obs = to_policy_observation(ep.obs, ep.status.instruction, self.cameras)
         render_ms = 0.0
         if method.hidden_objects:  # its render is part of the method's cost
             from workers.idr_wrapper import NO_OBJECTS_KEY
@@ -299,6 +317,8 @@ class EpisodeWorker:
             ep.obs = env.step(action)
             executed += 1
             ep.status = st = episode_status(env, ep.obs)
+            if ep.frames is not None and not st.done:
+                self._remember(ep)
             if ep.video is not None:
                 ep.video.add(ep.obs)
             if not np.isfinite(ep.obs.state).all():
@@ -313,6 +333,8 @@ class EpisodeWorker:
             if per_subtask and st.subtasks_done != subtasks_before:
                 policy.reset()  # the next subtask is a rollout of its own (CALVIN)
                 ep.ensemble = None
+                if ep.frames is not None:  # its history starts at its first frame
+                    ep.frames = deque([ep.frames[-1]], maxlen=self.history_steps)
                 break
         return executed
 
@@ -351,6 +373,23 @@ class EpisodeWorker:
         self.env = None
         for env in envs:
             env.close()
+
+
+def past_frames(frames: list[Any]) -> dict[str, Any]:
+    """A history-fed base's past frames as request extras (``workers.backbones.base``):
+    camera -> (1, k, 3, H, W) and (1, k, S), oldest first; nothing at an episode's start."""
+    import torch
+
+    from workers.backbones.base import HISTORY_IMAGES, HISTORY_STATE
+
+    if not frames:
+        return {}
+    return {
+        HISTORY_IMAGES: {
+            cam: torch.stack([f.images[cam] for f in frames], dim=1) for cam in frames[0].images
+        },
+        HISTORY_STATE: torch.stack([f.state for f in frames], dim=1),
+    }
 
 
 def episode_failure(status: EpisodeStatus, max_steps: int) -> dict[str, str | None]:

@@ -17,7 +17,14 @@ import numpy as np
 from idr_core.methods import passes, sample_seeds
 from idr_core.three_pass import PassRequest, PassResult, infer_requests
 
-from workers.backbones.base import Backbone, Observation, backbone_member, concat_observations
+from workers.backbones.base import (
+    HISTORY_IMAGES,
+    HISTORY_STATE,
+    Backbone,
+    Observation,
+    backbone_member,
+    concat_observations,
+)
 from workers.forward_shape import cat_rows
 from workers.idr import Diagnostics, RefinerConfig
 from workers.interventions import InterventionConfig, intervene
@@ -102,7 +109,9 @@ class IDRWrapper:
                 )
                 for i, cam in enumerate(sorted(obs.images))
             }
-            no_img = Observation(images, obs.state, list(obs.instruction), extras=obs.extras)
+            no_img = Observation(
+                images, obs.state, list(obs.instruction), extras=_past(obs, iv, step_seed, "img")
+            )
         else:
             no_img = Observation(
                 dict(obs.images), obs.state, list(obs.instruction), do_image=flag, extras=obs.extras
@@ -111,7 +120,12 @@ class IDRWrapper:
             state = intervene(
                 obs.state, iv.strategy, seed=iv.seed + 7919 * step_seed + 104729, **kw
             )
-            no_prop = Observation(dict(obs.images), state, list(obs.instruction), extras=obs.extras)
+            no_prop = Observation(
+                dict(obs.images),
+                state,
+                list(obs.instruction),
+                extras=_past(obs, iv, step_seed, "state"),
+            )
         else:
             no_prop = Observation(
                 dict(obs.images), obs.state, list(obs.instruction), do_state=flag, extras=obs.extras
@@ -215,6 +229,30 @@ class IDRWrapper:
 #: ``Observation.extras`` key of the object-hidden renders (camera -> (B, 3, H, W)), which the
 #: episode loop adds for a method with a ``no_objects`` pass (``pcd``)
 NO_OBJECTS_KEY = "no_objects_images"
+
+
+def _past(obs: Observation, iv: InterventionConfig, step_seed: int, what: str) -> dict[str, Any]:
+    """``obs.extras`` with a raw-space intervention on its past frames too (a history-fed
+    base's counterfactual rows see the intervened modality at every frame they read, as the
+    idr policy's rows do), each frame seeded apart."""
+    extras = dict(obs.extras)
+    kw = {"noise_scale": iv.noise_scale}
+    if what == "img" and HISTORY_IMAGES in extras:
+        extras[HISTORY_IMAGES] = {
+            cam: _per_frame(x, iv.strategy, iv.seed + 7919 * step_seed + 31 * i, kw)
+            for i, (cam, x) in enumerate(sorted(extras[HISTORY_IMAGES].items()))
+        }
+    if what == "state" and HISTORY_STATE in extras:
+        extras[HISTORY_STATE] = _per_frame(
+            extras[HISTORY_STATE], iv.strategy, iv.seed + 7919 * step_seed + 104723, kw
+        )
+    return extras
+
+
+def _per_frame(x: Any, strategy: str, seed: int, kw: dict[str, Any]) -> Any:
+    """``intervene`` on each frame of (B, k, ...) as on a batch of B * k."""
+    flat = x.reshape(x.shape[0] * x.shape[1], *x.shape[2:])
+    return intervene(flat, strategy, seed=seed, **kw).reshape(x.shape)
 
 
 def _without(obs: Observation, key: str) -> Observation:

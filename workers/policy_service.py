@@ -174,6 +174,7 @@ class PolicyWorker:
             # steps after the base's action unnormalizer (temporal ensembling runs them after
             # its averaging, in the episode loop: not possible across the service)
             "finishes_chunks": backbone_member(self.backbone, "finish_chunk") is not None,
+            "history_steps": backbone_member(self.backbone, "history_steps"),
             "numerics": self.numerics,
             "hardware": hardware_class(hardware_record(self.device)),
         }

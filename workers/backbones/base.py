@@ -49,6 +49,12 @@ class Observation:
                 )
 
 
+#: ``Observation.extras`` keys of a history-fed base's past frames (the episode loop fills
+#: them): camera -> (B, k, 3, H, W) and (B, k, S), oldest first, the current frame excluded
+HISTORY_IMAGES = "history_images"
+HISTORY_STATE = "history_state"
+
+
 def concat_observations(parts: list[Observation]) -> Observation:
     """Stack observations along the batch dim (torch or numpy, as given)."""
     first = parts[0]
@@ -71,17 +77,23 @@ def concat_observations(parts: list[Observation]) -> Observation:
             ]
         )
 
+    def extra(k: str, v: Any) -> Any:
+        if k == HISTORY_IMAGES:
+            return {cam: cat([p.extras[k][cam] for p in parts]) for cam in v}
+        if k == HISTORY_STATE:
+            return cat([p.extras[k] for p in parts])
+        # per-row extras (lists) are concatenated; others are taken from the first part
+        if isinstance(v, list):
+            return [x for p in parts for x in p.extras.get(k, [])]
+        return v
+
     return Observation(
         images={cam: cat([p.images[cam] for p in parts]) for cam in first.images},
         state=cat([p.state for p in parts]),
         instruction=[s for p in parts for s in p.instruction],
         do_image=flags("do_image"),
         do_state=flags("do_state"),
-        # per-row extras (lists) are concatenated; others are taken from the first part
-        extras={
-            k: [x for p in parts for x in p.extras.get(k, [])] if isinstance(v, list) else v
-            for k, v in first.extras.items()
-        },
+        extras={k: extra(k, v) for k, v in first.extras.items()},
     )
 
 
@@ -109,6 +121,12 @@ OPTIONAL_BACKBONE_MEMBERS: dict[str, tuple[Any, str]] = {
         "refined it (a lerobot postprocessor's steps after its unnormalizer: VLA-JEPA's "
         "gripper binarization); predict_chunk returns the chunk before them, the space where "
         "IDR measures and refines; None: none",
+    ),
+    "history_steps": (
+        1,
+        "int: frames one inference reads (Diffusion's n_obs_steps, VQ-BeT's queues): the "
+        "episode loop sends the past ones with each request (extras HISTORY_IMAGES and "
+        "HISTORY_STATE, taken at every env step); 1: the current frame alone",
     ),
     "remote": (
         False,

@@ -39,14 +39,17 @@ from lerobot_policy_idr.configuration_idr import (
     read_base_config,
 )
 from lerobot_policy_idr.processor_idr import BATCH_SIZE_KEY, STATE_KEY, is_image_key
+from lerobot_policy_idr.runtime import (
+    ACTION,
+    QUEUE_FED_TYPES,
+    STACKED_TYPES,
+    history_length,
+    lent_queues,
+    queue_frame,
+    stack_frames,
+)
 
-ACTION = "action"
-OBS_IMAGES = "observation.images"  # the stacked cameras VQ-BeT's queues hold
 _HISTORY_KEYS = (STATE_KEY, "observation.environment_state")
-#: Base types whose ``predict_action_chunk`` reads the observation queues that their
-#: ``select_action`` fills, not the batch it is given: IDR keeps queues of its own (3B rows)
-#: and lends them to the base for each forward (``_predict``), the base's own left untouched.
-QUEUE_FED_TYPES = ("vqbet", "multi_task_dit")
 #: batch entries that concatenate every row's image patches along dim 0 (Qwen-VL processors)
 FLAT_PATCH_KEYS = ("pixel_values", "pixel_values_videos")
 # one row per image (a batch row with several cameras has several), in batch-row order
@@ -125,7 +128,7 @@ class IDRPolicy(PreTrainedPolicy):
     def reset(self) -> None:
         self.base.reset()
         self._queue: deque[torch.Tensor] = deque(maxlen=self.n_action_steps)
-        self._history: dict[str, deque[torch.Tensor]] = {}
+        self._frames: deque[dict[str, Any]] = deque(maxlen=history_length(self.base.config))
         self._fed: dict[str, deque[torch.Tensor]] | None = None  # queue-fed bases: IDR's queues
         self._steps = 0
         self._tick = 0
@@ -282,35 +285,22 @@ class IDRPolicy(PreTrainedPolicy):
             self.base._queues = own
 
     def _with_history(self, batch: dict[str, Any]) -> dict[str, Any]:
-        """Observation history where the base reads one. Diffusion reads (rows, n_obs_steps,
-        ...) observations: keep the last n_obs_steps frames of each row (the first frame
-        repeated at an episode's start), as Diffusion's own select_action does, for the 3B
-        rows. A queue-fed base (VQ-BeT): its cameras stacked as its select_action stacks them,
-        appended to IDR's queues with lerobot's ``populate_queues``, as its select_action
-        appends to its own."""
-        if self.base.config.type in QUEUE_FED_TYPES:
-            from lerobot.policies.utils import populate_queues
-
-            out = dict(batch)
-            out.pop(ACTION, None)  # as its select_action pops it: no action is observed
-            out[OBS_IMAGES] = torch.stack(
-                [batch[k] for k in self.base.config.image_features], dim=-4
-            )
-            if self._fed is None:  # the base's queue layout, empty
-                self._fed = {k: deque(maxlen=q.maxlen) for k, q in self.base._queues.items()}
-            self._fed = populate_queues(self._fed, out, exclude_keys=[ACTION])
-            return out
-        if self.base.config.type != "diffusion":
+        """Observation history where the base reads one (``lerobot_policy_idr.runtime``, the
+        code idr-eval's harness runs too): the frame joins the episode's last
+        ``history_length`` frames of the 3B rows; Diffusion reads them stacked (the first
+        repeated at an episode's start, as its own select_action does); a queue-fed base
+        (VQ-BeT) reads queues that lerobot's ``populate_queues`` fills from them."""
+        n = history_length(self.base.config)
+        if self.base.config.type not in (*STACKED_TYPES, *QUEUE_FED_TYPES):
             return batch
-        out = dict(batch)
+        queued = self.base.config.type in QUEUE_FED_TYPES
+        frame = queue_frame(list(self.base.config.image_features), batch) if queued else batch
+        self._frames.append(frame)
+        if queued:
+            self._fed = lent_queues(self.base._queues, list(self._frames))
+            return frame
         keys = [k for k in batch if k in _HISTORY_KEYS or is_image_key(k)]
-        for key in keys:
-            q = self._history.setdefault(key, deque(maxlen=self.n_obs_steps))
-            while len(q) < self.n_obs_steps - 1:
-                q.append(batch[key])
-            q.append(batch[key])
-            out[key] = torch.stack(list(q), dim=1)
-        return out
+        return stack_frames(list(self._frames), n, keys)
 
     # -- the sidecar ----------------------------------------------------------------------
     def _rows(self, b: int, diag: Any, **columns: Any) -> list[dict[str, Any]]:

@@ -39,3 +39,59 @@ class TemporalEnsemble:
         # lerobot's ensembler keeps float64 counts and the chunks' own dtype
         action = self._ensembler.update(x)
         return action.numpy() if as_numpy else action
+
+
+# -- observation history: what a history-fed base reads, for the harness and the plugin alike --
+
+#: Base types whose ``predict_action_chunk`` reads the observation queues that their
+#: ``select_action`` fills, not the batch it is given (VQ-BeT, Multi-Task DiT): IDR keeps the
+#: frames and lends queues built from them to the base for each forward.
+QUEUE_FED_TYPES = ("vqbet", "multi_task_dit")
+#: Base types whose ``predict_action_chunk`` reads (rows, n_obs_steps, ...) observations
+STACKED_TYPES = ("diffusion",)
+OBS_IMAGES = "observation.images"  # the stacked cameras a queue-fed base's queues hold
+ACTION = "action"
+
+
+def history_length(config: Any) -> int:
+    """Frames one inference of a base of ``config`` reads: its ``n_obs_steps`` for a
+    history-fed type (Diffusion, a queue-fed type), else 1 (the current frame alone)."""
+    if config.type in STACKED_TYPES or config.type in QUEUE_FED_TYPES:
+        return int(getattr(config, "n_obs_steps", 1) or 1)
+    return 1
+
+
+def stack_frames(frames: list[dict[str, Any]], n: int, keys: list[str]) -> dict[str, Any]:
+    """Diffusion's input from the processed frames of an episode (oldest first, the current
+    last): ``keys`` as (rows, n, ...) of the last ``n`` frames, the oldest repeated where the
+    episode has fewer (as Diffusion's own queues start: filled with the first frame); the other
+    entries from the current frame."""
+    last = frames[-n:]
+    last = [last[0]] * (n - len(last)) + last
+    out = dict(frames[-1])
+    for key in keys:
+        out[key] = torch.stack([f[key] for f in last], dim=1)
+    return out
+
+
+def queue_frame(image_keys: list[str], batch: dict[str, Any]) -> dict[str, Any]:
+    """One processed frame as a queue-fed base's ``select_action`` queues it: no action
+    observed, its cameras stacked under ``observation.images``."""
+    out = dict(batch)
+    out.pop(ACTION, None)
+    out[OBS_IMAGES] = torch.stack([batch[k] for k in image_keys], dim=-4)
+    return out
+
+
+def lent_queues(layout: dict[str, Any], frames: list[dict[str, Any]]) -> dict[str, Any]:
+    """Queues of the base's ``layout`` (its ``_queues``: key -> deque with its maxlen) filled
+    from the episode's queued frames (``queue_frame``, oldest first) by lerobot's own
+    ``populate_queues``, as the base's ``select_action`` fills its queues step by step."""
+    from collections import deque
+
+    from lerobot.policies.utils import populate_queues
+
+    queues = {k: deque(maxlen=q.maxlen) for k, q in layout.items()}
+    for frame in frames:
+        queues = populate_queues(queues, frame, exclude_keys=[ACTION])
+    return queues

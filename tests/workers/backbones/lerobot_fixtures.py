@@ -95,7 +95,9 @@ def build_act(
     return save_checkpoint(ACTPolicy(cfg).eval(), cfg, _stats(image, state, action, cams), out)
 
 
-def build_diffusion(out: Path, image: int = 64, state: int = 8, action: int = 7) -> Path:
+def build_diffusion(
+    out: Path, image: int = 64, state: int = 8, action: int = 7, n_obs_steps: int = 1
+) -> Path:
     from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
     from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
 
@@ -109,7 +111,7 @@ def build_diffusion(out: Path, image: int = 64, state: int = 8, action: int = 7)
         down_dims=(32, 64),
         horizon=8,
         n_action_steps=4,
-        n_obs_steps=1,
+        n_obs_steps=n_obs_steps,
         crop_shape=None,
         device="cpu",
     )

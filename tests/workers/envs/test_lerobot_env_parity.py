@@ -162,3 +162,32 @@ def test_a_zoo_checkpoint_trained_at_96px_gives_lerobot_evals_metaworld_episodes
         MetaworldEnv(task=task), ckpt, episodes=EPISODES, seed=SEED, max_steps=STEPS
     )
     _assert_same_episodes(theirs, info, ours, rows)
+
+
+@pytest.mark.slow
+@_needs("gym_pusht", "gym-pusht")
+def test_a_history_fed_baseline_follows_lerobot_evals_own_rollout_on_pusht(tmp_path) -> None:
+    """VQ-BeT reads the observation queues its select_action fills at every step (2 frames):
+    idr-eval's baseline sends the episode's past frames with each request and lends the base
+    queues built from them, so its actions follow lerobot-eval's rollout of the bare
+    checkpoint (codes sampled near temperature 0: the argmax)."""
+    from lerobot.envs.configs import PushtEnv
+
+    from tests.workers.backbones.lerobot_fixtures import build_vqbet
+
+    size = 96
+    ckpt = build_vqbet(
+        tmp_path / "vqbet", image=size, state=2, action=2, temperature=1e-6, cams=("image!",)
+    )
+    env = {"observation_height": size, "observation_width": size, "episode_length": STEPS}
+    ours, rows = _our_episodes(ckpt, tmp_path, {"type": "pusht", **env}, replan=4)
+    theirs, _info = lerobot_eval_env(PushtEnv(**env), ckpt, episodes=EPISODES, seed=SEED)
+    assert len(theirs) == len(ours) == EPISODES
+    for e, (a, b, row) in enumerate(zip(theirs, ours, rows, strict=True)):
+        assert len(a["actions"]) == len(b) == row.steps == STEPS, f"episode {e}: lengths"
+        worst = max(
+            float(np.abs(x.astype(np.float32) - y).max())
+            for x, y in zip(a["actions"], b, strict=True)
+        )
+        assert worst <= 1e-5, f"episode {e}: actions differ by {worst}"
+    assert np.ptp(np.stack(ours[0]), axis=0).max() > 0.1  # the actions move

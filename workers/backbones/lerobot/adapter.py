@@ -35,7 +35,7 @@ from idr_core.checkpoint import check_checkpoint_dir
 from idr_core.plugins import import_error, policy_plugins
 from idr_core.sampling import DETERMINISTIC_TYPES, crn_mode, noise_shape
 
-from workers.backbones.base import Observation
+from workers.backbones.base import HISTORY_IMAGES, HISTORY_STATE, Observation
 from workers.interventions import intervene
 from workers.io_spec import PolicyIO
 
@@ -318,6 +318,11 @@ class LerobotBackbone:
             or getattr(cfg, "chunk_size", None)
             or cfg.action_chunk_size  # VQ-BeT executes its whole chunk
         )
+        from lerobot_policy_idr.runtime import history_length
+
+        # frames one inference reads (Diffusion's n_obs_steps...): the episode loop sends the
+        # past ones with each request
+        self.history_steps = history_length(cfg)
         self.crn_mode = crn_mode(cfg.type, self.policy.predict_action_chunk)
         self.can_batch = (
             self.crn_mode != "seeded_rng"
@@ -388,45 +393,47 @@ class LerobotBackbone:
         batch["task"] = list(obs.instruction)
         return batch
 
-    def _add_obs_history(self, batch: dict[str, Any]) -> dict[str, Any]:
-        """Diffusion reads (B, n_obs_steps, ...) observations. The history is the current frame
-        repeated (what select_action does at an episode's first step): three IDR passes per step
-        cannot share one queue of past observations."""
-        n = int(getattr(self.config, "n_obs_steps", 1))
-        if self.config.type != "diffusion":
-            return batch
-        out = dict(batch)
-        for key in [
-            k for k in out if k == STATE_KEY or k.startswith("observation.environment_state")
-        ]:
-            x = out[key]
-            if x.ndim == 2:
-                out[key] = x[:, None].expand(-1, n, -1)
-        for key in self.image_shapes:
-            x = out[key]
-            if x.ndim == 4:
-                out[key] = x[:, None].expand(-1, n, -1, -1, -1)
-        return out
+    def _frames(self, obs: Observation, batch: dict[str, Any]) -> list[dict[str, Any]]:
+        """The episode's frames that a history-fed base reads, oldest first, the current last:
+        the past ones travel with the request (``Observation.extras``, ``HISTORY_IMAGES`` /
+        ``HISTORY_STATE``: the service stays a pure function of each request), each made a
+        batch as the current one is."""
+        images = obs.extras.get(HISTORY_IMAGES)
+        if not images:
+            return [batch]
+        state = obs.extras.get(HISTORY_STATE)
+        k = next(iter(images.values())).shape[1]
+        past = [
+            self._batch(
+                Observation(
+                    {cam: x[:, i] for cam, x in images.items()},
+                    state[:, i] if state is not None else obs.state,
+                    list(obs.instruction),
+                )
+            )
+            for i in range(k)
+        ]
+        return [*past, batch]
 
-    def _fed_queues(self, processed: dict[str, Any]) -> dict[str, Any] | None:
-        """A queue-fed policy (VQ-BeT: its predict_action_chunk reads the observation queues
-        its select_action fills): queues of the current frame repeated, filled by lerobot's
-        ``populate_queues`` from the stacked cameras (what select_action does at an episode's
-        first step), lent for this call; None for other policies."""
-        from lerobot_policy_idr.modeling_idr import OBS_IMAGES, QUEUE_FED_TYPES
-
-        if self.config.type not in QUEUE_FED_TYPES:
-            return None
-        from collections import deque
-
-        from lerobot.policies.utils import populate_queues
-
-        processed.pop("action", None)  # as its select_action pops it
-        processed[OBS_IMAGES] = torch.stack(
-            [processed[k] for k in self.config.image_features], dim=-4
+    def _with_history(self, frames: list[dict[str, Any]]) -> tuple[dict[str, Any], Any]:
+        """The base's input from the processed frames (``lerobot_policy_idr.runtime``, as the
+        idr policy builds it): Diffusion's stacked history, or a queue-fed base's queues to
+        lend for the call (else None)."""
+        from lerobot_policy_idr.runtime import (
+            QUEUE_FED_TYPES,
+            lent_queues,
+            queue_frame,
+            stack_frames,
         )
-        empty = {k: deque(maxlen=q.maxlen) for k, q in self.policy._queues.items()}
-        return populate_queues(empty, processed, exclude_keys=["action"])
+
+        if self.config.type in QUEUE_FED_TYPES:
+            queued = [queue_frame(list(self.config.image_features), f) for f in frames]
+            return queued[-1], lent_queues(self.policy._queues, queued)
+        if self.history_steps == 1 and self.config.type != "diffusion":
+            return frames[-1], None
+        keys = [k for k in frames[-1] if k == STATE_KEY or k in self.image_shapes]
+        keys += [k for k in frames[-1] if k.startswith("observation.environment_state")]
+        return stack_frames(frames, self.history_steps, keys), None
 
     @torch.inference_mode()
     def predict_chunk(
@@ -443,15 +450,15 @@ class LerobotBackbone:
                     f"{self.name}: no normalizer step in the preprocessor for state_space=normalized"
                 )
             self._pending_do = (torch.as_tensor(obs.do_state), intervention)
-        try:
-            processed = self.pre(batch)
+        try:  # each frame through the preprocessor, do(S) on the flagged rows of every frame
+            frames = [self.pre(f) for f in self._frames(obs, batch)]
         finally:
             self._pending_do = None
-        processed = self._add_obs_history(processed)
+        processed, lent = self._with_history(frames)
         from lerobot_policy_idr.modeling_idr import weights_version
 
         version = weights_version(self.policy)
-        lent, own = self._fed_queues(processed), getattr(self.policy, "_queues", None)
+        own = getattr(self.policy, "_queues", None)
         if lent is not None:
             self.policy._queues = lent
         try:
