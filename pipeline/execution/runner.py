@@ -58,6 +58,7 @@ from pipeline.rundir import (
     RUN_JSON,
     VIDEOS_DIR,
     check_run_dir,
+    policy_token,
     read_run_json,
     update_run_json,
 )
@@ -70,6 +71,7 @@ if TYPE_CHECKING:
     from pipeline.tracking.tracker import Tracker
     from workers.envs.base import TaskSpec
     from workers.envs.server.spec import ServerSpec
+    from workers.policy_socket import SocketSettings
 
 log = logging.getLogger("idr_eval.runner")
 
@@ -173,7 +175,39 @@ def _worker_spec(
         video_camera=cfg.videos.camera,
         video_fps=cfg.videos.fps,
         video_dir=str((run_dir / VIDEOS_DIR).resolve()),
+        policy_socket=_policy_socket(cfg, run_dir),
     )
+
+
+def _policy_socket(cfg: RunConfig, run_dir: Path) -> SocketSettings | None:
+    """A shared policy's sockets (``executor.policy_transport=socket``): loopback on a local
+    Ray, the node's address on a cluster (``executor.address``); the run's token (made with
+    the run dir, ``pipeline.rundir.policy_token``); frames bounded by what the env renders and
+    takes, connections by the episodes in flight. None: no socket."""
+    ex = cfg.executor
+    if ex.policy != "shared" or ex.policy_transport != "socket":
+        return None
+    from pipeline.planning.checkpoint_fit import describe_env
+    from workers.policy_socket import (
+        DEFAULT_IDLE_S,
+        SocketLimits,
+        SocketSettings,
+        SocketToken,
+        connection_cap,
+        frame_bound,
+    )
+
+    try:
+        env = describe_env(cfg.env.suite, cfg.env.params)
+    except ValueError:  # the pre-flight said so already; the default bound stands
+        env = None
+    limits = SocketLimits(
+        max_frame=frame_bound(env),
+        max_connections=ex.policy_connections or connection_cap(ex.episodes_per_policy_actor()),
+        idle_timeout_s=ex.policy_idle_s or ex.episode_timeout_s or DEFAULT_IDLE_S,
+    )
+    host = None if ex.kind == "ray" and ex.address else "127.0.0.1"
+    return SocketSettings(host, SocketToken(policy_token(run_dir)), limits)
 
 
 def run_params(plan: RunPlan) -> dict[str, object]:
