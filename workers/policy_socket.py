@@ -174,17 +174,27 @@ AUTH_MAGIC = b"IDRPOL01"  # names the protocol and its version: a stray client f
 AUTH_FRAME_BYTES = len(AUTH_MAGIC) + TOKEN_BYTES  # 40: the fixed-size first frame
 
 
-@dataclasses.dataclass(frozen=True, repr=False)
 class SocketToken:
     """The run's secret for its policy sockets (``pipeline.rundir.policy_token`` keeps it in the
-    run dir, mode 0600). Its repr and str never show it: a token in a log line or an error
-    message reads ``SocketToken(...)``."""
+    run dir, mode 0600). Its repr and str never show it: a token in a log line, an error message
+    or a pretty-printer's dump reads ``SocketToken(...)`` (a plain class, not a dataclass, so
+    that no printer walks its fields)."""
 
-    secret: bytes
+    __slots__ = ("_secret",)
 
-    def __post_init__(self) -> None:
-        if not isinstance(self.secret, bytes) or len(self.secret) != TOKEN_BYTES:
+    def __init__(self, secret: bytes) -> None:
+        if not isinstance(secret, bytes) or len(secret) != TOKEN_BYTES:
             raise ValueError(f"a policy socket token is {TOKEN_BYTES} bytes")
+        self._secret = secret
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, SocketToken) and hmac.compare_digest(self._secret, other._secret)
+
+    def __hash__(self) -> int:
+        return hash(self._secret)
+
+    def __reduce__(self) -> tuple[type[SocketToken], tuple[bytes]]:  # over Ray's calls
+        return (SocketToken, (self._secret,))
 
     @classmethod
     def new(cls) -> SocketToken:
@@ -195,10 +205,10 @@ class SocketToken:
         return cls(bytes.fromhex(text.strip()))
 
     def hex(self) -> str:
-        return self.secret.hex()
+        return self._secret.hex()
 
     def auth_frame(self) -> bytes:
-        return AUTH_MAGIC + self.secret
+        return AUTH_MAGIC + self._secret
 
     def accepts(self, frame: bytes) -> bool:
         """Whether ``frame`` is this token's auth frame (in constant time)."""
@@ -344,9 +354,9 @@ class PolicySocketServer:
         def drop(conn: socket.socket, kind: str | None) -> None:
             _, _, peer = pending.pop(conn)
             sel.unregister(conn)
-            conn.close()
-            if kind is not None:
+            if kind is not None:  # counted before the peer can see the close
                 self._count(kind, peer)
+            conn.close()
 
         try:
             while not self._closed:
@@ -410,15 +420,15 @@ class PolicySocketServer:
         pending.pop(conn)
         sel.unregister(conn)
         if not self._token.accepts(buf):
-            conn.close()
             self._count("bad_token", peer)
+            conn.close()
             return
         with self._lock:
             admitted = self._active < self.limits.max_connections
             self._active += admitted
         if not admitted:
-            conn.close()
             self._count("over_cap", peer)
+            conn.close()
             return
         self._count("accepted")
         conn.setblocking(True)

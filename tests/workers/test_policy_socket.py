@@ -113,7 +113,9 @@ def test_a_client_whose_actor_is_gone_is_told_so_after_its_tries():
     server = PolicySocketServer(lambda r, c: None, "127.0.0.1", token)
     address = list(server.address)
     server.close()
-    client = PolicyServiceClient(None, {"socket": address, "token": token})  # no Ray handle to ask again
+    client = PolicyServiceClient(
+        None, {"socket": address, "token": token}
+    )  # no Ray handle to ask again
     client.set_config(RefinerConfig(mode="E"))
     o = FakeMarkerEnv().reset("reach", 0, 0)
     with pytest.raises(PolicyServiceError, match=r"cannot be reached .*ConnectionRefused"):
