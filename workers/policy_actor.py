@@ -80,10 +80,10 @@ class BatchingPolicyActor:
         threading.Thread(target=self._batcher, name="batcher", daemon=True).start()
         self._socket: PolicySocketServer | None = None
         if transport == "socket":  # outside a run (a benchmark, a test): loopback, a new token
-            settings = socket_settings or SocketSettings("127.0.0.1", SocketToken.new())
-            self._token = settings.token
+            settings = socket_settings or SocketSettings("127.0.0.1", None)
+            self._token = settings.token or SocketToken.new()
             self._socket = PolicySocketServer(
-                self.infer, settings.bind_host(), settings.token, settings.limits
+                self.infer, settings.bind_host(), self._token, settings.limits
             )
 
     def describe(self) -> dict[str, Any]:

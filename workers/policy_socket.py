@@ -40,6 +40,7 @@ import contextlib
 import dataclasses
 import hmac
 import logging
+import math
 import secrets
 import selectors
 import socket
@@ -131,8 +132,11 @@ def _array(value: Any, what: str, ndim: int) -> np.ndarray:
         raise ValueError(f"{what}: expected a numeric array, got {type(value).__name__}")
     if value.ndim != ndim or value.shape[0] != 1:
         raise ValueError(f"{what}: expected {ndim} dims, batch 1; got shape {value.shape}")
-    if value.dtype.kind == "f" and not np.isfinite(value).all():
-        raise ValueError(f"{what}: holds NaN or infinity")
+    if value.dtype.kind == "f":  # a small array (a state) in Python: a tenth of numpy's cost
+        small = value.size <= 1024
+        finite = all(map(math.isfinite, value.ravel().tolist())) if small else None
+        if not (finite if small else np.isfinite(value).all()):
+            raise ValueError(f"{what}: holds NaN or infinity")
     return value
 
 
@@ -149,9 +153,9 @@ def check_request(msg: Any) -> None:
         raise ValueError("client: a name of at most 256 characters, or None")
     if isinstance(msg["seed"], bool) or not isinstance(msg["seed"], int):
         raise ValueError(f"seed: an integer, got {type(msg['seed']).__name__}")
-    for key in ("idr", "intervention", "extras"):
-        if not isinstance(msg[key], dict) or not all(isinstance(k, str) for k in msg[key]):
-            raise ValueError(f"{key}: a map of names")
+    for key in ("idr", "intervention", "extras"):  # the configs check their own fields
+        if not isinstance(msg[key], dict):
+            raise ValueError(f"{key}: a map")
     images = msg["images"]
     if not isinstance(images, dict) or not all(isinstance(k, str) for k in images):
         raise ValueError("images: a map of camera names to arrays")
@@ -280,10 +284,12 @@ class SocketLimits:
 @dataclasses.dataclass(frozen=True)
 class SocketSettings:
     """A run's policy sockets: where they listen (None: the node's address, which the other
-    nodes of a cluster reach; a local Ray gives 127.0.0.1), the run's token, the limits."""
+    nodes of a cluster reach; a local Ray gives 127.0.0.1), the run's token (None: a new one
+    per policy actor, as outside a run; the runner sets the run's when the run starts), the
+    limits."""
 
     host: str | None
-    token: SocketToken
+    token: SocketToken | None
     limits: SocketLimits = SocketLimits()
 
     def bind_host(self) -> str:
@@ -317,6 +323,10 @@ class PolicySocketServer:
         self._lock = threading.Lock()
         self._counts: Counter[str] = Counter()
         self._active = 0
+        # authenticated connections -> when they were last heard from (inf: being answered);
+        # the selector thread closes the idle ones (no timeout on each read: ~10 us a request)
+        self._live: dict[socket.socket, float] = {}
+        self._idled: set[socket.socket] = set()
         self._closed = False
         self._thread = threading.Thread(target=self._accept, name="policy-socket", daemon=True)
         self._thread.start()
@@ -358,11 +368,13 @@ class PolicySocketServer:
                 self._count(kind, peer)
             conn.close()
 
+        reap_every = min(1.0, self.limits.idle_timeout_s / 4)
+        next_reap = time.monotonic() + reap_every
         try:
             while not self._closed:
                 now = time.monotonic()
-                wait = min((d for d, _, _ in pending.values()), default=now + 3600) - now
-                for key, _ in sel.select(max(0.0, wait)):
+                wait = min((d for d, _, _ in pending.values()), default=next_reap) - now
+                for key, _ in sel.select(max(0.0, min(wait, next_reap - now))):
                     if key.data == "wake":
                         return
                     if key.data == "listen":
@@ -375,12 +387,24 @@ class PolicySocketServer:
                 now = time.monotonic()
                 for conn in [c for c, (d, _, _) in pending.items() if d <= now]:
                     drop(conn, "auth_timeout")
+                if now >= next_reap:
+                    self._reap(now)
+                    next_reap = now + reap_every
         except Exception:  # never out of the thread: the socket just stops taking connections
             log.exception("policy socket %s:%d: the accept loop failed", *self.address)
         finally:
             for conn in list(pending):
                 drop(conn, None)
             sel.close()
+
+    def _reap(self, now: float) -> None:
+        """Shut the connections idle for longer than ``idle_timeout_s`` (their threads see the
+        end of the stream and count them)."""
+        for conn, seen in list(self._live.items()):
+            if now - seen > self.limits.idle_timeout_s and conn not in self._idled:
+                self._idled.add(conn)
+                with contextlib.suppress(OSError):
+                    conn.shutdown(socket.SHUT_RDWR)
 
     def _take(self, sel: selectors.BaseSelector, pending: dict, drop: Callable) -> None:
         try:
@@ -432,7 +456,7 @@ class PolicySocketServer:
             return
         self._count("accepted")
         conn.setblocking(True)
-        conn.settimeout(self.limits.idle_timeout_s)
+        self._live[conn] = time.monotonic()
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         threading.Thread(target=self._serve, args=(conn, peer), daemon=True).start()
 
@@ -445,6 +469,8 @@ class PolicySocketServer:
         except Exception:  # never out of the thread; the connection is closed
             log.exception("policy socket %s:%d: serving %s failed", *self.address, peer)
         finally:
+            self._live.pop(conn, None)
+            self._idled.discard(conn)
             with self._lock:
                 self._active -= 1
 
@@ -452,9 +478,6 @@ class PolicySocketServer:
         """One request and its reply; False when the connection is done."""
         try:
             msg = wire.recv(conn, self.limits.max_frame)
-        except TimeoutError:
-            self._count("idle_closed", peer)
-            return False
         except wire.FrameTooLarge:
             self._count("oversized", peer)
             return False
@@ -462,7 +485,10 @@ class PolicySocketServer:
             self._count("malformed", peer)
             return False
         except (wire.WireError, OSError):
+            if conn in self._idled:  # shut by the selector thread (_reap)
+                self._count("idle_closed", peer)
             return False  # the client is done (or gone)
+        self._live[conn] = math.inf  # being answered: not idle, however long the forward
         try:
             request, client = request_from_message(msg)
         except Exception as exc:  # not a request: its error alone, nothing reaches a batch
@@ -479,6 +505,7 @@ class PolicySocketServer:
         return self._reply(conn, reply)
 
     def _reply(self, conn: socket.socket, reply: dict[str, Any]) -> bool:
+        self._live[conn] = time.monotonic()
         try:
             wire.send(conn, reply)
         except TypeError as exc:  # an answer msgpack cannot carry: said instead

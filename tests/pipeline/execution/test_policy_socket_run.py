@@ -19,7 +19,7 @@ import pandas as pd
 import psutil
 import pytest
 
-from pipeline.execution.runner import _policy_socket, execute, plan_run
+from pipeline.execution.runner import _policy_socket, _with_policy_token, execute, plan_run
 from pipeline.planning.config import load_config
 from pipeline.rundir import LOGS_DIR, POLICY_TOKEN_FILE
 from tests.pipeline.execution.test_runner import _episodes, _steps
@@ -146,7 +146,13 @@ def test_a_local_ray_binds_loopback_a_cluster_the_node_and_the_bounds_follow_the
     assert local is not None and local.host == "127.0.0.1" and local.bind_host() == "127.0.0.1"
     assert local.limits.max_connections == 2 * 6 + 8  # 2 actors x 3 envs in flight
     assert local.limits.idle_timeout_s == 900.0 and local.limits.max_frame == DEFAULT_MAX_FRAME
-    assert local.token == SocketToken.from_hex((tmp_path / POLICY_TOKEN_FILE).read_text())
+    assert (
+        local.token is None and not (tmp_path / POLICY_TOKEN_FILE).exists()
+    )  # planning writes nothing
+    plan = plan_run(cfg, tmp_path / "run")
+    started = _with_policy_token(plan).worker_spec.policy_socket
+    assert started.token == SocketToken.from_hex((tmp_path / "run" / POLICY_TOKEN_FILE).read_text())
+    assert _with_policy_token(plan).worker_spec.policy_socket.token == started.token  # kept
     cluster = ["executor.address=10.0.0.1:6379", "executor.policy_connections=5"]
     on_cluster = load_config(
         CONF / "smoke.yaml", [*SHARED, *cluster, "executor.episode_timeout_s=120"]
@@ -154,7 +160,6 @@ def test_a_local_ray_binds_loopback_a_cluster_the_node_and_the_bounds_follow_the
     remote = _policy_socket(on_cluster, tmp_path)
     assert remote is not None and remote.host is None  # the node's address, with the token
     assert remote.limits.max_connections == 5 and remote.limits.idle_timeout_s == 120
-    assert remote.token == local.token  # one run dir, one token
     # an env that describes itself bounds the frames by its images and dims
     io = EnvIO(cameras=("agentview", "wrist"), image_size=128, state_dim=8, action_dim=7)
     monkeypatch.setattr("pipeline.planning.checkpoint_fit.describe_env", lambda suite, params: io)
