@@ -7,6 +7,7 @@ run's token is in the run dir, mode 0600, and nowhere in its log. Loopback only.
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import socket
 import stat
@@ -19,7 +20,13 @@ import pandas as pd
 import psutil
 import pytest
 
-from pipeline.execution.runner import _policy_socket, _with_policy_token, execute, plan_run
+from pipeline.execution.runner import (
+    _policy_socket,
+    _with_policy_token,
+    execute,
+    plan_run,
+    run_params,
+)
 from pipeline.planning.config import load_config
 from pipeline.rundir import LOGS_DIR, POLICY_TOKEN_FILE
 from tests.pipeline.execution.test_runner import _episodes, _steps
@@ -153,6 +160,9 @@ def test_a_local_ray_binds_loopback_a_cluster_the_node_and_the_bounds_follow_the
     started = _with_policy_token(plan).worker_spec.policy_socket
     assert started.token == SocketToken.from_hex((tmp_path / "run" / POLICY_TOKEN_FILE).read_text())
     assert _with_policy_token(plan).worker_spec.policy_socket.token == started.token  # kept
+    secret = (tmp_path / "run" / POLICY_TOKEN_FILE).read_text().strip()
+    assert secret not in json.dumps(run_params(plan), default=str)  # no MLflow param holds it
+    assert secret not in repr(_with_policy_token(plan))
     cluster = ["executor.address=10.0.0.1:6379", "executor.policy_connections=5"]
     on_cluster = load_config(
         CONF / "smoke.yaml", [*SHARED, *cluster, "executor.episode_timeout_s=120"]
