@@ -10,6 +10,8 @@ Layout of ``RUN_DIR`` (the contract of docs/guarantees.md):
   batches moved aside
 - ``report.md``, ``report.html``, ``figures/``, ``calibration.json``, ``tracking.json``,
   ``logs/``, ``.lock``
+- ``policy.token`` the run's secret for its policy sockets (a shared policy on the socket
+  transport): mode 0600, made with the run, kept for its resumes; never logged, never tracked
 
 Where a run may write: ``..`` and symlinks must not lead a RUN_DIR out of the output root.
 The output root (config ``output_root``) is the trust boundary for paths that come from a
@@ -42,6 +44,7 @@ CALIBRATION_FILE = "calibration.json"
 TRACKING_FILE = "tracking.json"
 LOGS_DIR = "logs"
 LOCK_FILE = ".lock"
+POLICY_TOKEN_FILE = "policy.token"  # hex, mode 0600 (workers.policy_socket.SocketToken)
 MARKERS = (RUN_JSON, EPISODES_DIR, STEPS_DIR)  # any of them: the folder is an idr-eval run dir
 
 
@@ -153,3 +156,32 @@ def check_run_dir(run_dir: str | Path, output_root: str | Path) -> Path:
             "output_root to a folder that contains it"
         )
     return given
+
+
+def policy_token(run_dir: str | Path) -> bytes:
+    """The run's policy-socket secret (32 bytes), from ``RUN_DIR/policy.token``: made on first
+    use with mode 0600 (created so, never widened), and made anew where the file is unreadable
+    or others may read it (a token others could read is no secret)."""
+    import secrets
+
+    path = Path(run_dir) / POLICY_TOKEN_FILE
+    try:
+        st = path.stat()
+        if st.st_mode & 0o077 == 0:
+            secret = bytes.fromhex(path.read_text().strip())
+            if len(secret) == 32:
+                return secret
+    except (OSError, ValueError):
+        pass
+    secret = secrets.token_bytes(32)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.unlink(missing_ok=True)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(secret.hex() + "\n")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return secret

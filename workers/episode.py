@@ -56,6 +56,9 @@ class WorkerSpec:
     video_camera: str | None = None
     video_fps: float | None = None
     video_dir: str | None = None
+    # shared policy on the socket transport: where the policy actors listen, the run's token and
+    # the socket's limits (workers.policy_socket.SocketSettings); None: no socket
+    policy_socket: Any = None
 
 
 @dataclass(frozen=True)

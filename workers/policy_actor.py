@@ -34,10 +34,12 @@ from workers.idr_wrapper import IDRStep
 from workers.interventions import InterventionConfig
 from workers.policy_service import InferRequest, PolicyWorker
 from workers.policy_socket import (
+    DEFAULT_MAX_FRAME,
     PolicyServiceError,
     PolicySocketConnection,
     PolicySocketServer,
-    node_address,
+    SocketSettings,
+    SocketToken,
 )
 
 
@@ -58,6 +60,7 @@ class BatchingPolicyActor:
         threads: int | None = None,
         env: dict[str, str] | None = None,
         transport: str = "socket",
+        socket_settings: SocketSettings | None = None,
     ) -> None:
         from workers.hardware import apply_numerics_env
         from workers.worker_log import log_to_file
@@ -75,9 +78,13 @@ class BatchingPolicyActor:
         # one forward at a time: the batcher's, or a lone client's run in its own Ray thread
         self._forward = threading.Lock()
         threading.Thread(target=self._batcher, name="batcher", daemon=True).start()
-        self._socket = (
-            PolicySocketServer(self.infer, node_address()) if transport == "socket" else None
-        )
+        self._socket: PolicySocketServer | None = None
+        if transport == "socket":  # outside a run (a benchmark, a test): loopback, a new token
+            settings = socket_settings or SocketSettings("127.0.0.1", None)
+            self._token = settings.token or SocketToken.new()
+            self._socket = PolicySocketServer(
+                self.infer, settings.bind_host(), self._token, settings.limits
+            )
 
     def describe(self) -> dict[str, Any]:
         import os
@@ -86,13 +93,18 @@ class BatchingPolicyActor:
         return {
             **self.worker.describe(),
             "worker": f"{socket.gethostname()}:{os.getpid()}",
-            # where episode workers send requests (workers.policy_socket); None: Ray calls
+            # where episode workers send requests (workers.policy_socket); None: Ray calls.
+            # The token reaches them over Ray's own (authenticated) calls, never a log line
             "socket": list(self._socket.address) if self._socket is not None else None,
+            "token": self._token if self._socket is not None else None,
+            "max_frame": self._socket.limits.max_frame if self._socket is not None else None,
         }
 
-    def stats(self) -> dict[str, float]:
+    def stats(self) -> dict[str, Any]:
         sizes = list(self._batch_sizes)
         return {
+            # connections and frames by outcome (refusals among them), for the run's log
+            "socket": self._socket.stats() if self._socket is not None else {},
             "forwards": len(sizes),
             "requests": sum(sizes),
             "mean_batch": float(np.mean(sizes)) if sizes else 0.0,
@@ -152,12 +164,14 @@ class BatchingPolicyActor:
 
     def _run(self, batch: list[_Pending]) -> None:
         """One forward of ``batch`` (the caller holds ``_forward``); each request gets its answer
-        or its error."""
+        or its error. A forward that fails as a whole is run again per request, so a request
+        that cannot be answered (a peer's odd but well-formed one) fails alone: with a fixed
+        forward shape each of its mates gets the answer it gets in any batch."""
         t0 = time.perf_counter()
         try:  # a forward out of memory is split (PolicyWorker): errors are per request
             answers = self.worker.infer_each([p.request for p in batch])
-        except Exception as exc:  # the whole batch fails alike (each episode an error row)
-            answers = [exc] * len(batch)
+        except Exception as exc:
+            answers = [exc] if len(batch) == 1 else [self._alone(p.request) for p in batch]
         finally:
             self._busy_s += time.perf_counter() - t0
         self._batch_sizes.append(len(batch))
@@ -167,6 +181,12 @@ class BatchingPolicyActor:
             else:
                 p.answer = answer
             p.done.set()
+
+    def _alone(self, request: InferRequest) -> IDRStep | BaseException:
+        try:
+            return self.worker.infer_each([request])[0]
+        except Exception as exc:
+            return exc
 
 
 #: times a request is sent again over a new connection to a policy actor that went away
@@ -292,7 +312,11 @@ class PolicyServiceClient:
     def _connection(self) -> PolicySocketConnection:
         conn = getattr(self._local, "conn", None)
         if conn is None:
-            conn = self._local.conn = PolicySocketConnection(tuple(self.info["socket"]))
+            conn = self._local.conn = PolicySocketConnection(
+                tuple(self.info["socket"]),
+                self.info["token"],
+                self.info.get("max_frame") or DEFAULT_MAX_FRAME,
+            )
         return conn
 
     def _drop_connection(self) -> None:

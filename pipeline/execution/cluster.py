@@ -122,6 +122,12 @@ def init_ray(
     env = {"RAY_DEDUP_LOGS": "1"}
     for k, v in env.items():
         os.environ.setdefault(k, v)
+    if not address and os.environ.get("RAY_AUTH_MODE", "").lower() == "disabled":
+        # Ray 2.60 turns token authentication on for a local Ray; its ports bind every address
+        log.warning(
+            "RAY_AUTH_MODE=disabled: this local Ray takes calls from anyone who reaches its "
+            "ports (every address of this machine); unset it to keep Ray's token authentication"
+        )
     try:
         if address:
             ray.init(address=address, log_to_driver=False)

@@ -58,6 +58,7 @@ from pipeline.rundir import (
     RUN_JSON,
     VIDEOS_DIR,
     check_run_dir,
+    policy_token,
     read_run_json,
     update_run_json,
 )
@@ -70,6 +71,7 @@ if TYPE_CHECKING:
     from pipeline.tracking.tracker import Tracker
     from workers.envs.base import TaskSpec
     from workers.envs.server.spec import ServerSpec
+    from workers.policy_socket import SocketSettings
 
 log = logging.getLogger("idr_eval.runner")
 
@@ -173,7 +175,51 @@ def _worker_spec(
         video_camera=cfg.videos.camera,
         video_fps=cfg.videos.fps,
         video_dir=str((run_dir / VIDEOS_DIR).resolve()),
+        policy_socket=_policy_socket(cfg, run_dir),
     )
+
+
+def _policy_socket(cfg: RunConfig, run_dir: Path) -> SocketSettings | None:
+    """A shared policy's sockets (``executor.policy_transport=socket``): loopback on a local
+    Ray, the node's address on a cluster (``executor.address``); frames bounded by what the env
+    renders and takes, connections by the episodes in flight. The run's token is added when the
+    run starts (:func:`_with_policy_token`: planning writes nothing). None: no socket."""
+    ex = cfg.executor
+    if ex.policy != "shared" or ex.policy_transport != "socket":
+        return None
+    from pipeline.planning.checkpoint_fit import describe_env
+    from workers.policy_socket import (
+        DEFAULT_IDLE_S,
+        SocketLimits,
+        SocketSettings,
+        connection_cap,
+        frame_bound,
+    )
+
+    try:
+        env = describe_env(cfg.env.suite, cfg.env.params)
+    except ValueError:  # the pre-flight said so already; the default bound stands
+        env = None
+    limits = SocketLimits(
+        max_frame=frame_bound(env),
+        max_connections=ex.policy_connections or connection_cap(ex.episodes_per_policy_actor()),
+        idle_timeout_s=ex.policy_idle_s or ex.episode_timeout_s or DEFAULT_IDLE_S,
+    )
+    host = None if ex.kind == "ray" and ex.address else "127.0.0.1"
+    return SocketSettings(host, None, limits)
+
+
+def _with_policy_token(plan: RunPlan) -> RunPlan:
+    """The plan with its run's policy-socket token (``RUN_DIR/policy.token``, mode 0600, made
+    on the run's first start and kept for its resumes), where the run opens policy sockets."""
+    settings = plan.worker_spec.policy_socket
+    if settings is None:
+        return plan
+    from workers.policy_socket import SocketToken
+
+    token = SocketToken(policy_token(plan.run_dir))
+    spec = replace(plan.worker_spec, policy_socket=replace(settings, token=token))
+    return replace(plan, worker_spec=spec)
 
 
 def run_params(plan: RunPlan) -> dict[str, object]:
@@ -233,6 +279,7 @@ def _execute(plan: RunPlan) -> RunSummary:
 
         connect(cfg.executor)
     write_meta(plan)
+    plan = _with_policy_token(plan)
     (plan.run_dir / LOGS_DIR).mkdir(exist_ok=True)  # the actors' output (workers.worker_log)
     RUN_LOG.attach(plan.run_dir)  # the CLI's log, from now on in RUN_DIR/logs/driver.log
     store = RunStore(plan.run_dir)

@@ -62,6 +62,19 @@ class ExecutorConfig(StrictModel):
         "restarts and locates the actor); ray, a Ray actor call per inference (1.3-1.8 ms more "
         "on a 2-core box). The same tables either way",
     )
+    policy_connections: int | None = Field(
+        default=None,
+        ge=1,
+        description="shared, socket: connections one policy actor's socket holds at once (each "
+        "after the run's token); more are refused. None: twice the episodes that may talk to it "
+        "at once, plus 8",
+    )
+    policy_idle_s: float | None = Field(
+        default=None,
+        gt=0,
+        description="shared, socket: a connection silent this long is closed (its episode "
+        "reconnects and sends again); None: episode_timeout_s, or 900 s without one",
+    )
     # -- the forward's shape (a row's float rounding depends on it: workers.forward_shape)
     batching: Literal["fixed", "dynamic"] = Field(
         default="fixed",
@@ -167,6 +180,13 @@ class ExecutorConfig(StrictModel):
                 "dynamic" if self.batching == "dynamic" else self.forward_rows or 3 * self.max_batch
             )
         return self.forward_rows
+
+    def episodes_per_policy_actor(self) -> int:
+        """Episodes that may talk to one policy actor at once: its share of the episode actors
+        (each is assigned one), each with ``envs_per_worker`` episodes."""
+        actors = -(-self.workers // self.policy_actors)
+        in_flight = actors * self.envs_per_worker
+        return min(in_flight, self.max_in_flight) if self.max_in_flight else in_flight
 
     def threads(self) -> int:
         """torch threads of a process holding a backbone (see ``torch_threads``)."""

@@ -21,6 +21,7 @@ from workers.policy_socket import (
     PolicyServiceError,
     PolicySocketConnection,
     PolicySocketServer,
+    SocketToken,
     request_from_message,
     request_message,
     step_from_message,
@@ -85,8 +86,9 @@ def test_a_server_answers_each_request_as_its_worker_does_and_returns_errors():
             raise ValueError("seed 666 refused")
         return worker.infer_many([request])[0]
 
-    server = PolicySocketServer(answer, "127.0.0.1")
-    conn = PolicySocketConnection(server.address)
+    token = SocketToken.new()
+    server = PolicySocketServer(answer, "127.0.0.1", token)
+    conn = PolicySocketConnection(server.address, token)
     for e in range(3):
         req = _request(e)
         got = conn.infer(req, f"c:{e}")
@@ -107,10 +109,13 @@ def test_a_server_answers_each_request_as_its_worker_does_and_returns_errors():
 
 
 def test_a_client_whose_actor_is_gone_is_told_so_after_its_tries():
-    server = PolicySocketServer(lambda r, c: None, "127.0.0.1")
+    token = SocketToken.new()
+    server = PolicySocketServer(lambda r, c: None, "127.0.0.1", token)
     address = list(server.address)
     server.close()
-    client = PolicyServiceClient(None, {"socket": address})  # no Ray handle to ask again
+    client = PolicyServiceClient(
+        None, {"socket": address, "token": token}
+    )  # no Ray handle to ask again
     client.set_config(RefinerConfig(mode="E"))
     o = FakeMarkerEnv().reset("reach", 0, 0)
     with pytest.raises(PolicyServiceError, match=r"cannot be reached .*ConnectionRefused"):

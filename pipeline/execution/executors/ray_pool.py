@@ -31,6 +31,24 @@ STARTUP_TIMEOUT_S = 600  # an actor that has not loaded by then is taken as neve
 REQUEUE_AFTER_S = 30.0
 
 
+def log_socket_stats(i: int, st: dict[str, int]) -> None:
+    """A policy actor's socket: connections taken and requests answered, and every refusal by
+    kind (a peer without the run's token, over the cap, an oversized or malformed frame), a
+    warning when there were any."""
+    if not st:
+        return
+    refused = {k: v for k, v in st.items() if k not in ("accepted", "answered", "active") and v}
+    line = (
+        f"policy actor {i} socket: {st.get('accepted', 0)} connections, "
+        f"{st.get('answered', 0)} requests answered"
+    )
+    if refused:
+        kinds = ", ".join(f"{k} {v}" for k, v in sorted(refused.items()))
+        log.warning("%s; refused or closed: %s", line, kinds)
+    else:
+        log.info("%s; none refused", line)
+
+
 def load_error(exc: BaseException) -> str | None:
     """The error an actor's constructor raised (a checkpoint that cannot load, a simulator that
     cannot start), as its last traceback line; None for a death of another kind (a kill)."""
@@ -169,6 +187,7 @@ class RayActorPool:
                 threads=spec.torch_threads,
                 env=spec.numerics_env,
                 transport=ex.policy_transport,
+                socket_settings=spec.policy_socket,
             )
             for _ in range(ex.policy_actors)
         ]
@@ -212,6 +231,7 @@ class RayActorPool:
                         st["oom_splits"],
                         f" (now at most {st['fit']} requests per forward)" if st["fit"] else "",
                     )
+                    log_socket_stats(i, st.get("socket") or {})
             except Exception as exc:  # closing anyway
                 log.debug("no policy actor stats: %s", exc)
         for actor in self.policy_actors:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import socket
 import struct
 
+import msgpack
 import numpy as np
 import pytest
 
@@ -78,3 +79,45 @@ def test_a_stream_that_is_not_this_protocol_is_refused():
         wire.recv(b)
     a.close()
     b.close()
+
+
+@pytest.mark.parametrize(
+    ("frame", "error"),
+    [
+        (struct.pack("!I", 1025), wire.FrameTooLarge),  # over the reader's bound of 1 KiB
+        (struct.pack("!I", 16) + b"\xc1" * 16, wire.MalformedFrame),  # never valid msgpack
+        (struct.pack("!I", 2) + b"\x01\x02", wire.MalformedFrame),  # a number, trailing bytes
+        # an array whose header promises more bytes than it carries
+        (lambda: _lying_array(), wire.MalformedFrame),
+    ],
+)
+def test_a_bad_frame_is_one_wire_error_of_its_kind(frame, error):
+    a, b = socket.socketpair()
+    a.sendall(frame() if callable(frame) else frame)
+    with pytest.raises(error):
+        wire.recv(b, max_frame=1024)
+    a.close()
+    b.close()
+
+
+def _lying_array() -> bytes:
+    header = msgpack.packb(["<f8", [1000, 1000]])
+    ext = msgpack.ExtType(1, struct.pack("!I", len(header)) + header + b"\x00" * 16)
+    payload = msgpack.packb({"x": ext}, use_bin_type=True)
+    return struct.pack("!I", len(payload)) + payload
+
+
+def test_the_env_server_ends_quietly_on_what_is_not_a_request():
+    """The env server's loop (shared frame rules): an undecodable frame, or one over its request
+    bound, ends its loop without an exception (its process then exits); what came before was
+    answered."""
+    from workers.envs.server.serve import REQUEST_MAX_FRAME, serve
+
+    for bad in (struct.pack("!I", 8) + b"\xc1" * 8, struct.pack("!I", REQUEST_MAX_FRAME + 1)):
+        a, b = socket.socketpair()
+        wire.send(a, {"op": "hello"})
+        a.sendall(bad)
+        serve(b)  # returns: no traceback, no reply to the bad frame
+        assert wire.recv(a)["ok"] is True
+        a.close()
+        b.close()

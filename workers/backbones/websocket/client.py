@@ -17,6 +17,10 @@ do(S), interventions applied here on the raw observation). When the server's met
 ``{"idr": {"noise": true}}`` (openpi's policies take a ``noise`` array) each row carries the
 episode's noise for this inference, shared by the three passes (``crn``); otherwise none.
 
+Bounds: a frame from the server longer than ``max_reply_bytes`` (16 MiB: a reply is an action
+chunk, metadata a small map) ends the connection with ``RemoteBackboneError`` before it is read
+whole (the websockets library enforces it as frames arrive).
+
 Faults: connect and read timeouts (``timeout_s``) and a connection that drops raise
 ``RemoteBackboneError``; the episode becomes an error row and the scheduler runs it again,
 and the next call connects anew.
@@ -37,6 +41,9 @@ from workers.io_spec import EnvIO, PolicyIO
 
 log = logging.getLogger(__name__)
 RECONNECT_S = 0.25  # between tries to connect to a server that is not up (restarting)
+# the longest frame taken from a policy server: a (B, T, D) float chunk is kilobytes; openpi's
+# own client takes any size, which lets whatever answers at host:port fill this process
+MAX_REPLY_BYTES = 16 << 20
 
 # our input -> the server's key; "image:<camera>" for an env camera, "state", "prompt"
 KEY_PRESETS: dict[str, dict[str, str]] = {
@@ -85,6 +92,7 @@ class WebsocketBackbone:
         chunk_len: int | None = None,
         action_dim: int | None = None,
         noise_shape: list[int] | None = None,
+        max_reply_bytes: int = MAX_REPLY_BYTES,
     ) -> None:
         if isinstance(key_map, str):
             if key_map not in KEY_PRESETS:
@@ -99,6 +107,9 @@ class WebsocketBackbone:
                 f"backbone.params.key_map: {bad} are not inputs; use image:<camera>, state, prompt"
             )
         self.host, self.port, self.timeout_s = host, int(port), float(timeout_s)
+        if int(max_reply_bytes) < 1:
+            raise ValueError("backbone.params.max_reply_bytes must be >= 1")
+        self.max_reply_bytes = int(max_reply_bytes)
         self.key_map = dict(key_map)
         self.cameras = tuple(k.split(":", 1)[1] for k in self.key_map if k.startswith("image:"))
         self.name = f"remote:{host}:{port}"
@@ -132,7 +143,7 @@ class WebsocketBackbone:
                     uri,
                     open_timeout=max(0.1, deadline - time.monotonic()),
                     close_timeout=2,
-                    max_size=None,
+                    max_size=self.max_reply_bytes,
                     compression=None,
                 )
                 first = self._ws.recv(timeout=max(0.1, deadline - time.monotonic()))
@@ -181,8 +192,14 @@ class WebsocketBackbone:
             frame = self._ws.recv(timeout=self.timeout_s)
         except (OSError, TimeoutError, WebSocketException) as e:
             self.close()  # the next call connects anew
+            big = "too big" in str(e)
             raise RemoteBackboneError(
                 f"policy server ws://{self.host}:{self.port}: {type(e).__name__}: {e}"
+                + (
+                    f" (more than backbone.params.max_reply_bytes={self.max_reply_bytes})"
+                    if big
+                    else ""
+                )
             ) from None
         reply = self._decode(frame, "an observation")
         if not isinstance(reply, dict) or "actions" not in reply:

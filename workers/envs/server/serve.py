@@ -28,6 +28,9 @@ from workers.envs.server import wire
 
 PR_SET_PDEATHSIG = 1
 PARENT_POLL_S = 0.5
+# a request (an op, its env params, an action) is small: a longer frame is not one (the wire's
+# frame rules; the replies, images among them, are bounded by the client's reader)
+REQUEST_MAX_FRAME = 64 << 20
 
 
 def env_info(env: Any) -> dict[str, Any]:
@@ -162,9 +165,9 @@ def serve(sock: Any, server: EnvServer | None = None) -> None:
     server = server or EnvServer()
     while True:
         try:
-            req = wire.recv(sock)
+            req = wire.recv(sock, REQUEST_MAX_FRAME)
         except (wire.WireError, OSError):
-            return  # the actor is gone: nobody to answer
+            return  # the actor is gone, or sent what is not a request: nobody to answer
         reply = server.handle(req)
         try:
             wire.send(sock, reply)

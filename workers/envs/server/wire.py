@@ -10,6 +10,13 @@ copied twice; its last release is from 2022, so the 20 lines are ours.)
 
 Requests are ``{"op": name, ...}``; replies ``{"ok": True, "result": ...}`` or ``{"ok": False,
 "type": exception class name, "message": ..., "traceback": ...}``.
+
+Frame rules, the same for every reader (the env server, its client, the policy socket): a frame
+longer than the reader's bound (``max_frame``; at most :data:`MAX_FRAME`) is refused on its
+length prefix (:class:`FrameTooLarge`); a frame's bytes are read as they arrive, so a length
+prefix alone allocates at most :data:`EAGER_BYTES` (a peer that announces a large frame and
+sends nothing costs that much, not the announced size); a payload that does not decode is
+:class:`MalformedFrame`. All three are :class:`WireError`: the reader closes the connection.
 """
 
 from __future__ import annotations
@@ -23,12 +30,25 @@ import numpy as np
 
 PROTOCOL_VERSION = 1
 MAX_FRAME = 1 << 30  # 1 GiB: a longer length prefix means a corrupt stream, not a message
+# a frame up to this size is read into one buffer allocated from its length prefix; a longer
+# one grows as its bytes arrive, by at most CHUNK_BYTES per read
+EAGER_BYTES = 1 << 16
+CHUNK_BYTES = 1 << 20
 _NDARRAY = 1
 _LEN = struct.Struct("!I")
 
 
 class WireError(ConnectionError):
     """The peer closed the connection or sent something that is not a frame."""
+
+
+class FrameTooLarge(WireError):
+    """A length prefix above the reader's bound (refused before any of the payload is read)."""
+
+
+class MalformedFrame(WireError):
+    """A payload that is not a msgpack message of this protocol (undecodable, trailing bytes,
+    an array whose header and bytes disagree)."""
 
 
 def _default(obj: Any) -> Any:
@@ -77,20 +97,42 @@ def send(sock: socket.socket, message: Any) -> None:
         sock.sendall(payload)
 
 
-def _recv_exact(sock: socket.socket, n: int) -> bytearray:
-    buf = bytearray(n)
-    view = memoryview(buf)
-    got = 0
-    while got < n:
-        k = sock.recv_into(view[got:], n - got)
-        if k == 0:
+def recv_exact(sock: socket.socket, n: int) -> bytearray:
+    """``n`` bytes from ``sock``. Up to :data:`EAGER_BYTES` are read into one buffer; beyond,
+    the buffer grows with what arrives (never allocated from ``n`` alone), so memory follows
+    the bytes the peer really sent."""
+    if n <= EAGER_BYTES:
+        buf = bytearray(n)
+        view = memoryview(buf)
+        got = 0
+        while got < n:
+            k = sock.recv_into(view[got:], n - got)
+            if k == 0:
+                raise WireError("the peer closed the connection")
+            got += k
+        return buf
+    buf = bytearray()
+    while len(buf) < n:
+        chunk = sock.recv(min(n - len(buf), CHUNK_BYTES))
+        if not chunk:
             raise WireError("the peer closed the connection")
-        got += k
+        buf += chunk
     return buf
 
 
-def recv(sock: socket.socket) -> Any:
-    (n,) = _LEN.unpack(_recv_exact(sock, _LEN.size))
-    if n > MAX_FRAME:
-        raise WireError(f"frame of {n} bytes announced: not this protocol")
-    return decode(_recv_exact(sock, n))
+def recv(sock: socket.socket, max_frame: int = MAX_FRAME) -> Any:
+    """The next message: its length prefix checked against ``max_frame`` before any of its
+    payload is read, the payload read as it arrives, then decoded (see the frame rules)."""
+    (n,) = _LEN.unpack(recv_exact(sock, _LEN.size))
+    bound = min(max_frame, MAX_FRAME)
+    if n > bound:
+        raise FrameTooLarge(f"frame of {n} bytes announced, more than {bound}: not this protocol")
+    payload = recv_exact(sock, n)
+    try:
+        return decode(payload)
+    except WireError:
+        raise
+    except Exception as exc:  # msgpack's own errors, or an array header that lies
+        raise MalformedFrame(
+            f"a frame of {n} bytes that is not a message ({type(exc).__name__})"
+        ) from None
