@@ -1031,9 +1031,66 @@ def serving(d: Data) -> str:
     return block(*parts, note, source("serving", d))
 
 
+def _pairing(d: Mapping[str, Any] | None) -> str:
+    if not d:
+        return "-"
+    lo, hi = d["ci95"]
+    return f"{100 * d['diff']:+.1f} [{100 * lo:+.1f}, {100 * hi:+.1f}], p = {d['mcnemar_p']:.2g}"
+
+
+def _mde(d: Mapping[str, Any] | None) -> str:
+    if not d:
+        return "-"
+    return "none" if d.get("mde_pp") is None else f"{d['mde_pp']:.0f}"
+
+
+def methods(d: Data) -> str:
+    """methods.json: per member and suite, each method's success, its pairings against the
+    reference cell and against IDR's mode E, and what it spends per executed env step."""
+    parts = [f"*{d['label'].capitalize()}: no comparison here was declared before its data.*"]
+    for run in d["runs"].values():
+        ref = run["reference"]
+        rows = [
+            [
+                f"`{c['cell']}`",
+                f"{100 * c['success']:.0f} [{100 * c['ci95'][0]:.0f}, {100 * c['ci95'][1]:.0f}]",
+                _pairing(c["vs_reference"]),
+                _pairing(c["vs_E"]),
+                _mde(c["vs_E"]),
+                "-" if c["rows_per_step"] is None else f"{c['rows_per_step']:.2f}",
+                "-" if c["ms_per_step"] is None else f"{c['ms_per_step']:.1f}",
+            ]
+            for c in run["cells"].values()
+        ]
+        n = run["episodes_per_task"]
+        hw = ", ".join(run["hardware"])
+        head = (
+            f"**{run['member']}** on {run['suite']} ({len(run['tasks'])} tasks x {n} episodes "
+            f"per cell; {hw}; run `{run['run_dir']}`; {run['errors']} error rows)"
+        )
+        parts += [
+            head,
+            table(
+                [
+                    "cell",
+                    "success % [95% CI]",
+                    f"Δ vs {ref} pp [95% CI], p",
+                    "Δ vs E pp [95% CI], p",
+                    "MDE vs E (pp)",
+                    "rows / env step",
+                    "ms / env step",
+                ],
+                rows,
+            ),
+        ]
+    parts.append(source("methods", d))
+    return block(*parts)
+
+
 RENDERERS: dict[str, Callable[[Data], str]] = {
     f.__name__: f
     for f in (
+        methods,
         faults,
         default_run,
         engine,

@@ -103,3 +103,71 @@ def methods_table(
             )
     headers = [h.format(ref=ref_name) for h in HEADERS]
     return ("Test-time methods side by side", headers, rows)
+
+
+def _pairing(d: agg.PairedDiff | None) -> dict[str, object] | None:
+    if d is None:
+        return None
+    return {
+        "n_pairs": d.n_pairs,
+        "diff": d.diff,
+        "ci95": [d.ci_low, d.ci_high],
+        "mcnemar_p": d.p_value,
+        "only_cell": d.only_cell,
+        "only_reference": d.only_baseline,
+        "mde_pp": d.mde_pp if math.isfinite(d.mde_pp) else None,
+    }
+
+
+def methods_summary(episodes: pd.DataFrame, steps: pa.Table) -> list[dict[str, object]]:
+    """The methods table as data, per backbone x suite: each cell's success with its Wilson
+    interval, its pairings against the reference cell and against E (bootstrap interval,
+    McNemar p, minimum detectable effect), and its cost per executed env step."""
+    ok = episodes[episodes["error"].isna()]
+    costs = method_costs(steps)
+    out: list[dict[str, object]] = []
+    for (backbone, suite), g in ok.groupby(["backbone", "suite"], sort=True):
+        ref = agg.reference_cell(set(g["cell_id"]))
+        e_cells = sorted(set(g.loc[g["mode"] == "E", "cell_id"]))
+        vs_ref = {d.cell_id: d for d in agg.paired_vs_baseline(g, baseline=ref)} if ref else {}
+        vs_e = (
+            {d.cell_id: d for d in agg.paired_vs_baseline(g, baseline=e_cells[0])}
+            if e_cells
+            else {}
+        )
+        overall = agg.success_overall(g).set_index("cell_id")
+        cells = []
+        for cell in sorted(overall.index, key=lambda c: (c != ref, c)):
+            o = overall.loc[cell]
+            rows = g[g["cell_id"] == cell]
+            cost = costs.loc[cell] if cell in costs.index else None
+            cells.append(
+                {
+                    "cell": cell,
+                    "mode": str(rows["mode"].iloc[0]),
+                    "alpha": float(rows["alpha"].iloc[0]),
+                    "episodes": len(rows),
+                    "successes": int(rows["success"].sum()),
+                    "success": float(o["success_rate"]),
+                    "ci95": [float(o["ci_low"]), float(o["ci_high"])],
+                    "vs_reference": _pairing(vs_ref.get(cell)),
+                    "vs_E": _pairing(vs_e.get(cell)),
+                    "rows_per_step": None if cost is None else _finite(cost["rows_per_step"]),
+                    "ms_per_step": None if cost is None else _finite(cost["ms_per_step"]),
+                }
+            )
+        out.append(
+            {
+                "backbone": backbone,
+                "suite": suite,
+                "reference": ref,
+                "E": e_cells[0] if e_cells else None,
+                "tasks": sorted(set(g["task_id"])),
+                "cells": cells,
+            }
+        )
+    return out
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
