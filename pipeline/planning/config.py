@@ -183,7 +183,7 @@ class RunConfig(StrictModel):
                     f"unknown IDR parameter {key!r}; {hint}allowed: {sorted(IDR_KEYS)}"
                 )
         if "tau" in v:
-            from pipeline.planning.grid import parse_tau
+            from idr_core.calibration import parse_tau
 
             parse_tau(v["tau"])  # a clear error for a misspelt calibrated form
         return v

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import shutil
 
+import numpy as np
 import pytest
 from lerobot_policy_idr.calibrate import main as calibrate_main
 from lerobot_policy_idr.configuration_idr import IDRConfigError
@@ -80,6 +81,11 @@ def test_calibrate_sets_tau_to_the_mean_e_img_of_diagnose_rollouts(bases, tmp_pa
     assert f"{want:.6g}" in capsys.readouterr().out
     refined, _, _ = load(folder)  # the calibrated folder loads in a refining mode
     assert refined.refiner_cfg.tau == pytest.approx(want)
+    # the other calibrated forms: the statistic idr-eval's tau computes (idr_core.calibration)
+    e_img = read_sidecar(tmp_path / "d")["e_img"].to_numpy()
+    assert calibrate_main([str(folder), str(tmp_path / "d"), "--rule", "calibrated_q90*0.5"]) == 0
+    cfg = json.loads((folder / "config.json").read_text())
+    assert cfg["tau"] == pytest.approx(0.5 * float(np.percentile(e_img, 90)), rel=1e-12)
     # baseline rows carry no E_img: refused, config untouched
     base_folder = make_idr(
         bases["act"],

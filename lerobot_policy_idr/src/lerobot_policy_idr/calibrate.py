@@ -18,10 +18,19 @@ from pathlib import Path
 from idr_core.refiner import MODES
 
 
-def calibrate(idr_dir: Path, sidecars: list[Path], mode: str | None = None) -> dict:
-    """Compute tau from the sidecars' diagnose rows and write it (and ``mode``) into
-    ``idr_dir/config.json``; returns what was computed. Raises ValueError before writing."""
+def calibrate(
+    idr_dir: Path, sidecars: list[Path], mode: str | None = None, rule: str = "calibrated"
+) -> dict:
+    """Compute tau from the sidecars' diagnose rows by ``rule`` (idr_core.calibration: the
+    paper's mean E_img, a multiple or a percentile of it, as idr-eval's ``tau:`` spells it) and
+    write it (and ``mode``) into ``idr_dir/config.json``; returns what was computed. Raises
+    ValueError before writing."""
+    from idr_core.calibration import TauSpec, parse_tau
     from idr_core.sidecar import read_sidecar
+
+    spec = parse_tau(rule)
+    if not isinstance(spec, TauSpec):
+        raise ValueError(f"--rule {rule!r} is a number: set it with --policy.tau instead")
 
     cfg_path = idr_dir / "config.json"
     try:
@@ -48,9 +57,9 @@ def calibrate(idr_dir: Path, sidecars: list[Path], mode: str | None = None) -> d
             "the sidecars hold no rows of mode 'diagnose': roll out with --policy.mode=diagnose "
             "(or an IDR folder made with --mode diagnose) first"
         )
-    tau = float(e_img.mean())
+    tau = spec.resolve(e_img.to_numpy())
     if not math.isfinite(tau):
-        raise ValueError(f"mean E_img is {tau}: the diagnose rows are not finite")
+        raise ValueError(f"{spec.text} of E_img is {tau}: the diagnose rows are not finite")
     cfg["tau"] = tau
     if mode is not None:
         cfg["mode"] = mode
@@ -63,6 +72,7 @@ def calibrate(idr_dir: Path, sidecars: list[Path], mode: str | None = None) -> d
         "episodes": int(rows[["episode"]].drop_duplicates().shape[0]),
         "e_img_std": float(e_img.std(ddof=0)),
         "mode": cfg["mode"],
+        "rule": spec.text,
     }
 
 
@@ -74,9 +84,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("idr_dir", type=Path)
     p.add_argument("sidecars", type=Path, nargs="+", help="diagnostics folders of the rollouts")
     p.add_argument("--mode", default=None, help="also switch the folder to this mode (e.g. E)")
+    p.add_argument(
+        "--rule",
+        default="calibrated",
+        help="calibrated (the mean E_img, the paper's rule; default), calibrated*K, "
+        "calibrated_qP, or both: the same statistic as idr-eval's tau",
+    )
     args = p.parse_args(argv)
     try:
-        out = calibrate(args.idr_dir, args.sidecars, args.mode)
+        out = calibrate(args.idr_dir, args.sidecars, args.mode, args.rule)
     except ValueError as e:
         print(f"lerobot-idr-calibrate: error: {e}", file=sys.stderr)
         return 2

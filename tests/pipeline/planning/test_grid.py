@@ -7,9 +7,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from idr_core.calibration import TauSpec, parse_tau
 
 from pipeline.planning.config import load_config
-from pipeline.planning.grid import TauSpec, expand_grid, parse_tau
+from pipeline.planning.grid import expand_grid
 
 
 def test_zip_within_cross_across() -> None:
