@@ -1075,7 +1075,7 @@ def methods(d: Data) -> str:
                     "cell",
                     "success % [95% CI]",
                     f"Δ vs {ref} pp [95% CI], p",
-                    "Δ vs E pp [95% CI], p",
+                    "Δ vs E (same α) pp [95% CI], p",
                     "MDE vs E (pp)",
                     "rows / env step",
                     "ms / env step",

@@ -46,6 +46,26 @@ def method_costs(steps: pa.Table) -> pd.DataFrame:
     return pd.DataFrame.from_dict(out, orient="index")
 
 
+def pairings_vs_e(g: pd.DataFrame) -> dict[str, agg.PairedDiff]:
+    """Each cell paired with an E cell: the one of its own alpha where the grid has several
+    (a dose-response: random at alpha a against E at a), else the first."""
+    e_alpha = (
+        g[g["mode"] == "E"].groupby("cell_id")["alpha"].first().sort_index()
+        if "alpha" in g
+        else pd.Series(dtype=float)
+    )
+    if e_alpha.empty:
+        return {}
+    out: dict[str, agg.PairedDiff] = {}
+    same_alpha: dict[str, bool] = {}
+    for e_cell, alpha in e_alpha.items():
+        for d in agg.paired_vs_baseline(g, baseline=e_cell):
+            same = math.isclose(g.loc[g["cell_id"] == d.cell_id, "alpha"].iloc[0], alpha)
+            if d.cell_id not in out or (same and not same_alpha[d.cell_id]):
+                out[d.cell_id], same_alpha[d.cell_id] = d, same
+    return out
+
+
 def _diff(d: agg.PairedDiff | None) -> str:
     if d is None:
         return "–"
@@ -75,13 +95,8 @@ def methods_table(
     for (backbone, suite), g in ok.groupby(["backbone", "suite"], sort=True):
         ref = agg.reference_cell(set(g["cell_id"]))
         ref_name = ref or ref_name
-        e_cells = sorted(set(g.loc[g["mode"] == "E", "cell_id"]))
         vs_ref = {d.cell_id: d for d in agg.paired_vs_baseline(g, baseline=ref)} if ref else {}
-        vs_e = (
-            {d.cell_id: d for d in agg.paired_vs_baseline(g, baseline=e_cells[0])}
-            if e_cells
-            else {}
-        )
+        vs_e = pairings_vs_e(g)
         overall = agg.success_overall(g).set_index("cell_id")
         for cell in sorted(overall.index, key=lambda c: (c != ref, c)):
             o = overall.loc[cell]
@@ -128,13 +143,8 @@ def methods_summary(episodes: pd.DataFrame, steps: pa.Table) -> list[dict[str, o
     out: list[dict[str, object]] = []
     for (backbone, suite), g in ok.groupby(["backbone", "suite"], sort=True):
         ref = agg.reference_cell(set(g["cell_id"]))
-        e_cells = sorted(set(g.loc[g["mode"] == "E", "cell_id"]))
         vs_ref = {d.cell_id: d for d in agg.paired_vs_baseline(g, baseline=ref)} if ref else {}
-        vs_e = (
-            {d.cell_id: d for d in agg.paired_vs_baseline(g, baseline=e_cells[0])}
-            if e_cells
-            else {}
-        )
+        vs_e = pairings_vs_e(g)
         overall = agg.success_overall(g).set_index("cell_id")
         cells = []
         for cell in sorted(overall.index, key=lambda c: (c != ref, c)):
@@ -161,7 +171,7 @@ def methods_summary(episodes: pd.DataFrame, steps: pa.Table) -> list[dict[str, o
                 "backbone": backbone,
                 "suite": suite,
                 "reference": ref,
-                "E": e_cells[0] if e_cells else None,
+                "E": sorted(set(g.loc[g["mode"] == "E", "cell_id"])) or None,
                 "tasks": sorted(set(g["task_id"])),
                 "cells": cells,
             }

@@ -74,3 +74,25 @@ def test_a_run_of_one_method_beside_its_reference_has_no_methods_table(tmp_path)
         ]
     )
     assert methods_table(store.episodes().to_pandas(), store.steps()) is None
+
+
+def test_a_dose_response_pairs_each_placebo_with_e_of_its_own_alpha(tmp_path) -> None:
+    from pipeline.reporting.methods import pairings_vs_e
+
+    wins = {
+        ("E_a0.04", "E", 0.04): [1, 1, 1, 1],
+        ("E_a0.16", "E", 0.16): [0, 0, 0, 0],
+        ("random_a0.04", "random", 0.04): [1, 1, 0, 0],
+        ("random_a0.16", "random", 0.16): [1, 1, 0, 0],
+    }
+    store = RunStore(tmp_path)
+    store.write(
+        [
+            result(dict(cell_id=c, mode=m, alpha=a, episode_index=i, success=bool(w)))
+            for (c, m, a), ws in wins.items()
+            for i, w in enumerate(ws)
+        ]
+    )
+    pairs = pairings_vs_e(store.episodes().to_pandas())
+    assert pairs["random_a0.04"].diff == pytest.approx(-0.5)  # against E at 0.04
+    assert pairs["random_a0.16"].diff == pytest.approx(+0.5)  # against E at 0.16
