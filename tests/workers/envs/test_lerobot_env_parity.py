@@ -45,8 +45,14 @@ def _act(tmp_path: Path, image: int | tuple[int, int], dims: int, cam: str) -> P
 
 
 def _our_episodes(
-    ckpt: Path, tmp_path: Path, env_params: dict[str, Any], replan: int = 5
+    ckpt: Path,
+    tmp_path: Path,
+    env_params: dict[str, Any],
+    replan: int = 5,
+    cell: dict[str, Any] | None = None,
 ) -> tuple[list[list[np.ndarray]], list]:
+    """idr-eval's episodes of ``ckpt``; ``cell``: the one cell's IDR settings and
+    intervention (default: the baseline)."""
     from pipeline.execution.runner import plan_run
     from pipeline.planning.config import config_from_dict
     from workers.actor import EpisodeWorker
@@ -58,7 +64,9 @@ def _our_episodes(
             "env": {"suite": "lerobot", "params": env_params},
             "episodes_per_task": EPISODES,
             "seed": SEED,
-            "grid": [{"mode": ["baseline"]}],
+            "grid": [{"mode": [(cell or {}).get("mode", "baseline")]}],
+            "idr": {k: v for k, v in (cell or {}).items() if k not in ("mode", "intervention")},
+            "intervention": (cell or {}).get("intervention", {}),
             "executor": {"kind": "inline"},
             "tracking": {"enabled": False},
         }
@@ -191,3 +199,58 @@ def test_a_history_fed_baseline_follows_lerobot_evals_own_rollout_on_pusht(tmp_p
         )
         assert worst <= 1e-5, f"episode {e}: actions differ by {worst}"
     assert np.ptp(np.stack(ours[0]), axis=0).max() > 0.1  # the actions move
+
+
+@pytest.mark.slow
+@_needs("gym_pusht", "gym-pusht")
+@pytest.mark.parametrize("mode", ["E", "random"])
+def test_idr_in_lerobot_eval_is_the_harness_cell_step_for_step(tmp_path, mode) -> None:
+    """The idr policy as lerobot-eval runs it (an IDR folder around ACT) and idr-eval's cell of
+    the same mode, closed loop on PushT over 2 episodes of 50 steps, under the settings that
+    make them one runtime (executed horizon = the base's n_action_steps, no clipping, do(S)
+    after the normalizer): the same action at every step. A placebo's direction comes from
+    the harness's step seed; lerobot-eval's run is given the same seeds."""
+    from lerobot.envs.configs import PushtEnv
+
+    from tests.lerobot_policy_idr.conftest import make_idr
+
+    size = 96
+    ckpt = _act(tmp_path, size, 2, "image!")
+    folder = make_idr(ckpt, tmp_path / "idr", "--mode", mode, "--tau", "1e9", "--no-clip")
+    env = {"observation_height": size, "observation_width": size, "episode_length": STEPS}
+    cell = {"mode": mode, "tau": 1e9, "intervention": {"state_space": "normalized"}}
+    ours, rows = _our_episodes(ckpt, tmp_path, {"type": "pusht", **env}, cell=cell)
+    seeds = _harness_seeds(rows, replan=5)
+    theirs, info = _lerobot_eval_with_seeds(PushtEnv(**env), folder, seeds)
+    _assert_same_episodes(theirs, info, ours, rows)
+    base, _ = _our_episodes(ckpt, tmp_path / "base", {"type": "pusht", **env})
+    assert not np.array_equal(np.stack(base[0]), np.stack(ours[0]))  # the mode refined
+
+
+def _harness_seeds(rows: list, replan: int) -> list[int]:
+    """The step seeds idr-eval gave each inference of the episodes in ``rows``, in order."""
+    from workers.actor import step_seed
+
+    return [
+        step_seed(row.seed, row.task_id, row.episode_index, k)
+        for row in rows
+        for k in range(-(-row.steps // replan))
+    ]
+
+
+def _lerobot_eval_with_seeds(env_cfg: Any, folder: Path, seeds: list[int]):
+    """lerobot-eval's rollout of the IDR folder, its placebo seeds fed in inference order
+    (lerobot-eval itself would draw them from torch's RNG)."""
+    from lerobot_policy_idr.modeling_idr import IDRPolicy
+
+    feed = iter(seeds)
+    infer = IDRPolicy._infer
+
+    def seeded(self, batch, noise=None, seed=None):
+        return infer(self, batch, noise, next(feed) if seed is None else seed)
+
+    IDRPolicy._infer = seeded
+    try:
+        return lerobot_eval_env(env_cfg, folder, episodes=EPISODES, seed=SEED)
+    finally:
+        IDRPolicy._infer = infer
