@@ -96,12 +96,17 @@ def build_act(
 
 
 def build_diffusion(
-    out: Path, image: int = 64, state: int = 8, action: int = 7, n_obs_steps: int = 1
+    out: Path,
+    image: int = 64,
+    state: int = 8,
+    action: int = 7,
+    n_obs_steps: int = 1,
+    cams: tuple[str, ...] = ("agentview",),
 ) -> Path:
     from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
     from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
 
-    inputs, outputs = _features(image, state, action, ("agentview",))
+    inputs, outputs = _features(image, state, action, cams)
     cfg = DiffusionConfig(
         input_features=inputs,
         output_features=outputs,
@@ -117,7 +122,7 @@ def build_diffusion(
     )
     torch.manual_seed(0)
     return save_checkpoint(
-        DiffusionPolicy(cfg).eval(), cfg, _stats(image, state, action, ("agentview",)), out
+        DiffusionPolicy(cfg).eval(), cfg, _stats(image, state, action, cams), out
     )
 
 

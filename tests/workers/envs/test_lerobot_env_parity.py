@@ -227,6 +227,32 @@ def test_idr_in_lerobot_eval_is_the_harness_cell_step_for_step(tmp_path, mode) -
     assert not np.array_equal(np.stack(base[0]), np.stack(ours[0]))  # the mode refined
 
 
+@pytest.mark.slow
+@_needs("gym_pusht", "gym-pusht")
+def test_a_history_fed_sampling_base_under_idr_is_the_harness_cell_in_lerobot_eval(
+    tmp_path,
+) -> None:
+    """Diffusion (DDIM, two observation steps): shared noise and the observation history,
+    closed loop on PushT in lerobot-eval through the idr policy and in idr-eval's cell (mode
+    E): the same action at every step, lerobot-eval fed the harness's noise draws."""
+    from lerobot.envs.configs import PushtEnv
+
+    from tests.lerobot_policy_idr.conftest import make_idr
+    from tests.workers.backbones.lerobot_fixtures import build_diffusion
+
+    size = 96
+    ckpt = build_diffusion(
+        tmp_path / "diffusion", image=size, state=2, action=2, n_obs_steps=2, cams=("image!",)
+    )
+    folder = make_idr(ckpt, tmp_path / "idr", "--mode", "E", "--tau", "1e9", "--no-clip")
+    env = {"observation_height": size, "observation_width": size, "episode_length": STEPS}
+    cell = {"mode": "E", "tau": 1e9, "intervention": {"state_space": "normalized"}}
+    ours, rows = _our_episodes(ckpt, tmp_path, {"type": "pusht", **env}, replan=4, cell=cell)
+    seeds = _harness_seeds(rows, replan=4)
+    theirs, info = _lerobot_eval_with_seeds(PushtEnv(**env), folder, seeds, noise=True)
+    _assert_same_episodes(theirs, info, ours, rows, moves=0.01)
+
+
 def _harness_seeds(rows: list, replan: int) -> list[int]:
     """The step seeds idr-eval gave each inference of the episodes in ``rows``, in order."""
     from workers.actor import step_seed
@@ -238,16 +264,24 @@ def _harness_seeds(rows: list, replan: int) -> list[int]:
     ]
 
 
-def _lerobot_eval_with_seeds(env_cfg: Any, folder: Path, seeds: list[int]):
-    """lerobot-eval's rollout of the IDR folder, its placebo seeds fed in inference order
-    (lerobot-eval itself would draw them from torch's RNG)."""
+def _lerobot_eval_with_seeds(env_cfg: Any, folder: Path, seeds: list[int], noise: bool = False):
+    """lerobot-eval's rollout of the IDR folder, its placebo seeds (and, with ``noise``, the
+    base's noise, drawn as idr-eval's lerobot backbone draws it from a step seed) fed in
+    inference order; lerobot-eval itself would draw both from torch's RNG."""
+    import torch
+    from idr_core.sampling import noise_shape
     from lerobot_policy_idr.modeling_idr import IDRPolicy
 
     feed = iter(seeds)
     infer = IDRPolicy._infer
 
-    def seeded(self, batch, noise=None, seed=None):
-        return infer(self, batch, noise, next(feed) if seed is None else seed)
+    def seeded(self, batch, noise_in=None, seed=None):
+        step = next(feed)
+        if noise:
+            b = batch["observation.state"].shape[0] // 3
+            shape = noise_shape(self.base.config, b, self.action_dim)
+            noise_in = torch.randn(shape, generator=torch.Generator().manual_seed(step))
+        return infer(self, batch, noise_in, step if seed is None else seed)
 
     IDRPolicy._infer = seeded
     try:
