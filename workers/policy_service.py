@@ -60,15 +60,13 @@ def to_numpy_step(step: IDRStep) -> IDRStep:
     diag = None
     if step.diag is not None:
         diag = Diagnostics(**step.diag.to_numpy())
-    return IDRStep(
-        _to_numpy(step.action),
-        _to_numpy(step.a_base),
-        _to_numpy(step.a_no_img),
-        _to_numpy(step.a_no_prop),
-        diag,
-        step.inference_ms,
-        step.batched,
-        step.crn,
+    return dataclasses.replace(
+        step,
+        action=_to_numpy(step.action),
+        a_base=_to_numpy(step.a_base),
+        a_no_img=_to_numpy(step.a_no_img),
+        a_no_prop=_to_numpy(step.a_no_prop),
+        diag=diag,
     )
 
 
