@@ -230,3 +230,9 @@ class PropertyMarkerEnv(FakeMarkerEnv):
     @property
     def steps(self) -> int:
         return self._steps
+
+
+class NoHiddenRenderMarkerEnv(FakeMarkerEnv):
+    """The fake marker env without an object-hidden render (a suite mode pcd cannot run on)."""
+
+    renders_hidden_objects = False

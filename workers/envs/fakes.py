@@ -37,6 +37,8 @@ class FakeMarkerEnv:
     action_dim = 2
     state_dim = 2
     cameras = ("agentview",)
+    # the object-hidden render (mode pcd): the image without its marker
+    renders_hidden_objects = True
 
     _TASKS = (
         TaskSpec("reach", "reach the marker", max_steps=40, subtasks_total=1),
@@ -81,16 +83,25 @@ class FakeMarkerEnv:
         self._done_count = 0
         return self._observe()
 
+    def object_hidden_images(self) -> dict[str, np.ndarray]:
+        """The current image with the task's object, its marker, left out."""
+        return {"agentview": self._image(marker=False)}
+
     def _observe(self) -> EnvObservation:
+        return EnvObservation(
+            images={"agentview": self._image()},
+            state=self._pos.astype(np.float32),
+            status=self._status(),
+        )
+
+    def _image(self, marker: bool = True) -> np.ndarray:
         img = np.zeros((self.image_size, self.image_size, 3), dtype=np.uint8)
-        if self._done_count < len(self._targets):
+        if marker and self._done_count < len(self._targets):
             r, c = plane_to_pixel(self._targets[self._done_count], self.image_size)
             img[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2, 0] = 255
         r, c = plane_to_pixel(self._pos, self.image_size)
         img[r, c, 1] = 255
-        return EnvObservation(
-            images={"agentview": img}, state=self._pos.astype(np.float32), status=self._status()
-        )
+        return img
 
     def _status(self) -> EpisodeStatus:
         task = self._clock.task

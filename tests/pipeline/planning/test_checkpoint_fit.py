@@ -213,8 +213,12 @@ def test_counterfactual_modes_need_an_image_and_a_state(over, what) -> None:
         ("ensemble", [], r"'ensemble' averages chunks .*'tiny_vla'.* is deterministic"),
         (
             "pcd",
-            ["env.suite=fake_marker", "env.tasks=[reach]", "env.params={}"],
-            r"'pcd' contrasts .* suite 'fake_marker' does not make",
+            [
+                "env.suite=tests.doubles.envs:NoHiddenRenderMarkerEnv",
+                "env.tasks=[reach]",
+                "env.params={}",
+            ],
+            r"'pcd' contrasts .* suite 'tests.doubles.envs:NoHiddenRenderMarkerEnv' does not",
         ),
     ],
 )
