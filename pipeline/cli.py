@@ -6,7 +6,6 @@ import argparse
 import os
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 # Arrow's buffers from the system allocator, which hands large freed blocks back to the OS at
 # once; Arrow's default (mimalloc) keeps them: a report over 5 M step rows peaked at 2.3-2.6 GB
@@ -18,6 +17,8 @@ os.environ.setdefault("ARROW_DEFAULT_MEMORY_POOL", "system")
 # (make setup installs the zoo's) instead of asking the hub first, which offline cost minutes
 # of retries per load. Read by huggingface_hub when first imported, hence here; a local Ray's
 # actors inherit it; a user's own setting stands (HF_HUB_OFFLINE=0 allows downloads).
+# pipeline.api.evaluate sets the same flags (pipeline.api.offline.OFFLINE_ENV) for its call,
+# also in a process that imported huggingface_hub first.
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
@@ -25,79 +26,43 @@ os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 from pipeline.errors import RunError, is_disk_full
 from pipeline.execution.signals import RunInterrupted, stop_on_signals
 from pipeline.planning.config import ConfigError
-from pipeline.rundir import EPISODES_DIR, REPORT_MD
-
-if TYPE_CHECKING:
-    from pipeline.planning.config import RunConfig
+from pipeline.rundir import EPISODES_DIR
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from pipeline.execution.claim import misplaced_keys_note
-    from pipeline.execution.runner import execute, plan_run
-    from pipeline.planning.config import load_config
-    from pipeline.reporting.markdown import protocol_line
+    """``pipeline.api.evaluate`` with the command's arguments; its lines printed, then the
+    report and where MLflow shows the cells."""
+    from pipeline.api.run import EvaluationInterrupted, evaluate
 
     try:
-        cfg = load_config(args.config, args.overrides)
-    except ConfigError as e:
-        note = misplaced_keys_note(Path(args.out)) if args.out else None
-        if note is None:
-            raise
-        raise ConfigError(f"{e}\n  {note}") from None
-    run_dir = Path(args.out) if args.out else Path(cfg.output_root) / cfg.name
-    _import_logging_libraries(cfg)
-    plan = plan_run(
-        cfg,
-        run_dir,
-        yes=args.yes,
-        adopt=args.adopt,
-        allow_code_change=args.allow_code_change,
-        allow_numerics_change=args.allow_numerics_change,
-    )
-    cells = [c.cell_id for c in (*plan.specs.cells, *plan.calibrated.cells)]
-    print(
-        f"run {plan.run_id}: {len(plan.all_specs())} episodes = {len(cells)} cells "
-        f"({', '.join(cells[:8])}{', ...' if len(cells) > 8 else ''}) x {len(plan.tasks)} tasks "
-        f"({', '.join(t.task_id for t in plan.tasks[:6])}{', ...' if len(plan.tasks) > 6 else ''})"
-        f" x {cfg.episodes_per_task} episodes -> {run_dir} (logs in {run_dir / 'logs'})"
-    )
-    if plan.fit is not None:
-        if plan.fit.protocol:
-            print(f"protocol: {protocol_line(plan.fit.protocol)}")
-        for note in plan.fit.notes:
-            print(f"pre-flight: {note}")
-    if plan.numerics == "remote":
-        print("numerics: remote (the policy server's forward shapes are its own)")
-    elif plan.numerics.startswith("dynamic"):
-        print(
-            "numerics: dynamic batching: reruns differ in float rounding "
-            "(executor.batching=fixed gives the same tables every run)"
+        result = evaluate(
+            args.config,
+            args.out,
+            args.overrides,
+            yes=args.yes,
+            adopt=args.adopt,
+            allow_code_change=args.allow_code_change,
+            allow_numerics_change=args.allow_numerics_change,
+            echo=print,
         )
-    try:
-        with stop_on_signals():  # SIGTERM / SIGINT: flush, mark MLflow KILLED, exit 143 / 130
-            summary = execute(plan)
-    except RunInterrupted as e:
+    except EvaluationInterrupted as e:
         print(
-            f"idr-eval: {e}: the finished episodes are stored in {run_dir} (MLflow runs marked "
+            f"idr-eval: {e}: the finished episodes are stored in {e.run_dir} (MLflow runs marked "
             "KILLED); run the same command again to resume",
             file=sys.stderr,
         )
         return e.exit_code
-    print(
-        f"done in {summary.wall_seconds:.1f}s: {summary.stored} stored, {summary.skipped} already "
-        f"stored, {summary.errors} errors, {summary.retries} retries, "
-        f"{summary.actors_replaced} actors replaced, {summary.timeouts} timeouts"
-    )
-    print((run_dir / REPORT_MD).read_text())
-    print(_ui_hint(run_dir))
+    print(result.report_path.read_text())
+    print(_ui_hint(result.run_dir))
     return 0
 
 
 def _cmd_study(args: argparse.Namespace) -> int:
     """Every run of the study planned (and pre-flighted) first, then run in order; a finished
     run is skipped by its own resume. Then STUDY/observations.md from all of them."""
+    from pipeline.api.run import import_logging_libraries
     from pipeline.execution.runner import execute, plan_run
-    from pipeline.planning.study import load_study
+    from pipeline.planning.study import check_study_plans, load_study, pin_endpoints
     from pipeline.reporting.observations import OBS_MD, RunRef, write
 
     only = [s for s in args.only.split(",") if s] if args.only is not None else None
@@ -105,7 +70,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
     out = Path(args.out)
     plans = []
     for run in study.runs:
-        _import_logging_libraries(run.config)
+        import_logging_libraries(run.config)
         try:
             plan = plan_run(
                 run.config,
@@ -119,7 +84,11 @@ def _cmd_study(args: argparse.Namespace) -> int:
             hint = f"\n  or leave the run out: --only {','.join(others)}" if others else ""
             raise ConfigError(f"{run.label}: {e}{hint}") from None
         plans.append(plan)
-        print(f"{run.label}: {len(plans[-1].all_specs())} episodes -> {out / run.label}")
+        held = f" (+ {plan.held_out_count()} held-out to fit tau)" if plan.held_out else ""
+        print(f"{run.label}: {len(plan.all_specs())} episodes{held} -> {out / run.label}")
+    check_study_plans(study, plans)
+    pinned = pin_endpoints(study, out)  # before the first episode of any run
+    print(f"endpoints: {len(study.endpoints)} primary, pinned in {pinned}")
     for run, plan in zip(study.runs, plans, strict=True):
         try:
             with stop_on_signals():
@@ -136,21 +105,9 @@ def _cmd_study(args: argparse.Namespace) -> int:
             f"{summary.skipped} already stored, {summary.errors} errors)"
         )
     refs = [RunRef(r.arch, r.env, out / r.label) for r in study.runs]
-    write(out, refs, study.name)
+    write(out, refs, study.name, study.endpoints)
     print((out / OBS_MD).read_text())
     return 0
-
-
-def _import_logging_libraries(cfg: RunConfig) -> None:
-    """Import Ray and MLflow now, where the run uses them, and send their log records to the
-    run's log (pipeline.execution.run_log): each installs its own terminal handler when imported."""
-    from pipeline.execution.run_log import RUN_LOG
-
-    if cfg.executor.kind == "ray":
-        import ray  # noqa: F401
-    if cfg.tracking.enabled:
-        import mlflow  # noqa: F401
-    RUN_LOG.route_libraries()
 
 
 def _ui_hint(run_dir: Path) -> str:

@@ -8,6 +8,8 @@ Layout of ``RUN_DIR`` (the contract of docs/guarantees.md):
   quarantined files): written and read only through :func:`read_run_json` / :func:`write_run_json`
 - ``episodes/``, ``steps/`` Parquet batches (pipeline.results.store), ``quarantine/`` unreadable
   batches moved aside
+- ``calibration_episodes/{episodes,steps}/`` the held-out episodes that fit tau (a
+  ``calibration:`` block): a store of their own, in no table, comparison or metric of the run
 - ``report.md``, ``report.html``, ``figures/``, ``calibration.json``, ``tracking.json``,
   ``logs/``, ``.lock``
 - ``policy.token`` the run's secret for its policy sockets (a shared policy on the socket
@@ -41,6 +43,7 @@ QUARANTINE_DIR = "quarantine"
 FIGURES_DIR = "figures"  # RUN_DIR/figures/<name>.png
 VIDEOS_DIR = "videos"  # RUN_DIR/videos/cell=<id>/<task>/episode_<i>.mp4 (videos.episodes)
 CALIBRATION_FILE = "calibration.json"
+HELD_OUT_DIR = "calibration_episodes"  # RUN_DIR/calibration_episodes/{episodes,steps}/cell=*/
 TRACKING_FILE = "tracking.json"
 LOGS_DIR = "logs"
 LOCK_FILE = ".lock"

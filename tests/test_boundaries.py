@@ -62,6 +62,7 @@ PIPELINE_LAYERS = (
     ("pipeline.reporting",),  # markdown, figures, HTML slices, compare: views of results
     ("pipeline.tracking",),  # MLflow: logs the same views
     ("pipeline.execution",),  # runner, scheduler, writer, executors, cluster
+    ("pipeline.api",),  # evaluate / diagnose from Python: what the CLI's run calls
     ("pipeline.cli",),
 )
 

@@ -39,6 +39,7 @@ from pipeline.execution.run_log import RUN_LOG
 from pipeline.execution.scheduler import RunSummary, Scheduler
 from pipeline.execution.signals import critical_section
 from pipeline.execution.writer import BatchWriter
+from pipeline.planning.calibration_block import fit_sources
 from pipeline.planning.checkpoint_fit import fit_config
 from pipeline.planning.config import ConfigError, RunConfig
 from pipeline.planning.env_runtime import check_env_runtime
@@ -46,12 +47,13 @@ from pipeline.planning.plan import CellPlan, RunPlan, SpecGrid, planned_numerics
 from pipeline.planning.provenance import check_hardware, check_numerics, check_resume
 from pipeline.reporting.run_data import load_run
 from pipeline.reporting.write import write_report
-from pipeline.results.calibration import calibrate
+from pipeline.results.calibration import calibrate, held_out_record, held_out_tasks
 from pipeline.results.store import RunStore
 from pipeline.rundir import (
     CALIBRATION_FILE,
     CONFIG_YAML,
     FIGURES_DIR,
+    HELD_OUT_DIR,
     LOGS_DIR,
     MARKERS,
     REPORT_MD,
@@ -112,10 +114,11 @@ def plan_run(
         if warning:
             log.warning(warning)
     specs, deferred = _stages(cfg, run_id, tasks, version)
+    held_out, record = _held_out_stage(cfg, specs, tasks)
     worker_spec = _worker_spec(cfg, fit, server, run_dir, tasks)
     return RunPlan(
         cfg, run_dir, run_id, tasks, specs, worker_spec, deferred, version, checkpoint, fit,
-        server_hello, numerics, hardware,
+        server_hello, numerics, hardware, held_out, record,
     )  # fmt: skip
 
 
@@ -147,6 +150,27 @@ def _stages(
     )
     specs = grid.replace(cells=tuple(c for c in cells if c.cell_id not in later))
     return specs, grid.replace(cells=tuple(c for c in cells if c.cell_id in later))
+
+
+def _held_out_stage(
+    cfg: RunConfig, specs: SpecGrid, tasks: list[TaskSpec]
+) -> tuple[SpecGrid | None, dict[str, object] | None]:
+    """With a ``calibration:`` block: the diagnose cells that fit tau, on the held-out
+    episodes of the calibration tasks (pipeline.results.calibration.held_out_tasks), and the
+    record of them; (None, None) without one."""
+    cal = cfg.calibration
+    if cal is None:
+        return None, None
+    cells = cfg.cells()
+    chosen = held_out_tasks(cal, tasks, cells)
+    sources = fit_sources(cells)
+    grid = specs.replace(
+        cells=tuple(c for c in specs.cells if c.cell_id in sources),
+        tasks=tuple(chosen),
+        episodes_per_task=cal.episodes_per_task,
+        first_episode=cal.first(cfg.episodes_per_task),
+    )
+    return grid, held_out_record(cfg, chosen, tasks)
 
 
 def _worker_spec(
@@ -267,6 +291,7 @@ def _after_lock(plan: RunPlan) -> RunPlan:
         run_id=run_id,
         specs=plan.specs.replace(run_id=run_id),
         calibrated=plan.calibrated.replace(run_id=run_id),
+        held_out=plan.held_out.replace(run_id=run_id) if plan.held_out is not None else None,
     )
 
 
@@ -394,8 +419,9 @@ def every_episode_failed(store: RunStore, run_dir: Path) -> str | None:
 
 def calibrated_specs(plan: RunPlan, store: RunStore, tracker: Tracker | None = None) -> SpecGrid:
     """The specs of the cells with ``tau: calibrated``, their tau set from the stored
-    diagnose cell (the paper's rule); logged, and recorded in MLflow when tracked."""
-    result = calibrate(store, plan.cfg.cells())
+    diagnose cell (the paper's rule); logged, and recorded in MLflow when tracked. ``store``:
+    the held-out episodes' store where the plan has them (plan.held_out), else the run's."""
+    result = calibrate(store, plan.cfg.cells(), plan.held_out_record, plan.run_dir)
     for cell_id, c in result["cells"].items():
         log.info(
             "tau of %s (%s of %s in %s): %s",
@@ -436,11 +462,13 @@ def run_episodes(
     store = store if store is not None else RunStore(plan.run_dir)
     executor = executor if executor is not None else make_executor(plan.worker_spec, ex)
     per_task: dict[str, int] = {}  # episodes per task, for the ETA (no spec is built)
-    for grid in (plan.specs, plan.calibrated):
+    stages = (plan.specs, plan.calibrated, *([plan.held_out] if plan.held_out else []))
+    for grid in stages:
         for task in grid.tasks:
             n = len(grid.cells) * grid.episodes_per_task
             per_task[task.task_id] = per_task.get(task.task_id, 0) + n
-    progress = Progress(len(plan.all_specs()), per_task, ex.workers * ex.envs_per_worker)
+    total = len(plan.all_specs()) + plan.held_out_count()
+    progress = Progress(total, per_task, ex.workers * ex.envs_per_worker)
     # what the run dir holds now must still be there at each flush
     markers = tuple(n for n in MARKERS if (plan.run_dir / n).exists())
     stored = store.stored_keys()
@@ -453,17 +481,21 @@ def run_episodes(
         check_dir=lambda: check_run_dir_intact(plan.run_dir, markers),
         stored_keys=stored,
     )
-    sched = Scheduler(
-        executor,
-        writer,
-        ex.max_attempts,
-        total=len(plan.all_specs()),
-        progress=progress,
-    )
+    sched = Scheduler(executor, writer, ex.max_attempts, total=total, progress=progress)
     try:
         sched.run_stage(plan.specs)
+        fit_store = store
+        if plan.held_out is not None:  # the diagnose cells on their own held-out episodes
+            fit_store = RunStore(plan.run_dir / HELD_OUT_DIR)
+            held_writer = BatchWriter(
+                fit_store,
+                ex.flush_every,
+                check_dir=lambda: check_run_dir_intact(plan.run_dir, markers),
+            )
+            sched.run_stage(plan.held_out, writer=held_writer)
+            compact_run_dir(fit_store)
         if plan.calibrated:
-            sched.run_stage(calibrated_specs(plan, store, tracker))
+            sched.run_stage(calibrated_specs(plan, fit_store, tracker))
     finally:
         executor.close()
         progress.close()

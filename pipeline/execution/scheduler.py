@@ -66,11 +66,19 @@ class Scheduler:
         self.summary = RunSummary(total=total)
         self.pending: deque[EpisodeSpec] = deque()  # retries and requeues, before fresh specs
         self._t0 = time.monotonic()
+        self._stored_elsewhere = 0  # by the writers of earlier stages run with their own
         self._started = False  # the executor starts when the first episode needs running
 
-    def run_stage(self, specs: Iterable[EpisodeSpec]) -> RunSummary:
+    def run_stage(
+        self, specs: Iterable[EpisodeSpec], writer: BatchWriter | None = None
+    ) -> RunSummary:
         """Run every spec not stored yet; return once each is stored (flushed). ``specs`` is
-        walked once, as the executor has room (a lazy grid is never built whole)."""
+        walked once, as the executor has room (a lazy grid is never built whole).
+        ``writer``: another store's for this stage (the held-out calibration episodes);
+        None: the scheduler's own."""
+        own = self.writer
+        if writer is not None:
+            self.writer = writer
         source = iter(specs)
         try:
             while self._fill(source) or self.executor.in_flight():
@@ -79,6 +87,9 @@ class Scheduler:
                 self._tick()
         finally:
             self.writer.flush()
+            if writer is not None:
+                self._stored_elsewhere += writer.stored
+                self.writer = own
             self._sync_stats()
             self._tick()
         return self.summary
@@ -160,7 +171,7 @@ class Scheduler:
     # -- bookkeeping ---------------------------------------------------------------------------
     def _sync_stats(self) -> None:
         s, stats = self.summary, self.executor.stats
-        s.stored = self.writer.stored
+        s.stored = self.writer.stored + self._stored_elsewhere
         s.actors_replaced, s.timeouts = stats.replaced, stats.timeouts
         s.workers, s.startup_seconds = list(stats.workers), stats.startup_seconds
         s.wall_seconds = time.monotonic() - self._t0
@@ -168,5 +179,5 @@ class Scheduler:
     def _tick(self) -> None:
         if self.progress is not None:
             s = self.summary
-            done = s.skipped + self.writer.stored + self.writer.buffered
+            done = s.skipped + self.writer.stored + self._stored_elsewhere + self.writer.buffered
             self.progress.update(done, s.successes, s.errors)

@@ -120,6 +120,56 @@ class VideoConfig(StrictModel):
     fps: float | None = Field(default=None, gt=0, description="None: the env's control rate")
 
 
+MIN_HELD_OUT = 10  # held-out calibration episodes per task, at least
+
+
+class CalibrationConfig(StrictModel):
+    """Held-out tau calibration: the diagnose cell runs on episodes of their own (indices
+    disjoint from the evaluated ones, the run's seed), and only those fit tau. Controls (tasks
+    under ``image_blackout``, and the tasks or cells named in ``controls``) never enter the fit.
+    Without this block a run fits tau on its evaluated episodes (the paper's rule as it was)."""
+
+    episodes_per_task: int = Field(
+        default=MIN_HELD_OUT,
+        description=f"held-out episodes per calibration task (at least {MIN_HELD_OUT})",
+    )
+    first_episode: int | None = Field(
+        default=None,
+        ge=0,
+        description="index of the first held-out episode (they run first_episode ... "
+        "first_episode + episodes_per_task - 1 under the run's seed); None: right after the "
+        "evaluated ones (episodes_per_task of the run)",
+    )
+    tasks: list[str] | None = Field(
+        default=None,
+        description="the task ids whose held-out episodes fit tau (a subset of the run's "
+        "tasks, no control); None: every task of the run that is not a control",
+    )
+    controls: list[str] = Field(
+        default_factory=list,
+        description="task ids or cell ids kept out of the fit, besides every task under "
+        "image_blackout (the image-zeroed control), which is one always",
+    )
+
+    @field_validator("episodes_per_task")
+    @classmethod
+    def _enough(cls, v: int) -> int:
+        if v < MIN_HELD_OUT:
+            raise ValueError(
+                f"{v} held-out episodes per task fit tau on too few; give at least "
+                f"{MIN_HELD_OUT} (calibration.episodes_per_task={MIN_HELD_OUT})"
+            )
+        return v
+
+    def first(self, evaluated: int) -> int:
+        """The first held-out episode index of a run of ``evaluated`` episodes per task."""
+        return evaluated if self.first_episode is None else self.first_episode
+
+    def indices(self, evaluated: int) -> range:
+        first = self.first(evaluated)
+        return range(first, first + self.episodes_per_task)
+
+
 class RunConfig(StrictModel):
     name: str = Field(
         default="run", description="run name; the default RUN_DIR is <output_root>/<name>"
@@ -139,6 +189,11 @@ class RunConfig(StrictModel):
     executor: ExecutorConfig = ExecutorConfig()
     tracking: TrackingConfig = TrackingConfig()
     videos: VideoConfig = VideoConfig()
+    calibration: CalibrationConfig | None = Field(
+        default=None,
+        description="held-out tau calibration (CalibrationConfig); None: tau: calibrated is "
+        "fitted on the evaluated episodes of the diagnose cell",
+    )
     output_root: str = "runs"
     max_cells: int = Field(
         default=16,
@@ -206,6 +261,10 @@ class RunConfig(StrictModel):
                     "it: put mode diagnose in a group crossed with the intervention parameters, "
                     "e.g. grid=[{mode: [diagnose, E]}, {strategy: [zero, mean]}]"
                 )
+        if self.calibration is not None:
+            from pipeline.planning.calibration_block import check_block
+
+            check_block(self, cells)
         return self
 
     def cells(self) -> list[Cell]:
@@ -228,6 +287,8 @@ class RunConfig(StrictModel):
         )
         if keep["env"].get("perturbations") == ["none"]:  # the default: as before it existed
             del keep["env"]["perturbations"]
+        if keep.get("calibration") is None:  # the default: as before it existed
+            keep.pop("calibration", None)
         return hashlib.sha256(json.dumps(keep, sort_keys=True, default=str).encode()).hexdigest()[
             :16
         ]

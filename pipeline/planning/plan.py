@@ -42,6 +42,8 @@ class SpecGrid(Sequence[EpisodeSpec]):
     seed: int
     backbone: str
     code_version: str | None = None
+    # index of the first episode (held-out calibration episodes start past the evaluated ones)
+    first_episode: int = 0
     _n: int = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -65,7 +67,7 @@ class SpecGrid(Sequence[EpisodeSpec]):
             idr=idr,
             intervention=cell.intervention,
             task=task,
-            episode_index=e,
+            episode_index=self.first_episode + e,
             seed=self.seed,
             backbone=self.backbone,
             code_version=self.code_version,
@@ -143,6 +145,15 @@ class RunPlan:
     # this host's hardware record (workers.hardware.hardware_record), for run.json; None on a
     # cluster, where the actors' rows say what ran
     hardware: dict[str, object] | None = None
+    # the diagnose cells on the held-out episodes that fit tau (a calibration: block), run
+    # into RUN_DIR/calibration_episodes before the calibrated cells; None: tau is fitted on
+    # the evaluated episodes
+    held_out: SpecGrid | None = None
+    held_out_record: dict[str, object] | None = None  # calibration.held_out_record
 
     def all_specs(self) -> Chain:
+        """The evaluated episodes (the held-out calibration episodes are not among them)."""
         return Chain((self.specs, self.calibrated))
+
+    def held_out_count(self) -> int:
+        return len(self.held_out) if self.held_out is not None else 0

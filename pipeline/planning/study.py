@@ -12,20 +12,63 @@ so the comparison is a set of runs. A study file lists them::
 
 Every run's config is loaded and checked (keys, values, overrides) before the first episode of
 any run, so an error in the last entry costs nothing.
+
+Declared endpoints. A study states its primary comparisons before its data::
+
+    endpoints:
+      primary:
+        - {member: smolvla@metaworld, compare: [E, diagnose]}   # success of E - diagnose
+        - {member: tiny_vla@tabletop, compare: [E, diagnose], suite: tabletop}
+
+``member`` is a run's ``arch@env``, ``compare: [CELL, REFERENCE]`` two of its cells (paired by
+episode, McNemar), ``suite`` (optional) restricts the pairs to one suite's episodes. Their hash
+is written to ``OUT/endpoints.json`` before the first episode (:func:`pin_endpoints`); changing
+them once the study holds episodes is refused. The report gives them with Holm's correction and
+labels every other comparison exploratory. A run with ``tau: calibrated`` needs a
+``calibration:`` block (held-out episodes fit tau: pipeline.results.calibration).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import difflib
+import hashlib
+import json
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 
 from pipeline.planning.config import ConfigError, RunConfig, load_config
 
-STUDY_KEYS = {"name", "set", "runs"}
+if TYPE_CHECKING:
+    from pipeline.planning.plan import RunPlan
+
+STUDY_KEYS = {"name", "set", "runs", "endpoints"}
 RUN_KEYS = {"arch", "env", "config", "set"}
+ENDPOINT_KEYS = {"member", "compare", "suite"}
+ENDPOINTS_FILE = "endpoints.json"  # OUT/endpoints.json: the declared endpoints and their hash
+ENDPOINTS_SYNTAX = (
+    "write endpoints: {primary: [{member: ARCH@ENV, compare: [CELL, REFERENCE_CELL]}, ...]} "
+    "(optional suite: SUITE per endpoint)"
+)
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    """One declared primary comparison: success of ``cell`` minus ``reference`` in ``member``'s
+    run, paired by episode (restricted to ``suite`` when given)."""
+
+    member: str
+    cell: str
+    reference: str
+    suite: str | None = None
+
+    @property
+    def label(self) -> str:
+        where = f" [{self.suite}]" if self.suite else ""
+        return f"{self.member}: {self.cell} vs {self.reference}{where}"
 
 
 @dataclass(frozen=True)
@@ -47,6 +90,60 @@ class StudyRun:
 class Study:
     name: str
     runs: tuple[StudyRun, ...]
+    endpoints: tuple[Endpoint, ...] = ()
+    path: Path = Path("study.yaml")
+
+    def endpoints_hash(self) -> str:
+        return endpoints_hash(self.endpoints)
+
+
+def endpoints_hash(endpoints: Sequence[Endpoint]) -> str:
+    """sha256 of the declared endpoints, in their declared order (a reorder is a change: it
+    is how the report lists them)."""
+    text = json.dumps([asdict(e) for e in endpoints], sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _endpoints(value: Any, path: Path, labels: list[str]) -> tuple[Endpoint, ...]:
+    """The ``endpoints:`` block, its members checked against the study's runs."""
+    if value is None:
+        return ()
+    if not isinstance(value, dict) or set(value) != {"primary"}:
+        raise ConfigError(f"{path}: endpoints: {ENDPOINTS_SYNTAX}")
+    entries = value["primary"]
+    if not isinstance(entries, list) or not entries:
+        raise ConfigError(f"{path}: endpoints.primary: a non-empty list; {ENDPOINTS_SYNTAX}")
+    out: list[Endpoint] = []
+    for i, e in enumerate(entries):
+        where = f"{path}: endpoints.primary[{i}]"
+        if not isinstance(e, dict) or not {"member", "compare"} <= set(e):
+            raise ConfigError(f"{where}: {ENDPOINTS_SYNTAX}")
+        _refuse_unknown(e, ENDPOINT_KEYS, where, "an endpoint")
+        member, compare, suite = e["member"], e["compare"], e.get("suite")
+        if member not in labels:
+            close = difflib.get_close_matches(str(member), labels, n=1)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            raise ConfigError(
+                f"{where}.member: {member!r} is not a run of this study; {hint}its runs are "
+                f"{', '.join(labels)} (ARCH@ENV)"
+            )
+        if (
+            not isinstance(compare, list)
+            or len(compare) != 2
+            or not all(isinstance(c, str) for c in compare)
+            or compare[0] == compare[1]
+        ):
+            raise ConfigError(
+                f"{where}.compare: two different cells of {member}, [CELL, REFERENCE], "
+                f"e.g. [E, diagnose] (got {compare!r})"
+            )
+        if suite is not None and not isinstance(suite, str):
+            raise ConfigError(f"{where}.suite: a suite name, e.g. tabletop (got {suite!r})")
+        out.append(Endpoint(str(member), compare[0], compare[1], suite))
+    dupes = sorted({e.label for e in out if out.count(e) > 1})
+    if dupes:
+        raise ConfigError(f"{path}: endpoints.primary: {dupes} declared twice; each once")
+    return tuple(out)
 
 
 def _overrides(value: Any, where: str) -> tuple[str, ...]:
@@ -99,6 +196,7 @@ def load_study(
             )
         _refuse_unknown(entry, RUN_KEYS, where, "a run")
         entries.append((where, f"{entry['arch']}@{entry['env']}", entry))
+    all_labels = [label for _, label, _ in entries]
     if only is not None:
         labels = [label for _, label, _ in entries]
         unknown = sorted(set(only) - set(labels))
@@ -122,4 +220,76 @@ def load_study(
     dupes = sorted({lab for lab in labels if labels.count(lab) > 1})
     if dupes:
         raise ConfigError(f"{path}: runs {dupes} appear twice; each (arch, env) once")
-    return Study(str(raw.get("name") or path.stem), tuple(runs))
+    endpoints = _endpoints(raw.get("endpoints"), path, all_labels)
+    by_label = {r.label: r for r in runs}
+    for i, e in enumerate(endpoints):
+        run = by_label.get(e.member)  # None: left out by --only (its config is not loaded)
+        cells = [c.cell_id for c in run.config.cells()] if run is not None else None
+        for name in (e.cell, e.reference) if cells is not None else ():
+            if name not in cells:
+                raise ConfigError(
+                    f"{path}: endpoints.primary[{i}].compare: {e.member} has no cell {name!r}; "
+                    f"its cells are {cells}"
+                )
+    return Study(str(raw.get("name") or path.stem), tuple(runs), endpoints, path)
+
+
+def check_study_plans(study: Study, plans: Sequence[RunPlan]) -> None:
+    """What needs each run's plan (its tasks), checked before any episode of any run: a run
+    that calibrates tau has a held-out ``calibration:`` block, and an endpoint's suite is one
+    of its member's. Raises ConfigError naming the field and the fix."""
+    for run, plan in zip(study.runs, plans, strict=True):
+        if plan.cfg.calibration is None and any(c.calibrated_tau for c in plan.cfg.cells()):
+            raise ConfigError(
+                f"{study.path}: {run.label}: calibration: a study fits tau on held-out episodes; "
+                f"add a calibration: block to {run.config_path} or to the study's set: "
+                '["calibration={episodes_per_task: 10}"] (docs/configuration.md)'
+            )
+    suites = {
+        run.label: sorted({str(t.suite) for t in plan.tasks})
+        for run, plan in zip(study.runs, plans, strict=True)
+    }
+    for i, e in enumerate(study.endpoints):
+        if e.suite is not None and e.member in suites and e.suite not in suites[e.member]:
+            raise ConfigError(
+                f"{study.path}: endpoints.primary[{i}].suite: {e.member} has no suite "
+                f"{e.suite!r}; its suites are {suites[e.member]} (or leave suite out: all)"
+            )
+
+
+def study_holds_episodes(out: Path) -> bool:
+    """Whether any run dir of the study under ``out`` has a stored episode (held-out ones
+    included)."""
+    return any(out.glob("*/episodes/cell=*/*.parquet")) or any(
+        out.glob("*/calibration_episodes/episodes/cell=*/*.parquet")
+    )
+
+
+def pin_endpoints(study: Study, out: Path) -> Path:
+    """Write ``OUT/endpoints.json`` (the declared endpoints and their hash) before the first
+    episode; refuse a study whose endpoints differ from the pinned ones once it holds episodes
+    (ConfigError naming the study file and how to start a new study)."""
+    target = out / ENDPOINTS_FILE
+    current = study.endpoints_hash()
+    if target.is_file():
+        pinned = json.loads(target.read_text())
+        if pinned.get("hash") == current:
+            return target
+        if study_holds_episodes(out):
+            raise ConfigError(
+                f"{study.path}: endpoints: the declared primary endpoints differ from those "
+                f"pinned in {target} before this study's first episode (hash "
+                f"{str(pinned.get('hash'))[:12]} -> {current[:12]}), and {out} holds episodes: "
+                "endpoints are fixed before the data. Restore them in the study file, or start "
+                f"a new study with a new --out (e.g. --out {out}-v2)"
+            )
+    from pipeline.rundir import write_text_atomic
+
+    out.mkdir(parents=True, exist_ok=True)
+    record = {
+        "study_file": str(study.path),
+        "hash": current,
+        "primary": [asdict(e) for e in study.endpoints],
+    }
+    write_text_atomic(target, json.dumps(record, indent=2) + "\n")
+    return target

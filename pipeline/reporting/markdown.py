@@ -17,7 +17,7 @@ import pandas as pd
 from pipeline.reporting.methods import methods_table
 from pipeline.reporting.suite_sections import suite_sections
 from pipeline.results import aggregate as agg
-from pipeline.results.calibration import read_calibration
+from pipeline.results.calibration import fitted_on_text, read_calibration
 from pipeline.results.store import RunStore
 from pipeline.rundir import read_run_json
 
@@ -214,6 +214,8 @@ def calibration_section(run_dir: Path) -> list[str]:
     return [
         "",
         "## τ calibration (per backbone x suite, from the diagnose cell)",
+        "",
+        f"τ {fitted_on_text(calib)}.",
         "",
         _md(["cell", "tau", "statistic of", "measured in", "suite", "value"], rows),
     ]

@@ -12,20 +12,27 @@ Sections, each number with an interval:
   interval and the exact McNemar p;
 - R_img against that gain across runs: Spearman's rank correlation with an exact permutation p
   (all pairings up to 8 runs);
-- R_img over normalized task progress per run (10 bins, ratio of bin means).
+- R_img over normalized task progress per run (10 bins, ratio of bin means);
+- first, the study's declared primary endpoints with Holm's correction and every other paired
+  comparison as exploratory (pipeline.reporting.endpoints).
 """
 
 from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
 
 from pipeline.results import aggregate as agg
+
+if TYPE_CHECKING:
+    from pipeline.planning.study import Endpoint
 
 EPS = agg.RIMG_EPS
 N_BOOT = 2000
@@ -180,12 +187,18 @@ def _pct(x: float) -> str:
 
 
 def markdown(result: dict, name: str) -> str:
+    from pipeline.reporting.endpoints import markdown as comparisons_markdown
+
     runs = [r for r in result["runs"] if "r_img" in r]
     lines = [f"# The paper's observations: `{name}`", ""]
     lines += [
         f"{len(result['runs'])} runs (architecture @ environment); each number from its run's "
         "diagnose cell (R_img) or its E and diagnose cells paired by episode (gain).",
         "",
+    ]
+    if "comparisons" in result:
+        lines += comparisons_markdown(result["comparisons"], result.get("endpoints_hash"))
+    lines += [
         "## R_img per architecture and environment (observations 1 and 2)",
         "",
         "| arch | env | R_img % (95% CI) | E_img | E_prop | inferences | success diagnose % (95% CI) |",
@@ -208,7 +221,7 @@ def markdown(result: dict, name: str) -> str:
         "",
         "![R_img heatmap](figures/observations_rimg_heatmap.png)",
         "",
-        "## IDR mode E against diagnose, per run",
+        "## IDR mode E against diagnose, per run (exploratory unless a primary endpoint)",
         "",
         "| arch | env | Δ success pp (95% CI) | McNemar p | pairs |",
         "|---|---|---|---|---|",
@@ -226,7 +239,7 @@ def markdown(result: dict, name: str) -> str:
     p = "–" if not np.isfinite(c["p"]) else f"{c['p']:.3g}"
     lines += [
         "",
-        "## R_img against IDR's gain across runs",
+        "## R_img against IDR's gain across runs (exploratory)",
         "",
         f"Spearman ρ = {rho} over {c['n']} runs, permutation p = {p}: **{c['finding']}**.",
         "",
@@ -251,13 +264,22 @@ def heatmap_matrix(result: dict) -> pd.DataFrame:
     return pd.DataFrame(rows).T.sort_index().sort_index(axis=1)
 
 
-def write(study_dir: Path, refs: list[RunRef], name: str) -> dict:
-    """Build the observations from the runs and write STUDY/observations.{md,json} and figures."""
+def write(
+    study_dir: Path, refs: list[RunRef], name: str, endpoints: Sequence[Endpoint] = ()
+) -> dict:
+    """Build the observations from the runs and write STUDY/observations.{md,json} and figures;
+    ``endpoints``: the study's declared primary comparisons (pipeline.planning.study), given
+    with Holm's correction, every other comparison labelled exploratory."""
+    from pipeline.planning.study import ENDPOINTS_FILE
+    from pipeline.reporting.endpoints import comparisons
     from pipeline.reporting.figures import _figure, rimg_heatmap, save
     from pipeline.rundir import FIGURES_DIR
 
     result = build(refs)
     result["name"] = name
+    result["comparisons"] = comparisons(refs, endpoints)
+    pinned = study_dir / ENDPOINTS_FILE
+    result["endpoints_hash"] = json.loads(pinned.read_text())["hash"] if pinned.is_file() else None
     study_dir.mkdir(parents=True, exist_ok=True)
     (study_dir / OBS_JSON).write_text(json.dumps(result, indent=2, default=float) + "\n")
     figs = study_dir / FIGURES_DIR

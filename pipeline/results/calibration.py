@@ -10,21 +10,89 @@ suites, and each gets its own tau), and per calibrated cell: its spec may ask fo
 or a percentile (``calibrated*2``, ``calibrated_q90``); the statistic is of the guided effect
 (E_img, or E_prop under ``guidance: proprio``, since the gate thresholds the guided effect);
 and the source is the diagnose cell with the cell's intervention settings.
+
+Which episodes fit tau. Without a ``calibration:`` block, the diagnose cell's evaluated
+episodes (the paper's rule as it was: ``make run``'s tables stay as they are). With one, the
+diagnose cell runs again on held-out episodes of its own (:func:`held_out_tasks` chooses their
+tasks; indices ``calibration.indices``, disjoint from the evaluated ones, under the run's seed)
+into a store of their own (``RUN_DIR/calibration_episodes``), and only those fit tau; their
+episodes are in no success table, paired comparison or MLflow metric of the run. Controls
+(tasks under ``image_blackout``, tasks or cells in ``calibration.controls``) never enter the fit.
 """
 
 from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pandas as pd
 import pyarrow.compute as pc
 
+from pipeline.errors import ConfigError
+from pipeline.planning.calibration_block import is_control_task
 from pipeline.planning.grid import Cell
 from pipeline.results.store import RunStore
 from pipeline.rundir import CALIBRATION_FILE, write_text_atomic
+
+if TYPE_CHECKING:
+    from pipeline.planning.config import CalibrationConfig, RunConfig
+    from workers.envs.base import TaskSpec
+
+
+def held_out_tasks(
+    cal: CalibrationConfig, tasks: Sequence[TaskSpec], cells: list[Cell]
+) -> list[TaskSpec]:
+    """The run's tasks whose held-out episodes fit tau: ``cal.tasks`` or every task but the
+    controls. Raises ConfigError (before any episode) for a name the run lacks, or a suite of
+    the run that no calibration task covers (its calibrated cells would have no tau there)."""
+    ids = [t.task_id for t in tasks]
+    cell_ids = {c.cell_id for c in cells}
+    unknown = [c for c in cal.controls if c not in ids and c not in cell_ids]
+    if unknown:
+        raise ConfigError(
+            f"calibration.controls: {unknown} name neither a task of this run ({ids}) nor a "
+            f"cell ({sorted(cell_ids)}); name controls as the run spells them"
+        )
+    if cal.tasks is not None:
+        missing = [t for t in cal.tasks if t not in ids]
+        if missing:
+            raise ConfigError(
+                f"calibration.tasks: {missing} are not tasks of this run; its tasks are {ids} "
+                "(calibration tasks are a subset of env.tasks x env.perturbations)"
+            )
+        chosen = [t for t in tasks if t.task_id in cal.tasks]
+    else:
+        chosen = [t for t in tasks if not is_control_task(t.task_id, cal.controls)]
+    covered = {t.suite for t in chosen}
+    bare = sorted({str(t.suite) for t in tasks if t.suite not in covered})
+    if bare:
+        raise ConfigError(
+            f"calibration.tasks: no held-out task in suite {bare[0]!r}, where the calibrated "
+            "cells need a tau; add one of its tasks that is not a control to calibration.tasks"
+        )
+    return chosen
+
+
+def held_out_record(
+    cfg: RunConfig, chosen: Sequence[TaskSpec], tasks: Sequence[TaskSpec]
+) -> dict[str, Any]:
+    """What calibration.json and the report say about the held-out episodes: those of the
+    ``chosen`` tasks, and the controls among the run's ``tasks`` and cells kept out."""
+    cal = cfg.calibration
+    assert cal is not None
+    held = cal.indices(cfg.episodes_per_task)
+    controls = sorted({*cal.controls, *(t.task_id for t in tasks if is_control_task(t.task_id))})
+    return {
+        "episodes_per_task": cal.episodes_per_task,
+        "first_episode": held.start,
+        "last_episode": held.stop - 1,
+        "seed": cfg.seed,
+        "tasks": [t.task_id for t in chosen],
+        "controls": controls,
+    }
 
 
 def mean_e_img(store: RunStore, cell_id: str) -> tuple[float, int]:
@@ -87,8 +155,17 @@ def _cell_tau(c: Cell, src: Cell | None, effects: dict[str, pd.DataFrame]) -> di
     return {"spec": spec.text, "effect": effect, "source_cell": src.cell_id, "tau": taus}
 
 
-def calibrate(store: RunStore, cells: list[Cell]) -> dict[str, Any]:
+def calibrate(
+    store: RunStore,
+    cells: list[Cell],
+    held_out: dict[str, Any] | None = None,
+    run_dir: str | Path | None = None,
+) -> dict[str, Any]:
     """tau of every calibrated cell, per suite, from its diagnose cell's stored inferences.
+
+    ``held_out``: the record of :func:`held_out_record` where ``store`` holds the held-out
+    episodes (RUN_DIR/calibration_episodes); None: ``store`` is the run's own and tau is fitted
+    on the evaluated episodes. ``run_dir``: where calibration.json goes (default: the store's).
 
     Returns (and writes to RUN_DIR/calibration.json) ``{"cells": {cell_id: {"spec", "effect",
     "source_cell", "tau": {suite: value}}}, "groups": [per diagnose cell x backbone x suite:
@@ -113,14 +190,30 @@ def calibrate(store: RunStore, cells: list[Cell]) -> dict[str, Any]:
     tau, n = mean_e_img(store, first) if first else (math.nan, 0)
     result = {
         "rule": "tau := statistic of the diagnose cell's guided effect per backbone x suite",
+        "fitted_on": "held_out" if held_out is not None else "evaluated",
+        "held_out": held_out,
         "tau": tau,
         "inferences": n,
         "source_cell": first,
         "cells": per_cell,
         "groups": groups,
     }
-    write_text_atomic(Path(store.run_dir) / CALIBRATION_FILE, json.dumps(result, indent=2) + "\n")
+    target = Path(run_dir if run_dir is not None else store.run_dir) / CALIBRATION_FILE
+    write_text_atomic(target, json.dumps(result, indent=2) + "\n")
     return result
+
+
+def fitted_on_text(calib: dict[str, Any]) -> str:
+    """How the report says where tau came from."""
+    held = calib.get("held_out")
+    if calib.get("fitted_on") != "held_out" or not held:
+        return "fitted on the evaluated episodes"
+    tasks = ", ".join(held["tasks"])
+    controls = f"; controls kept out: {', '.join(held['controls'])}" if held["controls"] else ""
+    return (
+        f"fitted on {held['episodes_per_task']} held-out episodes per task (seed {held['seed']}, "
+        f"episodes {held['first_episode']}-{held['last_episode']}; tasks {tasks}{controls})"
+    )
 
 
 def read_calibration(run_dir: str | Path) -> dict[str, Any] | None:

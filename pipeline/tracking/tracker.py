@@ -242,7 +242,13 @@ class Tracker:
             self.parent_id, {"tau_calibrated": result["tau"], "tau_source": result["source_cell"]}
         )
         self._log_metrics(self.parent_id, {"tau_calibrated": float(result["tau"])})
+        held_out = result.get("fitted_on") == "held_out"
+        self._log_params(self.parent_id, {"tau_fitted_on": result.get("fitted_on", "evaluated")})
         for g in result.get("groups", []):  # the statistic, on the diagnose cell it measured
+            if held_out:  # held-out episodes: in no metric of the evaluated cells
+                key = metric_key("heldout_e_img_mean", g["source_cell"], g["suite"])
+                self._log_metrics(self.parent_id, {key: g["e_img_mean"]})
+                continue
             rid = self.children.get(g["source_cell"])
             if rid is not None:
                 self._log_metrics(rid, {metric_key("e_img_mean", g["suite"]): g["e_img_mean"]})
