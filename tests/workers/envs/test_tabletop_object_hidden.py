@@ -184,16 +184,17 @@ def test_the_call_leaves_the_simulation_and_later_observations_bit_identical(env
 
 
 def test_the_suite_says_it_renders_hidden_objects_and_refuses_before_a_reset() -> None:
+    from tests.doubles.envs import NoHiddenRenderMarkerEnv
     from workers.envs.base import suite_info
-    from workers.envs.fakes import FakeMarkerEnv
     from workers.envs.suites.tabletop.env import TabletopEnv
     from workers.envs.wrappers.perturbations import PerturbedEnv
 
     assert suite_info(TabletopEnv).renders_hidden_objects is True
-    assert suite_info(FakeMarkerEnv).renders_hidden_objects is False
-    assert suite_info(PerturbedEnv(FakeMarkerEnv(), [None])).renders_hidden_objects is False
+    assert suite_info(NoHiddenRenderMarkerEnv).renders_hidden_objects is False
+    plain = PerturbedEnv(NoHiddenRenderMarkerEnv(), [None])
+    assert suite_info(plain).renders_hidden_objects is False
     with pytest.raises(NotImplementedError, match="renders_hidden_objects"):
-        PerturbedEnv(FakeMarkerEnv(), [None]).object_hidden_images()
+        plain.object_hidden_images()
     with pytest.raises(RuntimeError, match="before reset"):
         TabletopEnv(image_size=SIZE).object_hidden_images()
 
@@ -264,7 +265,7 @@ def test_an_env_server_forwards_the_hidden_render_bit_for_bit(env) -> None:
             assert np.array_equal(there.images[cam], here.images[cam])
     finally:
         remote.close()
-    fake = EnvServerClient("workers.envs.fakes:FakeMarkerEnv", {}, spec)
+    fake = EnvServerClient("tests.doubles.envs:NoHiddenRenderMarkerEnv", {}, spec)
     try:
         assert suite_info(fake).renders_hidden_objects is False
         fake.reset("reach", 0, 0)
