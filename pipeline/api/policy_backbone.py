@@ -11,15 +11,7 @@ from typing import Any
 import torch
 
 from pipeline.errors import ConfigError
-from workers.backbones.lerobot.adapter import (
-    IMAGE_PREFIX,
-    RESIZE_KEYS,
-    STATE_KEY,
-    LerobotBackbone,
-    image_suffix,
-    register_project_policies,
-    split_postprocessor,
-)
+from workers.backbones.lerobot.adapter import LerobotBackbone, register_project_policies
 
 
 class PolicyBackbone(LerobotBackbone):
@@ -35,9 +27,6 @@ class PolicyBackbone(LerobotBackbone):
         camera_map: dict[str, str] | None = None,
         chunk_len: int | None = None,
     ) -> None:
-        from idr_core.sampling import crn_mode
-        from lerobot_policy_idr.runtime import history_length
-
         register_project_policies()
         cfg = policy.config
         params = list(policy.parameters())
@@ -60,37 +49,10 @@ class PolicyBackbone(LerobotBackbone):
         self.path = str(getattr(cfg, "pretrained_path", "") or "<in memory>")
         self.config = cfg
         self.policy = policy
-        self.pre = preprocessor
-        self.post, self.finish_chunk = split_postprocessor(postprocessor)
-        self.name = f"lerobot:{cfg.type}"
-        image_keys = [k for k in cfg.input_features if image_suffix(k) is not None]
-        self._image_key = {str(image_suffix(k)): k for k in image_keys}
-        mapping = camera_map or {s: s for s in self._image_key}
-        wanted = {self._image_key.get(v, IMAGE_PREFIX + v) for v in mapping.values()}
-        if wanted != set(image_keys):
-            raise ConfigError(
-                f"camera_map={mapping} gives policy image keys {sorted(wanted)}, but the policy's "
-                f"config declares {sorted(image_keys)}: map each frame camera to one of them"
-            )
-        self.camera_map = mapping
-        self.cameras = tuple(mapping)
-        self.image_shapes = {k: tuple(cfg.input_features[k].shape) for k in image_keys}
-        self.resizes_images = any(getattr(cfg, k, None) for k in RESIZE_KEYS)
-        state = cfg.input_features.get(STATE_KEY)
-        self.state_dim = int(state.shape[0]) if state is not None else 0
-        self.action_dim = int(cfg.output_features["action"].shape[0])
-        self.chunk_len = int(
-            chunk_len
-            or getattr(cfg, "n_action_steps", None)
-            or getattr(cfg, "chunk_size", None)
-            or cfg.action_chunk_size
-        )
-        self.history_steps = history_length(cfg)
-        self.crn_mode = crn_mode(cfg.type, policy.predict_action_chunk)
-        self.can_batch = self.crn_mode != "seeded_rng"
-        self._normalizer_index = self._find_normalizer()
-        self._pending_do = None
-        self.pre.register_after_step_hook(self._state_intervention_hook)
+        try:
+            self._adopt(preprocessor, postprocessor, camera_map, chunk_len)
+        except ValueError as e:
+            raise ConfigError(str(e).replace("backbone.params.", "")) from None
 
     def close(self) -> None:
         """Take the intervention hook off the caller's preprocessor (it stays theirs)."""

@@ -277,7 +277,6 @@ def evaluate(
     say = echo or log.info
     with hf_offline():
         cfg = load(config, overrides, out)
-        check_in_process_rendering(cfg)
         run_dir = Path(out) if out is not None else Path(cfg.output_root) / cfg.name
         import_logging_libraries(cfg)
         plan = plan_run(
@@ -288,6 +287,8 @@ def evaluate(
             allow_code_change=allow_code_change,
             allow_numerics_change=allow_numerics_change,
         )
+        # after the pre-flight, whose refusals name the config's own faults first
+        check_in_process_rendering(cfg)
         for line in describe_plan(plan):
             say(line)
         try:

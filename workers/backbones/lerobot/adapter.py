@@ -289,9 +289,19 @@ class LerobotBackbone:
         # the device step runs where the policy runs, whatever device it was trained on (a
         # checkpoint saved on a GPU names cuda), as lerobot-eval overrides it
         overrides = {"device_processor": {"device": str(self.device)}}
-        self.pre, post = make_pre_post_processors(
+        pre, post = make_pre_post_processors(
             cfg, pretrained_path=path, preprocessor_overrides=overrides
         )
+        self._adopt(pre, post, camera_map, chunk_len)
+
+    def _adopt(
+        self, pre: Any, post: Any, camera_map: dict[str, str] | None, chunk_len: int | None
+    ) -> None:
+        """What the backbone reads of ``self.policy`` and ``self.config`` and the processors
+        (loaded from a folder here, given by a caller with a policy in memory:
+        ``pipeline.api``)."""
+        cfg = self.config
+        self.pre = pre
         self.post, self.finish_chunk = split_postprocessor(post)
         self.name = f"lerobot:{cfg.type}"
         image_keys = [k for k in cfg.input_features if image_suffix(k) is not None]
