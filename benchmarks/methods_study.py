@@ -1,10 +1,10 @@
 """The test-time methods measured side by side: each run dir's methods table as data, into
 ``benchmarks/results/methods.json`` (docs/methods.md renders it).
 
-    python benchmarks/methods_study.py MEMBER=RUN_DIR [MEMBER=RUN_DIR ...] [--out PATH]
+    python benchmarks/methods_study.py LABEL=RUN_DIR [LABEL=RUN_DIR ...] [--out PATH]
 
-The file holds ``runs.<MEMBER>_<SUITE>.cells.<CELL>``: each cell's success, its pairings and
-its cost. ``MEMBER`` names the policy (``tiny_vla``, ``smolvla_seed1``...); a run dir holds one
+The file holds ``runs.<LABEL>.cells.<CELL>``: each cell's success, its pairings and its cost.
+``LABEL`` names the policy and the benchmark (``tiny_vla_tabletop``, ``smolvla_seed1_metaworld``...); a run dir holds one
 backbone on one suite and several methods as values of ``mode`` (conf/grids/methods.yaml on
 the tabletop; conf/zoo/metaworld.yaml with a methods grid on MetaWorld). The figures are
 exploratory: no comparison was declared before its data.
@@ -55,18 +55,18 @@ def summarize(member: str, run_dir: Path) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("runs", nargs="+", help="MEMBER=RUN_DIR")
+    p.add_argument("runs", nargs="+", help="LABEL=RUN_DIR")
     p.add_argument("--out", type=Path, default=OUT)
     args = p.parse_args(argv)
     runs = {}
     for item in args.runs:
         member, _, path = item.partition("=")
         if not path or not Path(path).is_dir():
-            p.error(f"{item!r}: write MEMBER=RUN_DIR with an existing run dir")
+            p.error(f"{item!r}: write LABEL=RUN_DIR with an existing run dir")
         run = summarize(member, Path(path))
         # keyed, so that the docs quote a figure by its path: runs.<member>_<suite>.cells.<cell>
         run["cells"] = {c["cell"]: c for c in run["cells"]}
-        runs[f"{member}_{run['suite']}"] = run
+        runs[member] = run
     data = {
         "label": "exploratory",
         "declared_before_data": False,
