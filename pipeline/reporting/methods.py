@@ -66,54 +66,47 @@ def pairings_vs_e(g: pd.DataFrame) -> dict[str, agg.PairedDiff]:
     return out
 
 
-def _diff(d: agg.PairedDiff | None) -> str:
+def _diff(d: dict[str, object] | None) -> str:
+    """A pairing of ``methods_summary`` as the table shows it."""
     if d is None:
         return "–"
+    lo, hi = d["ci95"]
     # "none": no effect this pairing's size and discordance could detect at 80% power
-    mde = f", MDE {d.mde_pp:.0f}" if math.isfinite(d.mde_pp) else ", MDE none"
+    mde = ", MDE none" if d["mde_pp"] is None else f", MDE {d['mde_pp']:.0f}"
     return (
-        f"{100 * d.diff:+.1f} [{100 * d.ci_low:+.1f}, {100 * d.ci_high:+.1f}], "
-        f"p={d.p_value:.2g} (n={d.n_pairs}{mde})"
+        f"{100 * d['diff']:+.1f} [{100 * lo:+.1f}, {100 * hi:+.1f}], "
+        f"p={d['mcnemar_p']:.2g} (n={d['n_pairs']}{mde})"
     )
 
 
-def _fmt(x: float, digits: int) -> str:
+def _fmt(x: float | None, digits: int) -> str:
     return "–" if x is None or math.isnan(x) else f"{x:.{digits}f}"
 
 
 def methods_table(
     episodes: pd.DataFrame, steps: pa.Table
 ) -> tuple[str, list[str], list[list[object]]] | None:
-    """(title, headers, rows), or None for a run with fewer than two methods beside its
-    reference cell (the main table says it all then)."""
-    ok = episodes[episodes["error"].isna()]
-    if ok["mode"].nunique() < 3:
+    """(title, headers, rows) of :func:`methods_summary`, or None for a run with fewer than
+    two methods beside its reference cell (the main table says it all then)."""
+    if episodes.loc[episodes["error"].isna(), "mode"].nunique() < 3:
         return None
-    costs = method_costs(steps)
     rows: list[list[object]] = []
     ref_name = "reference"
-    for (backbone, suite), g in ok.groupby(["backbone", "suite"], sort=True):
-        ref = agg.reference_cell(set(g["cell_id"]))
-        ref_name = ref or ref_name
-        vs_ref = {d.cell_id: d for d in agg.paired_vs_baseline(g, baseline=ref)} if ref else {}
-        vs_e = pairings_vs_e(g)
-        overall = agg.success_overall(g).set_index("cell_id")
-        for cell in sorted(overall.index, key=lambda c: (c != ref, c)):
-            o = overall.loc[cell]
-            mode = str(g.loc[g["cell_id"] == cell, "mode"].iloc[0])
-            cost = costs.loc[cell] if cell in costs.index else None
+    for run in methods_summary(episodes, steps):
+        ref_name = run["reference"] or ref_name
+        for c in run["cells"]:
+            lo, hi = c["ci95"]
             rows.append(
                 [
-                    backbone,
-                    suite,
-                    cell,
-                    mode,
-                    f"{100 * o['success_rate']:.1f} "
-                    f"[{100 * o['ci_low']:.1f}, {100 * o['ci_high']:.1f}]",
-                    _diff(vs_ref.get(cell)),
-                    _diff(vs_e.get(cell)),
-                    _fmt(cost["rows_per_step"], 2) if cost is not None else "–",
-                    _fmt(cost["ms_per_step"], 1) if cost is not None else "–",
+                    run["backbone"],
+                    run["suite"],
+                    c["cell"],
+                    c["mode"],
+                    f"{100 * c['success']:.1f} [{100 * lo:.1f}, {100 * hi:.1f}]",
+                    _diff(c["vs_reference"]),
+                    _diff(c["vs_E"]),
+                    _fmt(c["rows_per_step"], 2),
+                    _fmt(c["ms_per_step"], 1),
                 ]
             )
     headers = [h.format(ref=ref_name) for h in HEADERS]
