@@ -41,15 +41,10 @@ from lerobot_policy_idr.configuration_idr import (
 from lerobot_policy_idr.processor_idr import BATCH_SIZE_KEY, STATE_KEY, is_image_key
 from lerobot_policy_idr.runtime import (
     ACTION,
-    QUEUE_FED_TYPES,
-    STACKED_TYPES,
+    base_input,
     history_length,
-    lent_queues,
-    queue_frame,
-    stack_frames,
 )
 
-_HISTORY_KEYS = (STATE_KEY, "observation.environment_state")
 #: batch entries that concatenate every row's image patches along dim 0 (Qwen-VL processors)
 FLAT_PATCH_KEYS = ("pixel_values", "pixel_values_videos")
 # one row per image (a batch row with several cameras has several), in batch-row order
@@ -285,22 +280,16 @@ class IDRPolicy(PreTrainedPolicy):
             self.base._queues = own
 
     def _with_history(self, batch: dict[str, Any]) -> dict[str, Any]:
-        """Observation history where the base reads one (``lerobot_policy_idr.runtime``, the
-        code idr-eval's harness runs too): the frame joins the episode's last
-        ``history_length`` frames of the 3B rows; Diffusion reads them stacked (the first
-        repeated at an episode's start, as its own select_action does); a queue-fed base
-        (VQ-BeT) reads queues that lerobot's ``populate_queues`` fills from them."""
-        n = history_length(self.base.config)
-        if self.base.config.type not in (*STACKED_TYPES, *QUEUE_FED_TYPES):
-            return batch
-        queued = self.base.config.type in QUEUE_FED_TYPES
-        frame = queue_frame(list(self.base.config.image_features), batch) if queued else batch
-        self._frames.append(frame)
-        if queued:
-            self._fed = lent_queues(self.base._queues, list(self._frames))
-            return frame
-        keys = [k for k in batch if k in _HISTORY_KEYS or is_image_key(k)]
-        return stack_frames(list(self._frames), n, keys)
+        """Observation history where the base reads one: the frame joins the episode's last
+        ``history_length`` frames of the 3B rows, and ``runtime.base_input`` (the code
+        idr-eval's harness runs too) builds what the base reads from them: Diffusion's stacked
+        frames (the first repeated at an episode's start, as its own select_action does), a
+        queue-fed base's (VQ-BeT) queues filled by lerobot's ``populate_queues``."""
+        self._frames.append(batch)
+        out, self._fed = base_input(
+            self.base.config, getattr(self.base, "_queues", None), list(self._frames)
+        )
+        return out
 
     # -- the sidecar ----------------------------------------------------------------------
     def _rows(self, b: int, diag: Any, **columns: Any) -> list[dict[str, Any]]:

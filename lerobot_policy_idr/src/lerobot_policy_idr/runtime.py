@@ -51,6 +51,8 @@ QUEUE_FED_TYPES = ("vqbet", "multi_task_dit")
 STACKED_TYPES = ("diffusion",)
 OBS_IMAGES = "observation.images"  # the stacked cameras a queue-fed base's queues hold
 ACTION = "action"
+STATE_KEY = "observation.state"
+ENV_STATE_KEY = "observation.environment_state"
 
 
 def history_length(config: Any) -> int:
@@ -95,3 +97,24 @@ def lent_queues(layout: dict[str, Any], frames: list[dict[str, Any]]) -> dict[st
     for frame in frames:
         queues = populate_queues(queues, frame, exclude_keys=[ACTION])
     return queues
+
+
+def base_input(
+    config: Any, layout: dict[str, Any] | None, frames: list[dict[str, Any]]
+) -> tuple[dict[str, Any], dict[str, Any] | None]:
+    """What the base reads, from an episode's processed frames (oldest first, the current
+    last), and the queues to lend it for the call (None: none): Diffusion's stacked frames
+    (state, environment state and its image features); a queue-fed base's current frame and
+    queues of its ``layout`` (its own ``_queues``) filled from the frames; any other base the
+    current frame alone. The idr policy and idr-eval's lerobot adapter both build it here."""
+    if config.type in QUEUE_FED_TYPES:
+        queued = [queue_frame(list(config.image_features), f) for f in frames]
+        return queued[-1], lent_queues(layout, queued)
+    if config.type not in STACKED_TYPES:
+        return frames[-1], None
+    keys = [
+        k
+        for k in frames[-1]
+        if k == STATE_KEY or k.startswith(ENV_STATE_KEY) or k in config.image_features
+    ]
+    return stack_frames(frames, history_length(config), keys), None

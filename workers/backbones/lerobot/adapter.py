@@ -425,26 +425,6 @@ class LerobotBackbone:
         ]
         return [*past, batch]
 
-    def _with_history(self, frames: list[dict[str, Any]]) -> tuple[dict[str, Any], Any]:
-        """The base's input from the processed frames (``lerobot_policy_idr.runtime``, as the
-        idr policy builds it): Diffusion's stacked history, or a queue-fed base's queues to
-        lend for the call (else None)."""
-        from lerobot_policy_idr.runtime import (
-            QUEUE_FED_TYPES,
-            lent_queues,
-            queue_frame,
-            stack_frames,
-        )
-
-        if self.config.type in QUEUE_FED_TYPES:
-            queued = [queue_frame(list(self.config.image_features), f) for f in frames]
-            return queued[-1], lent_queues(self.policy._queues, queued)
-        if self.history_steps == 1 and self.config.type != "diffusion":
-            return frames[-1], None
-        keys = [k for k in frames[-1] if k == STATE_KEY or k in self.image_shapes]
-        keys += [k for k in frames[-1] if k.startswith("observation.environment_state")]
-        return stack_frames(frames, self.history_steps, keys), None
-
     @torch.inference_mode()
     def predict_chunk(
         self, obs: Observation, noise: Any = None, intervention: Any = None
@@ -464,7 +444,10 @@ class LerobotBackbone:
             frames = [self.pre(f) for f in self._frames(obs, batch)]
         finally:
             self._pending_do = None
-        processed, lent = self._with_history(frames)
+        from lerobot_policy_idr.runtime import base_input
+
+        # what the base reads of the frames, as the idr policy builds it
+        processed, lent = base_input(self.config, getattr(self.policy, "_queues", None), frames)
         from lerobot_policy_idr.modeling_idr import weights_version
 
         version = weights_version(self.policy)
