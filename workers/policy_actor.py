@@ -189,8 +189,14 @@ class BatchingPolicyActor:
             return exc
 
 
-#: times a request is sent again over a new connection to a policy actor that went away
+#: times a request is sent again over a new connection to a policy actor that went away (or
+#: that closed it at its connection cap: a burst of other connections holds every slot)
 RECONNECTS = 10
+
+#: the wait before a reconnect doubles from this, up to RECONNECT_WAIT_MAX_S (about 8 s over
+#: all reconnects): a cap filled for a moment frees before the tries run out
+RECONNECT_WAIT_S = 0.02
+RECONNECT_WAIT_MAX_S = 2.0
 
 #: a client silent for longer (an episode worker done, or gone) is no longer waited for
 CLIENT_ACTIVE_S = 5.0
@@ -293,7 +299,9 @@ class PolicyServiceClient:
         """The request over this thread's connection to the policy actor. A connection that
         breaks means the actor died: Ray starts it again (``max_restarts``), ``describe`` (a
         Ray call, retried until it is back) says where it listens now, and the request is sent
-        again (a pure function of its content: the same answer), as Ray retries a call."""
+        again (a pure function of its content: the same answer), as Ray retries a call. The
+        tries are spaced (doubling waits): an actor at its connection cap closes a new
+        connection at once, and a burst that fills the cap for a moment must not use them all."""
         for attempt in range(RECONNECTS + 1):
             try:
                 return self._connection().infer(request, self.client_id)
@@ -306,6 +314,7 @@ class PolicyServiceClient:
                     ) from exc
                 import ray
 
+                time.sleep(min(RECONNECT_WAIT_MAX_S, RECONNECT_WAIT_S * 2**attempt))
                 self.info = {**self.info, **ray.get(self.handle.describe.remote())}
         raise AssertionError("unreachable")
 

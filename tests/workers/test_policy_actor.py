@@ -3,6 +3,8 @@ images cross as the uint8 they were made from."""
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 import torch
@@ -13,6 +15,12 @@ from workers.idr import RefinerConfig
 from workers.idr_wrapper import IDRWrapper
 from workers.observation import image_to_tensor, to_policy_observation
 from workers.policy_actor import PolicyServiceClient, _image_bytes, policy_actor_class
+from workers.policy_socket import (
+    PolicySocketConnection,
+    SocketLimits,
+    SocketSettings,
+    SocketToken,
+)
 
 
 def test_images_cross_as_their_bytes_and_come_back_the_same_floats():
@@ -137,3 +145,29 @@ def test_a_lone_clients_request_runs_in_its_thread_unless_a_forward_is_running()
     (there,) = answers
     for field in ("action", "a_base", "a_no_img", "a_no_prop"):
         np.testing.assert_array_equal(np.asarray(getattr(here, field)), getattr(there, field))
+
+
+@pytest.mark.slow
+def test_a_client_closed_at_a_full_connection_cap_gets_in_once_a_slot_frees(ray_local):
+    """Connections past the cap are closed at once: the client's tries are spaced, so a cap
+    held full for a moment (another process's burst) costs a wait, not the episode."""
+    token = SocketToken.new()
+    settings = SocketSettings("127.0.0.1", token, SocketLimits(max_connections=2))
+    params = {"chunk_len": 4, "gain": 5.0, "noise_std": 0.2}
+    actor = policy_actor_class(0.5, 0).remote(
+        "fake_marker", params, None, 4, 1.0, socket_settings=settings
+    )
+    info = ray_local.get(actor.describe.remote())
+    o = FakeMarkerEnv().reset("reach", 0, 0)
+    obs = to_policy_observation(o, o.status.instruction)
+    remote = PolicyServiceClient(actor, info)
+    remote.set_config(RefinerConfig(mode="E"))
+    holders = [PolicySocketConnection(tuple(info["socket"]), token) for _ in range(2)]
+    alone = [h.infer(remote.request(obs, 7), f"h:{i}") for i, h in enumerate(holders)]
+    release = threading.Timer(0.3, lambda: [h.close() for h in holders])
+    release.start()
+    got = remote.infer(obs, 7)  # sent while both slots are held
+    release.join()
+    assert np.array_equal(got.action, alone[0].action)
+    remote.close()
+    ray_local.kill(actor)
