@@ -27,7 +27,7 @@ from workers.backbones.base import (
 )
 from workers.forward_shape import cat_rows
 from workers.idr import Diagnostics, RefinerConfig
-from workers.interventions import InterventionConfig, intervene
+from workers.interventions import InterventionConfig, intervene, intervene_about
 
 
 @dataclass
@@ -45,13 +45,18 @@ class IDRStep:
     pass_rows: int = 0  # rows of the base's forward its passes cost (passes x batch)
 
 
+#: spaces the wrapper applies itself, for any backbone (centered: about the base's
+#: ``state_mean``, zero for a base without one)
+WRAPPER_SPACES = frozenset({"raw", "centered"})
+
+
 def check_intervention_spaces(backbone: Any, name: str, intervention: InterventionConfig) -> None:
     """Normalized-space interventions only where ``backbone`` (an instance or its class)
-    applies them itself; raw-space ones the wrapper applies for any backbone."""
+    applies them itself; raw-space and centered ones the wrapper applies for any backbone."""
     native = getattr(backbone, "native_intervention_spaces", frozenset())
     for field_name in ("image_space", "state_space"):
         space = getattr(intervention, field_name)
-        if space != "raw" and space not in native:
+        if space not in WRAPPER_SPACES and space not in native:
             raise ValueError(
                 f"intervention.{field_name}={space!r} is not supported by backbone {name!r} "
                 f"(it applies interventions in {sorted(native) or 'no'} space itself); use 'raw'"
@@ -116,21 +121,29 @@ class IDRWrapper:
             no_img = Observation(
                 dict(obs.images), obs.state, list(obs.instruction), do_image=flag, extras=obs.extras
             )
-        if iv.state_space == "raw":
-            state = intervene(
-                obs.state, iv.strategy, seed=iv.seed + 7919 * step_seed + 104729, **kw
+        if iv.state_space in WRAPPER_SPACES:
+            center = self.state_center(iv)
+            state = intervene_about(
+                obs.state, center, iv.strategy, seed=iv.seed + 7919 * step_seed + 104729, **kw
             )
             no_prop = Observation(
                 dict(obs.images),
                 state,
                 list(obs.instruction),
-                extras=_past(obs, iv, step_seed, "state"),
+                extras=_past(obs, iv, step_seed, "state", center),
             )
         else:
             no_prop = Observation(
                 dict(obs.images), obs.state, list(obs.instruction), do_state=flag, extras=obs.extras
             )
         return no_img, no_prop
+
+    def state_center(self, iv: InterventionConfig) -> Any:
+        """What do(S) is taken about: the base's dataset mean state under ``centered`` (None
+        for a base without dataset statistics: zero), None (zero) under ``raw``."""
+        if iv.state_space != "centered":
+            return None
+        return backbone_member(self.backbone, "state_mean")
 
     def request(
         self,
@@ -231,7 +244,9 @@ class IDRWrapper:
 NO_OBJECTS_KEY = "no_objects_images"
 
 
-def _past(obs: Observation, iv: InterventionConfig, step_seed: int, what: str) -> dict[str, Any]:
+def _past(
+    obs: Observation, iv: InterventionConfig, step_seed: int, what: str, center: Any = None
+) -> dict[str, Any]:
     """``obs.extras`` with a raw-space intervention on its past frames too (a history-fed
     base's counterfactual rows see the intervened modality at every frame they read, as the
     idr policy's rows do), each frame seeded apart."""
@@ -244,15 +259,16 @@ def _past(obs: Observation, iv: InterventionConfig, step_seed: int, what: str) -
         }
     if what == "state" and HISTORY_STATE in extras:
         extras[HISTORY_STATE] = _per_frame(
-            extras[HISTORY_STATE], iv.strategy, iv.seed + 7919 * step_seed + 104723, kw
+            extras[HISTORY_STATE], iv.strategy, iv.seed + 7919 * step_seed + 104723, kw, center
         )
     return extras
 
 
-def _per_frame(x: Any, strategy: str, seed: int, kw: dict[str, Any]) -> Any:
-    """``intervene`` on each frame of (B, k, ...) as on a batch of B * k."""
+def _per_frame(x: Any, strategy: str, seed: int, kw: dict[str, Any], center: Any = None) -> Any:
+    """``intervene`` (about ``center``, for states) on each frame of (B, k, ...) as on a batch
+    of B * k."""
     flat = x.reshape(x.shape[0] * x.shape[1], *x.shape[2:])
-    return intervene(flat, strategy, seed=seed, **kw).reshape(x.shape)
+    return intervene_about(flat, center, strategy, seed=seed, **kw).reshape(x.shape)
 
 
 def _without(obs: Observation, key: str) -> Observation:

@@ -8,6 +8,15 @@ from idr_core.interventions import (
     Space,
     Strategy,
     intervene,
+    intervene_about,
 )
 
-__all__ = ["SPACES", "STRATEGIES", "InterventionConfig", "Space", "Strategy", "intervene"]
+__all__ = [
+    "SPACES",
+    "STRATEGIES",
+    "InterventionConfig",
+    "Space",
+    "Strategy",
+    "intervene",
+    "intervene_about",
+]

@@ -79,3 +79,9 @@ class PolicyIO:
     # whether inference samples (its draws differ under other noise): False for deterministic
     # policies (ACT, the tiny VLA), None where unknown
     samples: bool | None = None
+    # the mean state of its training data, physical units (do(S) under state_space=centered),
+    # and where it was read; None with trained_on_data: a checkpoint that should hold one and
+    # does not
+    state_mean: tuple[float, ...] | None = None
+    state_mean_source: str | None = None
+    trained_on_data: bool = False

@@ -48,7 +48,8 @@ class InferRequest:
 
 
 def _native(iv: InterventionConfig) -> bool:
-    return iv.image_space != "raw" or iv.state_space != "raw"
+    """Whether the backbone applies part of ``iv`` itself (a forward of its own)."""
+    return iv.image_space == "normalized" or iv.state_space == "normalized"
 
 
 def _to_numpy(x: Any) -> Any:

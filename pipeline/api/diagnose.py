@@ -31,7 +31,7 @@ if TYPE_CHECKING:
 
 #: the interventions of conf/default.yaml (``intervention:``), which diagnose uses by default
 DEFAULT_INTERVENTION = InterventionConfig(
-    strategy="zero", image_space="raw", state_space="normalized"
+    strategy="zero", image_space="raw", state_space="centered"
 )
 
 

@@ -29,9 +29,14 @@ class Fit:
     image_size: int | None = None  # set on env.params when the checkpoint decided it
     protocol: Mapping[str, object] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
+    # do(S) under state_space=centered: {"values": the dataset mean state or None (zero),
+    # "source": where it was read}; None: no cell takes do(S) centered
+    state_center: Mapping[str, Any] | None = None
 
     def record(self) -> dict[str, Any]:
         out: dict[str, Any] = {"replan_steps": self.replan_steps}
+        if self.state_center is not None:
+            out["do_state_center"] = dict(self.state_center)
         if self.camera_map is not None:
             out["camera_map"] = self.camera_map
         if self.image_size is not None:
@@ -235,6 +240,36 @@ def check_inputs_for_modes(
             )
 
 
+def state_center(cfg: RunConfig, policy: PolicyIO | None) -> dict[str, Any] | None:
+    """What do(S) is taken about in the run's ``centered`` cells (the base's dataset mean
+    state, or zero for a base without dataset statistics), recorded with the run; refused for
+    a checkpoint trained on data whose files hold no state mean. None: no such cell."""
+    from idr_core.methods import passes
+
+    centered = [
+        c.cell_id
+        for c in cfg.cells()
+        if c.intervention.state_space == "centered" and "no_prop" in passes(c.idr)
+    ]
+    if not centered:
+        return None
+    if policy is None or policy.state_dim is None or not policy.trained_on_data:
+        return {"values": None, "source": f"zero: backbone {cfg.backbone.kind!r} declares no "
+                "dataset statistics"}  # fmt: skip
+    if policy.state_mean is None:
+        raise ConfigError(
+            f"intervention.state_space=centered (cells {', '.join(centered)}): {policy.source} "
+            "holds no dataset mean of observation.state in its preprocessor's normalizer; set "
+            "intervention.state_space to raw or normalized"
+        )
+    if len(policy.state_mean) != policy.state_dim:
+        raise ConfigError(
+            f"intervention.state_space=centered: {policy.state_mean_source} holds a state mean "
+            f"of {len(policy.state_mean)} values, the checkpoint reads {policy.state_dim}"
+        )
+    return {"values": list(policy.state_mean), "source": policy.state_mean_source}
+
+
 def check_methods(cfg: RunConfig, policy: PolicyIO | None) -> None:
     """Every cell's test-time method runs on this base and suite (``idr_core.methods``): an
     ensemble needs a base that samples, temporal ensembling a base with chunks, the
@@ -314,9 +349,11 @@ def fit_config(cfg: RunConfig) -> tuple[RunConfig, Fit]:
                 f"action: the env takes {dim}-d actions, but {policy.source} declares action "
                 f"({policy.action_dim},); use a policy trained on this env's action space"
             )
+    center = state_center(cfg, policy)
     fit = with_thread_note(
         fit_backbone_to_env(env, policy, cfg.backbone.replan_steps, camera_map), cfg
     )
+    fit = replace(fit, state_center=center)
     if env is not None:  # a served model: one trial answer on an observation shaped like the env's
         from workers.backbones.base import backbone_member
         from workers.backbones.factory import backbone_class

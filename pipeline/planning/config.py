@@ -88,9 +88,13 @@ class EnvConfig(StrictModel):
 
 
 class InterventionSettings(StrictModel):
+    """do(V) and do(S) (``idr_core.interventions``): ``state_space: centered`` (the default)
+    takes do(S) about the base's dataset mean state in physical units, the same counterfactual
+    for every normalizer."""
+
     strategy: Literal["zero", "mean", "gaussian"] = "zero"
     image_space: Literal["raw", "normalized"] = "raw"
-    state_space: Literal["raw", "normalized"] = "raw"
+    state_space: Literal["raw", "centered", "normalized"] = "centered"
     noise_scale: float = Field(default=0.5, ge=0)
 
 

@@ -18,7 +18,9 @@ def _steps(folder, name: str) -> list[str]:
 
 def test_steps_are_placed_after_batching_and_after_the_normalizer(bases, tmp_path) -> None:
     for kind in ("act", "diffusion"):
-        folder = make_idr(bases[kind], tmp_path / kind, "--mode", "diagnose")
+        folder = make_idr(
+            bases[kind], tmp_path / kind, "--mode", "diagnose", "--state-space", "normalized"
+        )
         pre = _steps(folder, "policy_preprocessor.json")
         assert pre == [
             "rename_observations_processor",
@@ -30,8 +32,10 @@ def test_steps_are_placed_after_batching_and_after_the_normalizer(bases, tmp_pat
         ], (kind, pre)
         # physical refinement: the policy unnormalizes, so the postprocessor does not
         assert _steps(folder, "policy_postprocessor.json") == ["device_processor"]
-    raw = make_idr(bases["act"], tmp_path / "raw", "--mode", "diagnose", "--state-space", "raw")
-    assert "idr_state_intervention" not in _steps(raw, "policy_preprocessor.json")
+    for space in ("raw", "centered"):  # both before the normalizer (centered: the default)
+        args = ("--mode", "diagnose") if space == "centered" else ("--mode", "diagnose", "--state-space", space)  # fmt: skip
+        folder = make_idr(bases["act"], tmp_path / space, *args)
+        assert "idr_state_intervention" not in _steps(folder, "policy_preprocessor.json")
     norm = make_idr(
         bases["act"], tmp_path / "n", "--mode", "diagnose", "--refine-space", "normalized"
     )
@@ -62,6 +66,37 @@ def test_the_three_thirds_hold_factual_black_image_and_mean_state(bases, tmp_pat
     assert torch.equal(state[4:], torch.zeros(2, 8))  # normalized zero = the dataset mean
 
 
+@pytest.mark.parametrize("space", ["centered", "normalized", "raw"])
+def test_do_s_under_min_max_is_the_dataset_mean_only_when_centered(bases, tmp_path, space) -> None:
+    """Diffusion normalizes its state MIN_MAX: ``normalized``'s zero is the middle of the
+    range, ``raw``'s the physical origin; ``centered`` gives the dataset mean, as under
+    MEAN_STD, so every architecture gets the same counterfactual state."""
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot_policy_idr.runtime import state_mean
+
+    base = bases["diffusion"]
+    folder = make_idr(base, tmp_path / space, "--mode", "diagnose", "--state-space", space)
+    _, pre, _ = load(folder)
+    base_pre, _ = make_pre_post_processors(
+        PreTrainedConfig.from_pretrained(base), pretrained_path=str(base)
+    )
+    mean = torch.from_numpy(state_mean(base_pre.steps))
+    obs = obs_batch(2)
+    out = pre(dict(obs))["observation.state"][4:]
+    at_mean = base_pre(dict(obs, **{"observation.state": mean.expand(2, -1).clone()}))
+    at_origin = base_pre(dict(obs, **{"observation.state": torch.zeros(2, 8)}))
+    want = {
+        "centered": at_mean["observation.state"],
+        "normalized": torch.zeros(2, 8),
+        "raw": at_origin["observation.state"],
+    }
+    assert torch.equal(out, want[space])
+    assert not torch.equal(want["centered"], want["normalized"])  # MIN_MAX: mean != midrange
+    step = next(s for s in pre.steps if type(s).__name__ == "IDRCounterfactualBatchStep")
+    assert (step.get_config()["state_mean"] is not None) == (space == "centered")  # recorded
+
+
 @pytest.mark.parametrize("kind", ["pi05", "pi0"])
 def test_pi_pipelines_get_three_consistent_thirds(tmp_path, monkeypatch, kind) -> None:
     """pi0 tokenizes the task before its normalizer, pi0.5 turns the normalized state into
@@ -76,7 +111,7 @@ def test_pi_pipelines_get_three_consistent_thirds(tmp_path, monkeypatch, kind) -
     tiny_pi_gemma(monkeypatch)
     tok = build_local_tokenizer(tmp_path / "tok", ["pick it", "place it"])
     base = build_pi(kind, tmp_path / kind, tok, monkeypatch)
-    folder = make_idr(base, tmp_path / "idr", "--mode", "diagnose")
+    folder = make_idr(base, tmp_path / "idr", "--mode", "diagnose", "--state-space", "normalized")
     pre_steps = _steps(folder, "policy_preprocessor.json")
     norm = pre_steps.index("normalizer_processor")
     assert pre_steps.index("idr_state_intervention") == norm + 1, pre_steps

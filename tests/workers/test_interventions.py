@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from workers.interventions import STRATEGIES, InterventionConfig, intervene
+from workers.interventions import STRATEGIES, InterventionConfig, intervene, intervene_about
 
 
 @pytest.mark.parametrize("lib", ["numpy", "torch"])
@@ -69,8 +69,10 @@ def test_unknown_strategy_names_allowed_values() -> None:
         ({"strategy": "ones"}, r"intervention.strategy='ones' is unknown"),
         (
             {"image_space": "latent"},
-            r"intervention.image_space='latent' is unknown; allowed values: \('raw', 'normalized'\)",
+            r"intervention.image_space='latent' is unknown; allowed values: "
+            r"\('raw', 'centered', 'normalized'\)",
         ),
+        ({"image_space": "centered"}, r"image_space='centered' is not a space for images"),
         ({"state_space": "x"}, r"intervention.state_space='x' is unknown"),
         ({"noise_scale": -1.0}, r"noise_scale=-1.0 must be >= 0"),
     ],
@@ -78,3 +80,34 @@ def test_unknown_strategy_names_allowed_values() -> None:
 def test_bad_intervention_config(kwargs, pattern) -> None:
     with pytest.raises(ValueError, match=pattern):
         InterventionConfig(**kwargs)
+
+
+@pytest.mark.parametrize("lib", ["numpy", "torch"])
+def test_about_a_center_zero_is_the_center_and_noise_keeps_its_size(lib) -> None:
+    """``centered`` do(S): ``zero`` gives the center (the dataset mean) exactly, in the
+    state's dtype; ``gaussian`` adds noise scaled by the offsets' std; ``mean`` is the mean
+    of the offsets, shifted back."""
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(2, 5)).astype(np.float32)
+    center = rng.normal(size=5).astype(np.float32)
+    xx = torch.from_numpy(x) if lib == "torch" else x
+    zero = intervene_about(xx, center, "zero")
+    assert zero.dtype == xx.dtype and tuple(zero.shape) == (2, 5)
+    assert np.array_equal(np.asarray(zero), np.broadcast_to(center, (2, 5)))
+    noisy = np.asarray(intervene_about(xx, center, "gaussian", seed=4))
+    offsets = xx - (torch.from_numpy(center) if lib == "torch" else center)
+    draw = np.asarray(intervene(offsets, "gaussian", seed=4)) - np.asarray(offsets)
+    np.testing.assert_allclose(noisy - x, draw, atol=1e-5)  # the offsets' draw, around x
+    np.testing.assert_allclose(
+        np.asarray(intervene_about(xx, center, "mean")),
+        center + (x - center).mean(axis=1, keepdims=True),
+        atol=1e-6,
+    )
+    assert np.array_equal(np.asarray(intervene_about(xx, None, "zero")), np.zeros((2, 5)))
+    with pytest.raises(ValueError, match="state center has \\(4,\\) values"):
+        intervene_about(xx, center[:4], "zero")
+
+
+def test_centered_is_the_default_space_of_do_s() -> None:
+    assert InterventionConfig().state_space == "centered"
+    assert InterventionConfig().image_space == "raw"

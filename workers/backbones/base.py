@@ -128,6 +128,12 @@ OPTIONAL_BACKBONE_MEMBERS: dict[str, tuple[Any, str]] = {
         "episode loop sends the past ones with each request (extras HISTORY_IMAGES and "
         "HISTORY_STATE, taken at every env step); 1: the current frame alone",
     ),
+    "state_mean": (
+        None,
+        "numpy (state_dim,): the mean state of the data it was trained on, in physical units "
+        "(a lerobot checkpoint's normalizer statistics): do(S) under state_space=centered is "
+        "taken about it; None: no dataset statistics (do(S) about zero)",
+    ),
     "remote": (
         False,
         "bool: the model runs in another process (a policy server) whose numerics are its own: "

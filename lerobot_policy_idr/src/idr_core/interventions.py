@@ -9,10 +9,19 @@ A strategy turns an input tensor into its counterfactual value:
   sample's own std, drawn from a seeded generator so that reruns are identical.
 
 ``do(V)`` applies to every camera image of an observation, ``do(S)`` to the state vector.
-*Where* in a processing chain it applies is an option recorded with every run: ``raw`` (on the
-observation the env produced, e.g. a black image in [0, 1]) or ``normalized`` (after the
-backbone's normalizer, where zero means the dataset mean). Raw-space interventions are applied
-by the IDR wrapper; normalized-space ones are delegated to backbones that support them.
+*Where* in a processing chain it applies is an option recorded with every run:
+
+- ``raw``: on the observation the env produced (a black image in [0, 1]; the state's origin).
+- ``centered`` (do(S) only; the default): on the raw state about the base's dataset mean, in
+  physical units: ``zero`` gives the mean state of the data the base was trained on, read from
+  its checkpoint's normalizer statistics, whatever its normalizer (MEAN_STD, MIN_MAX, IDENTITY).
+  So every architecture gets the same counterfactual; under MEAN_STD it is ``normalized``'s zero
+  exactly. A base without dataset statistics (a scripted expert, a fake) is centered at zero.
+- ``normalized``: after the backbone's normalizer, where zero means the dataset mean under
+  MEAN_STD, the middle of the range under MIN_MAX and the raw origin under IDENTITY.
+
+Raw and centered interventions are applied by the IDR wrapper (or the idr policy's processor
+step); normalized-space ones are delegated to backbones that support them.
 """
 
 from __future__ import annotations
@@ -23,7 +32,7 @@ from typing import Any, Literal, get_args
 import numpy as np
 
 Strategy = Literal["zero", "mean", "gaussian"]
-Space = Literal["raw", "normalized"]
+Space = Literal["raw", "centered", "normalized"]
 
 STRATEGIES: tuple[str, ...] = get_args(Strategy)
 SPACES: tuple[str, ...] = get_args(Space)
@@ -35,7 +44,7 @@ class InterventionConfig:
 
     strategy: str = "zero"  # one of STRATEGIES
     image_space: str = "raw"  # where do(V) applies: raw [0,1] pixels (a black image for `zero`)
-    state_space: str = "raw"  # where do(S) applies; `normalized` needs backbone support
+    state_space: str = "centered"  # where do(S) applies; `normalized` needs backbone support
     noise_scale: float = 0.5  # gaussian: noise std as a fraction of the input's std
     seed: int = 0  # gaussian: base seed; the wrapper folds in the step index
 
@@ -50,6 +59,11 @@ class InterventionConfig:
                     f"intervention.{name}={getattr(self, name)!r} is unknown; "
                     f"allowed values: {SPACES}"
                 )
+        if self.image_space == "centered":
+            raise ValueError(
+                "intervention.image_space='centered' is not a space for images (do(V) is a black "
+                "image in [0, 1]: 'raw'); 'centered' applies to state_space only"
+            )
         if not (self.noise_scale >= 0):
             raise ValueError(f"intervention.noise_scale={self.noise_scale!r} must be >= 0")
 
@@ -75,6 +89,29 @@ def intervene(x: Any, strategy: str, *, noise_scale: float = 0.5, seed: int = 0)
         if _is_torch(x)
         else _intervene_numpy(x, strategy, noise_scale, seed)
     )
+
+
+def intervene_about(
+    x: Any, center: Any, strategy: str, *, noise_scale: float = 0.5, seed: int = 0
+) -> Any:
+    """``intervene`` on ``x - center``, then ``center`` added back (``center``: one value per
+    trailing dim, numpy or a list; None: about zero). ``zero`` gives ``center`` exactly."""
+    if center is None:
+        return intervene(x, strategy, noise_scale=noise_scale, seed=seed)
+    if _is_torch(x):
+        import torch
+
+        c = torch.as_tensor(np.asarray(center), dtype=x.dtype, device=x.device)
+    else:
+        c = np.asarray(center, dtype=x.dtype)
+    if c.shape != tuple(x.shape[-1:]):
+        raise ValueError(
+            f"the state center has {tuple(c.shape)} values, the state {tuple(x.shape)}: the "
+            "checkpoint's dataset statistics are not of this state"
+        )
+    if strategy == "zero":
+        return c.expand_as(x).clone() if _is_torch(x) else np.broadcast_to(c, x.shape).copy()
+    return c + intervene(x - c, strategy, noise_scale=noise_scale, seed=seed)
 
 
 def _intervene_numpy(x: np.ndarray, strategy: str, noise_scale: float, seed: int) -> np.ndarray:

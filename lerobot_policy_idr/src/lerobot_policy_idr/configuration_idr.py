@@ -112,10 +112,11 @@ class IDRConfig(PreTrainedConfig):
 
     # The interventions do(V) and do(S).
     intervention_strategy: str = "zero"  # zero (the paper's), mean, gaussian
-    # do(S) after the base's normalizer (zero = the dataset mean; before pi0.5's state
-    # tokenizer) or on the physical state before it; do(V) is always on raw [0, 1] images
-    # (a black image for every family).
-    state_space: str = "normalized"
+    # do(S): ``centered`` on the physical state about the base's dataset mean (zero = that
+    # mean, whatever the normalizer: the harness's default too), ``normalized`` after the
+    # base's normalizer (before pi0.5's state tokenizer), or ``raw`` on the physical state
+    # about the origin; do(V) is always on raw [0, 1] images (a black image for every family).
+    state_space: str = "centered"
     noise_scale: float = 0.5  # gaussian strategy only
     intervention_seed: int = 0
 

@@ -6,7 +6,9 @@ counterfactual inputs are made inside the base's own preprocessor, by two regist
 1. ``idr_counterfactual_batch`` right after the batch dimension is added (and after a
    relative-actions step, which must cache the factual state): the batch of B rows becomes
    ``[factual | do(V) | do(S)]`` of 3B rows; do(V) acts on raw [0, 1] images (a black image
-   for every family); do(S) too when ``state_space`` is ``raw``; the task strings are tripled.
+   for every family); do(S) too when ``state_space`` is ``raw`` (about the origin) or
+   ``centered`` (about the dataset mean the base's normalizer holds, kept in the step's
+   config); the task strings are tripled.
 2. ``idr_state_intervention`` right after the normalizer: do(S) on rows 2B:3B in normalized
    space (zero = the dataset mean), before any later step reads the state (pi0.5's state
    tokenizer turns it into text).
@@ -23,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from idr_core.interventions import intervene
+from idr_core.interventions import intervene, intervene_about
 from lerobot.configs.types import PipelineFeatureType, PolicyFeature
 from lerobot.lerobot_types import TransitionKey
 from lerobot.processor import (
@@ -62,12 +64,14 @@ class IDRCounterfactualBatchStep(ProcessorStep):
     """B rows -> 3B rows ``[factual | do(V) | do(S)]`` (do(S) here only in raw space)."""
 
     strategy: str = "zero"
-    state_space: str = "normalized"
+    state_space: str = "centered"
     noise_scale: float = 0.5
     seed: int = 0
     # what the base reads (from its config): checked on the first observation, before the
     # first chunk is computed and so before a robot moves
     expects: dict[str, list[int]] | None = None
+    # do(S) under ``centered``: the base's dataset mean state (its normalizer's), physical units
+    state_mean: list[float] | None = None
 
     def __post_init__(self) -> None:
         self._calls = 0
@@ -112,9 +116,14 @@ class IDRCounterfactualBatchStep(ProcessorStep):
                     noise_scale=self.noise_scale,
                     seed=step_seed + images.index(key),
                 )
-            if key == STATE_KEY and self.state_space == "raw":
-                no_prop = intervene(
-                    value, self.strategy, noise_scale=self.noise_scale, seed=step_seed + 104729
+            if key == STATE_KEY and self.state_space in ("raw", "centered"):
+                center = self.state_mean if self.state_space == "centered" else None
+                no_prop = intervene_about(
+                    value,
+                    center,
+                    self.strategy,
+                    noise_scale=self.noise_scale,
+                    seed=step_seed + 104729,
                 )
             obs[key] = torch.cat([value, no_img, no_prop], dim=0)
         comp = dict(transition.get(TransitionKey.COMPLEMENTARY_DATA) or {})
@@ -139,6 +148,7 @@ class IDRCounterfactualBatchStep(ProcessorStep):
             "noise_scale": self.noise_scale,
             "seed": self.seed,
             "expects": self.expects,
+            "state_mean": self.state_mean,
         }
 
     def transform_features(
@@ -217,10 +227,21 @@ def insert_idr_steps(
             for k, f in (config.input_features or {}).items()
             if k == STATE_KEY or is_image_key(k)
         }
+        mean = None
+        if iv.state_space == "centered" and STATE_KEY in expects:
+            from lerobot_policy_idr.runtime import state_mean
+
+            found = state_mean(steps)
+            if found is None:
+                raise ValueError(
+                    "policy.state_space='centered' but the base's preprocessor holds no dataset "
+                    "mean of observation.state; use --policy.state_space=raw or normalized"
+                )
+            mean = [float(v) for v in found]
         steps.insert(
             where,
             IDRCounterfactualBatchStep(
-                iv.strategy, iv.state_space, iv.noise_scale, iv.seed, expects or None
+                iv.strategy, iv.state_space, iv.noise_scale, iv.seed, expects or None, mean
             ),
         )
         if iv.state_space == "normalized":

@@ -118,3 +118,24 @@ def base_input(
         if k == STATE_KEY or k.startswith(ENV_STATE_KEY) or k in config.image_features
     ]
     return stack_frames(frames, history_length(config), keys), None
+
+
+# -- do(S) centered: the base's dataset mean state ----------------------------------------------
+def state_mean(steps: list[Any]) -> np.ndarray | None:
+    """The mean of ``observation.state`` in the statistics of the first normalizer among a
+    preprocessor's ``steps`` (float32, as that normalizer subtracts it); None where no
+    normalizer holds one. Every normalization mode keeps the mean (lerobot computes all stats
+    for every feature), so one definition serves MEAN_STD, MIN_MAX and IDENTITY bases alike."""
+    for step in steps:
+        if type(step).__name__ != "NormalizerProcessorStep":
+            continue
+        tensors = getattr(step, "_tensor_stats", None) or {}
+        mean = (tensors.get(STATE_KEY) or {}).get("mean")
+        if mean is None:
+            mean = ((getattr(step, "stats", None) or {}).get(STATE_KEY) or {}).get("mean")
+        if mean is None:
+            return None
+        if isinstance(mean, torch.Tensor):
+            mean = mean.detach().cpu().float().numpy()
+        return np.asarray(mean, dtype=np.float32).reshape(-1)
+    return None

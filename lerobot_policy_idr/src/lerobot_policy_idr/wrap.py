@@ -37,7 +37,12 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--eps", type=float, default=1e-6)
     p.add_argument("--guidance", default="visual", choices=GUIDANCES)
     p.add_argument("--strategy", default="zero", help="intervention: zero, mean, gaussian")
-    p.add_argument("--state-space", default="normalized", help="do(S) in normalized|raw space")
+    p.add_argument(
+        "--state-space",
+        default="centered",
+        help="do(S) about the dataset mean in physical units (centered), after the normalizer "
+        "(normalized), or about the origin (raw)",
+    )
     p.add_argument("--refine-space", default="physical", help="physical|normalized actions")
     p.add_argument("--n-action-steps", type=int, default=None, help="default: the base's")
     p.add_argument("--no-clip", action="store_true", help="do not clip into the base's bounds")

@@ -248,3 +248,40 @@ def test_temporal_ensembling_needs_a_base_with_chunks() -> None:
     with pytest.raises(ConfigError, match=r"cell 'temporal': mode 'temporal' .* one action"):
         check_methods(cfg, _policy(chunk_len=1))
     check_methods(cfg, _policy(chunk_len=8))
+
+
+def test_centered_do_s_is_recorded_and_refused_for_a_checkpoint_without_a_state_mean(
+    tmp_path,
+) -> None:
+    """The default do(S) is about the base's dataset mean: the run records the values and
+    their file; a trained checkpoint whose files hold none is refused before any episode,
+    naming the field and its other values; a base without data (a fake) is centered at zero."""
+    import json
+    import shutil
+
+    from pipeline.execution.runner import plan_run
+    from pipeline.planning.checkpoint_fit import state_center
+    from pipeline.planning.config import load_config
+
+    conf = Path(__file__).resolve().parents[3] / "conf"
+    ckpt = Path(__file__).resolve().parents[3] / "checkpoints" / "tiny_vla"
+    over = ["tracking.enabled=false", "intervention.state_space=centered", "episodes_per_task=1"]
+    plan = plan_run(load_config(conf / "default.yaml", over), tmp_path / "run")
+    center = plan.fit.record()["do_state_center"]
+    assert len(center["values"]) == 8 and center["source"].endswith(".safetensors")
+    broken = tmp_path / "no_mean"
+    shutil.copytree(ckpt, broken)
+    pre = json.loads((broken / "policy_preprocessor.json").read_text())
+    for step in pre["steps"]:
+        step.pop("state_file", None)
+    (broken / "policy_preprocessor.json").write_text(json.dumps(pre))
+    cfg = load_config(conf / "default.yaml", [*over, f"backbone.params.path={broken}"])
+    with pytest.raises(ConfigError, match=r"intervention.state_space=centered .*raw or normalized"):
+        plan_run(cfg, tmp_path / "refused")
+    assert not (tmp_path / "refused").exists()
+    smoke = load_config(conf / "smoke.yaml", ["tracking.enabled=false"])  # fake: zero
+    assert state_center(smoke, None) is None  # smoke sets raw: nothing centered
+    fake = load_config(
+        conf / "smoke.yaml", ["tracking.enabled=false", "intervention.state_space=centered"]
+    )
+    assert state_center(fake, None)["values"] is None

@@ -154,6 +154,30 @@ def test_raw_state_space_zeroes_before_the_pipeline(ckpts) -> None:
     assert (state[4:].abs() > 1e-3).any() and torch.allclose(state[4], state[5])
 
 
+def test_centered_do_s_is_the_saved_dataset_mean_for_every_normalizer(ckpts) -> None:
+    """do(S) under ``centered`` (the default) feeds the base its dataset mean state, read the
+    same from the saved files (the pre-flight, torch-free) and the loaded normalizer: under
+    MEAN_STD that is ``normalized``'s zero bit for bit, under MIN_MAX (Diffusion) it is not the
+    middle of the range that ``normalized`` gives."""
+    from workers.backbones.lerobot.adapter import policy_io
+
+    for kind, mode in (("act", "MEAN_STD"), ("diffusion", "MIN_MAX")):
+        bb = _backbone(ckpts[kind])
+        io = policy_io(Path(ckpts[kind]))
+        assert io.state_mean is not None and io.state_mean_source.endswith(".safetensors")
+        assert np.array_equal(np.asarray(io.state_mean, dtype=np.float32), bb.state_mean)
+        seen = _record_step(bb.pre, bb._normalizer_index)
+        after = {}
+        for space in ("centered", "normalized"):
+            iv = InterventionConfig(state_space=space)
+            IDRWrapper(bb, RefinerConfig(mode="diagnose"), iv, batched=True).infer(_obs(2))
+            after[space] = seen[-1]["observation.state"][4:]  # rows: factual, no-img, no-prop
+        _, no_prop = IDRWrapper(bb, RefinerConfig(mode="diagnose")).counterfactuals(_obs(2))
+        assert np.array_equal(np.asarray(no_prop.state), np.stack([bb.state_mean] * 2))
+        same = torch.equal(after["centered"], after["normalized"])
+        assert same == (mode == "MEAN_STD"), kind
+
+
 def test_chunk_and_replan_bookkeeping(tmp_path) -> None:
     """An episode on the fake env with a real ACT: inference every replan_steps control steps."""
     ckpt = build_act(tmp_path / "act2", image=32, state=2, action=2, chunk=10)

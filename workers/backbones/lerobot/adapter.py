@@ -146,6 +146,7 @@ def policy_io(path: Path, chunk_len: int | None = None) -> PolicyIO:
         or cfg.get("action_chunk_size")  # VQ-BeT
         or 1
     )
+    mean, mean_source = saved_state_mean(path) if state is not None else (None, None)
     return PolicyIO(
         images=images,
         state_dim=_shape(cfg_path, STATE_KEY, state)[0] if state is not None else None,
@@ -154,7 +155,33 @@ def policy_io(path: Path, chunk_len: int | None = None) -> PolicyIO:
         resizes_images=any(cfg.get(k) for k in RESIZE_KEYS),
         source=f"{cfg_path} (policy type {cfg.get('type')!r})",
         samples=cfg.get("type") not in DETERMINISTIC_TYPES,
+        state_mean=mean,
+        state_mean_source=mean_source,
+        trained_on_data=True,
     )
+
+
+def saved_state_mean(path: Path) -> tuple[tuple[float, ...] | None, str | None]:
+    """The mean of ``observation.state`` in the checkpoint's saved preprocessor normalizer
+    (the first normalizer step's state file), read without torch; (None, None) where there is
+    none. The same values the loaded normalizer subtracts (``runtime.state_mean``)."""
+    from safetensors.numpy import load_file
+
+    pre = path / "policy_preprocessor.json"
+    if not pre.is_file():
+        return None, None
+    steps = json.loads(pre.read_text()).get("steps") or []
+    for step in steps:
+        if step.get("registry_name") != "normalizer_processor" or not step.get("state_file"):
+            continue
+        stats_file = path / step["state_file"]
+        if not stats_file.is_file():
+            return None, None
+        mean = load_file(str(stats_file)).get(f"{STATE_KEY}.mean")
+        if mean is None:
+            return None, None
+        return tuple(float(v) for v in mean.reshape(-1)), str(stats_file)
+    return None, None
 
 
 _REGISTER = re.compile(r"@PreTrainedConfig\.register_subclass\(\s*[\"']([\w.-]+)[\"']")
@@ -338,6 +365,10 @@ class LerobotBackbone:
             self.crn_mode != "seeded_rng"
         )  # one seed cannot give three thirds equal noise
         self._normalizer_index = self._find_normalizer()
+        from lerobot_policy_idr.runtime import state_mean
+
+        # do(S) under state_space=centered: about the dataset mean state, in physical units
+        self.state_mean = state_mean(self.pre.steps) if STATE_KEY in cfg.input_features else None
         self._pending_do: tuple[torch.Tensor, Any] | None = None
         self.pre.register_after_step_hook(self._state_intervention_hook)
 
