@@ -104,7 +104,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
             f"{run.label}: done in {summary.wall_seconds:.1f}s ({summary.stored} stored, "
             f"{summary.skipped} already stored, {summary.errors} errors)"
         )
-    refs = [RunRef(r.arch, r.env, out / r.label) for r in study.runs]
+    refs = [RunRef(r.arch, r.env, out / r.label, r.seed) for r in study.runs]
     write(out, refs, study.name, study.endpoints)
     print((out / OBS_MD).read_text())
     return 0

@@ -826,15 +826,21 @@ def paper_observations(d: Data) -> str:
         ok = r["success"]["diagnose"]
         g = r["gain_E"]
         rows.append(
-            [f"{r['arch']} @ {r['env']}", f"{r['r_img']:.2f} [{r['r_img_ci95'][0]:.2f}, "
+            [r.get("label") or f"{r['arch']} @ {r['env']}", f"{r['r_img']:.2f} [{r['r_img_ci95'][0]:.2f}, "
              f"{r['r_img_ci95'][1]:.2f}]", num(r["e_img"]), num(r["e_prop"]),
              f"{100 * ok['rate']:.0f}% {pct(ok['ci95'])} (n={ok['n']})",
              f"{100 * g['diff']:+.1f} pp [{100 * g['ci95'][0]:+.1f}, {100 * g['ci95'][1]:+.1f}], "
              f"p = {g['mcnemar_p']:.2g}"]
         )  # fmt: skip
     c = d["rimg_vs_gain"]
+    over = (
+        f"{c['n']} members (one point per architecture @ environment, the mean over its "
+        "training seeds)"
+        if "members" in c
+        else f"{c['n']} runs (each run a point: training seeds not pooled)"
+    )
     note = (
-        f"R_img against E − diagnose over {c['n']} runs: Spearman ρ = {c['rho']:+.2f}, "
+        f"R_img against E − diagnose over {over}: Spearman ρ = {c['rho']:+.2f}, "
         f"permutation p = {c['p']:.2g} ({c['finding']})"
     )
     header = ["arch @ env", "R_img (95% CI)", "E_img", "E_prop", "diagnose success (95% CI)",

@@ -13,6 +13,19 @@ so the comparison is a set of runs. A study file lists them::
 Every run's config is loaded and checked (keys, values, overrides) before the first episode of
 any run, so an error in the last entry costs nothing.
 
+Training seeds. A member (``arch@env``) trained several times lists one run per training seed,
+each with its ``seed`` and its checkpoint::
+
+      - {arch: smolvla, env: metaworld, seed: 0, config: conf/zoo/metaworld.yaml,
+         set: [backbone.params.path=checkpoints/zoo/metaworld/smolvla]}
+      - {arch: smolvla, env: metaworld, seed: 1, config: conf/zoo/metaworld.yaml,
+         set: [backbone.params.path=checkpoints/zoo/metaworld/smolvla_seed1]}
+
+Such a run's label is ``arch@env:seedN`` (its run dir, its name for ``--only``); the member's
+figures are pooled over its seeds with a two-level bootstrap (pipeline.results.seeds), and an
+endpoint naming the member (``arch@env``) is tested on the pooled difference. Either every run
+of a member names its seed or none does.
+
 Declared endpoints. A study states its primary comparisons before its data::
 
     endpoints:
@@ -20,7 +33,8 @@ Declared endpoints. A study states its primary comparisons before its data::
         - {member: smolvla@metaworld, compare: [E, diagnose]}   # success of E - diagnose
         - {member: tiny_vla@tabletop, compare: [E, diagnose], suite: tabletop}
 
-``member`` is a run's ``arch@env``, ``compare: [CELL, REFERENCE]`` two of its cells (paired by
+``member`` is a member's ``arch@env`` (pooled over its training seeds) or one seed's run
+``arch@env:seedN``, ``compare: [CELL, REFERENCE]`` two of its cells (paired by
 episode, McNemar), ``suite`` (optional) restricts the pairs to one suite's episodes. Their hash
 is written to ``OUT/endpoints.json`` before the first episode (:func:`pin_endpoints`); changing
 them once the study holds episodes is refused. The report gives them with Holm's correction and
@@ -46,7 +60,7 @@ if TYPE_CHECKING:
     from pipeline.planning.plan import RunPlan
 
 STUDY_KEYS = {"name", "set", "runs", "endpoints"}
-RUN_KEYS = {"arch", "env", "config", "set"}
+RUN_KEYS = {"arch", "env", "config", "set", "seed"}
 ENDPOINT_KEYS = {"member", "compare", "suite"}
 ENDPOINTS_FILE = "endpoints.json"  # OUT/endpoints.json: the declared endpoints and their hash
 ENDPOINTS_SYNTAX = (
@@ -80,10 +94,21 @@ class StudyRun:
     config_path: Path
     overrides: tuple[str, ...]
     config: RunConfig
+    seed: int | None = None  # the training seed of its checkpoint, where the member lists seeds
+
+    @property
+    def member(self) -> str:
+        """The architecture in its environment, whichever training seed."""
+        return f"{self.arch}@{self.env}"
 
     @property
     def label(self) -> str:
-        return f"{self.arch}@{self.env}"
+        """The run's own name (its run dir): the member, and its training seed if listed."""
+        return run_label(self.arch, self.env, self.seed)
+
+
+def run_label(arch: str, env: str, seed: int | None) -> str:
+    return f"{arch}@{env}" if seed is None else f"{arch}@{env}:seed{seed}"
 
 
 @dataclass(frozen=True)
@@ -95,6 +120,10 @@ class Study:
 
     def endpoints_hash(self) -> str:
         return endpoints_hash(self.endpoints)
+
+    def runs_of(self, name: str) -> list[StudyRun]:
+        """The runs an endpoint's ``member`` names: one run, or every seed of a member."""
+        return [r for r in self.runs if name in (r.label, r.member)]
 
 
 def endpoints_hash(endpoints: Sequence[Endpoint]) -> str:
@@ -124,8 +153,8 @@ def _endpoints(value: Any, path: Path, labels: list[str]) -> tuple[Endpoint, ...
             close = difflib.get_close_matches(str(member), labels, n=1)
             hint = f"did you mean {close[0]!r}? " if close else ""
             raise ConfigError(
-                f"{where}.member: {member!r} is not a run of this study; {hint}its runs are "
-                f"{', '.join(labels)} (ARCH@ENV)"
+                f"{where}.member: {member!r} is not a member or run of this study; {hint}they "
+                f"are {', '.join(labels)} (ARCH@ENV, or ARCH@ENV:seedN for one training seed)"
             )
         if (
             not isinstance(compare, list)
@@ -195,7 +224,15 @@ def load_study(
                 f"{where}: missing {sorted(missing)} (each run names arch, env, config)"
             )
         _refuse_unknown(entry, RUN_KEYS, where, "a run")
-        entries.append((where, f"{entry['arch']}@{entry['env']}", entry))
+        seed = entry.get("seed")
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or seed < 0):
+            raise ConfigError(
+                f"{where}.seed: the training seed of the run's checkpoint, an integer >= 0 "
+                f"(got {seed!r})"
+            )
+        entries.append((where, run_label(entry["arch"], entry["env"], seed), entry))
+    _check_seeds(path, [e for _, _, e in entries])
+    members = sorted({f"{e['arch']}@{e['env']}" for _, _, e in entries})
     all_labels = [label for _, label, _ in entries]
     if only is not None:
         labels = [label for _, label, _ in entries]
@@ -214,24 +251,50 @@ def load_study(
         except ConfigError as e:
             raise ConfigError(f"{where} ({label}): {e}") from None
         runs.append(
-            StudyRun(str(entry["arch"]), str(entry["env"]), Path(entry["config"]), overrides, cfg)
+            StudyRun(
+                str(entry["arch"]),
+                str(entry["env"]),
+                Path(entry["config"]),
+                overrides,
+                cfg,
+                entry.get("seed"),
+            )
         )
     labels = [r.label for r in runs]
     dupes = sorted({lab for lab in labels if labels.count(lab) > 1})
     if dupes:
-        raise ConfigError(f"{path}: runs {dupes} appear twice; each (arch, env) once")
-    endpoints = _endpoints(raw.get("endpoints"), path, all_labels)
-    by_label = {r.label: r for r in runs}
+        raise ConfigError(
+            f"{path}: runs {dupes} appear twice; each (arch, env) once, or once per training seed"
+        )
+    endpoints = _endpoints(
+        raw.get("endpoints"), path, [*all_labels, *(m for m in members if m not in all_labels)]
+    )
+    study = Study(str(raw.get("name") or path.stem), tuple(runs), endpoints, path)
     for i, e in enumerate(endpoints):
-        run = by_label.get(e.member)  # None: left out by --only (its config is not loaded)
-        cells = [c.cell_id for c in run.config.cells()] if run is not None else None
-        for name in (e.cell, e.reference) if cells is not None else ():
-            if name not in cells:
-                raise ConfigError(
-                    f"{path}: endpoints.primary[{i}].compare: {e.member} has no cell {name!r}; "
-                    f"its cells are {cells}"
-                )
-    return Study(str(raw.get("name") or path.stem), tuple(runs), endpoints, path)
+        for run in study.runs_of(e.member):  # none: left out by --only (not loaded)
+            cells = [c.cell_id for c in run.config.cells()]
+            for name in (e.cell, e.reference):
+                if name not in cells:
+                    raise ConfigError(
+                        f"{path}: endpoints.primary[{i}].compare: {run.label} has no cell "
+                        f"{name!r}; its cells are {cells}"
+                    )
+    return study
+
+
+def _check_seeds(path: Path, entries: list[dict]) -> None:
+    """Either every run of a member names its training seed or none does (a seedless run
+    beside seeded ones would be pooled as a seed of unknown origin)."""
+    by_member: dict[str, list[Any]] = {}
+    for e in entries:
+        by_member.setdefault(f"{e['arch']}@{e['env']}", []).append(e.get("seed"))
+    for member, seeds in by_member.items():
+        if None in seeds and any(x is not None for x in seeds):
+            raise ConfigError(
+                f"{path}: runs of {member}: {seeds.count(None)} without a seed beside seeds "
+                f"{sorted(s for s in seeds if s is not None)}; give every run of {member} its "
+                "training seed (seed: N)"
+            )
 
 
 def check_study_plans(study: Study, plans: Sequence[RunPlan]) -> None:
@@ -250,11 +313,12 @@ def check_study_plans(study: Study, plans: Sequence[RunPlan]) -> None:
         for run, plan in zip(study.runs, plans, strict=True)
     }
     for i, e in enumerate(study.endpoints):
-        if e.suite is not None and e.member in suites and e.suite not in suites[e.member]:
-            raise ConfigError(
-                f"{study.path}: endpoints.primary[{i}].suite: {e.member} has no suite "
-                f"{e.suite!r}; its suites are {suites[e.member]} (or leave suite out: all)"
-            )
+        for run in study.runs_of(e.member) if e.suite is not None else ():
+            if e.suite not in suites[run.label]:
+                raise ConfigError(
+                    f"{study.path}: endpoints.primary[{i}].suite: {run.label} has no suite "
+                    f"{e.suite!r}; its suites are {suites[run.label]} (or leave suite out: all)"
+                )
 
 
 def study_holds_episodes(out: Path) -> bool:

@@ -10,8 +10,12 @@ Sections, each number with an interval:
   action output; only R_img compares across environments, as in the paper's X-VLA table);
 - IDR's gain per run: success(E) - success(diagnose), paired by episode, with a bootstrap 95%
   interval and the exact McNemar p;
-- R_img against that gain across runs: Spearman's rank correlation with an exact permutation p
-  (all pairings up to 8 runs);
+- per member trained with several seeds (one run per training seed): R_img, diagnose's and E's
+  success and E's gain pooled over the seeds, two-level bootstrap (pipeline.results.seeds),
+  beside each seed's figure;
+- R_img against that gain across members: Spearman's rank correlation with an exact permutation
+  p (all pairings up to 8 points), one point per member (architecture @ environment), the mean
+  over its training seeds;
 - R_img over normalized task progress per run (10 bins, ratio of bin means);
 - first, the study's declared primary endpoints with Holm's correction and every other paired
   comparison as exploratory (pipeline.reporting.endpoints).
@@ -49,10 +53,17 @@ class RunRef:
     arch: str
     env: str
     run_dir: Path
+    seed: int | None = None  # the training seed, where the member lists several
+
+    @property
+    def member(self) -> str:
+        return f"{self.arch}@{self.env}"
 
     @property
     def label(self) -> str:
-        return f"{self.arch}@{self.env}"
+        from pipeline.planning.study import run_label
+
+        return run_label(self.arch, self.env, self.seed)
 
 
 def ratio(e_img: np.ndarray, e_prop: np.ndarray) -> float:
@@ -130,17 +141,28 @@ def rank_correlation(x: list[float], y: list[float]) -> dict[str, float | int | 
     return {"n": n, "rho": rho, "p": p, "finding": finding}
 
 
+def _diagnose_steps(steps: pd.DataFrame, diag: str) -> pd.DataFrame:
+    return steps.loc[
+        steps["cell_id"] == diag, ["task_id", "episode_index", "e_img", "e_prop", "progress"]
+    ].dropna(subset=["e_img", "e_prop"])
+
+
 def _run_section(ref: RunRef) -> dict:
     from pipeline.reporting.run_data import load_run, reference_diagnose
 
     data = load_run(ref.run_dir)
     diag = reference_diagnose(data.steps)
-    out: dict = {"arch": ref.arch, "env": ref.env, "run_dir": str(ref.run_dir), "diagnose": diag}
+    out: dict = {
+        "arch": ref.arch,
+        "env": ref.env,
+        "seed": ref.seed,
+        "label": ref.label,
+        "run_dir": str(ref.run_dir),
+        "diagnose": diag,
+    }
     if diag is None:
         return out
-    steps = data.steps.loc[
-        data.steps["cell_id"] == diag, ["task_id", "episode_index", "e_img", "e_prop", "progress"]
-    ].dropna(subset=["e_img", "e_prop"])
+    steps = _diagnose_steps(data.steps, diag)
     per_task = {
         str(t): ratio(g["e_img"].to_numpy(), g["e_prop"].to_numpy())
         for t, g in steps.groupby("task_id")
@@ -174,12 +196,56 @@ def _run_section(ref: RunRef) -> dict:
     return out
 
 
+def _member_section(member: str, refs: list[RunRef]) -> dict:
+    """A member's figures pooled over its training seeds (two-level bootstrap)."""
+    from pipeline.reporting.run_data import load_run, reference_diagnose
+    from pipeline.results.seeds import pooled_paired, pooled_rimg, pooled_success
+
+    data = {r.seed: load_run(r.run_dir) for r in refs}
+    diag = {s: reference_diagnose(d.steps) for s, d in data.items()}
+    out: dict = {"member": member, "seeds": sorted(data)}
+    if any(v is None for v in diag.values()) or len(set(diag.values())) != 1:
+        return out  # seeds without one common diagnose cell: nothing to pool
+    cell = next(iter(diag.values()))
+    steps = {s: without_control(_diagnose_steps(d.steps, cell)) for s, d in data.items()}
+    episodes = {s: d.episodes for s, d in data.items()}
+    out["diagnose"] = cell
+    out["r_img"] = pooled_rimg(steps).record()
+    out["success"] = {c: pooled_success(episodes, c).record() for c in (cell, "E")}
+    if all((e["cell_id"] == "E").any() for e in episodes.values()):
+        out["gain_E"] = pooled_paired(episodes, "E", cell).record()
+    return out
+
+
+def _points(runs: list[dict]) -> list[dict]:
+    """One point per member for the correlation: R_img and E's gain, each the mean over the
+    member's training seeds (a run without a seed is a member of one)."""
+    by_member: dict[str, list[dict]] = {}
+    for r in runs:
+        if "r_img" in r and "gain_E" in r:
+            by_member.setdefault(f"{r['arch']}@{r['env']}", []).append(r)
+    return [
+        {
+            "member": m,
+            "seeds": len(rs),
+            "r_img": float(np.mean([r["r_img"] for r in rs])),
+            "gain": float(np.mean([r["gain_E"]["diff"] for r in rs])),
+        }
+        for m, rs in by_member.items()
+    ]
+
+
 def build(refs: list[RunRef]) -> dict:
     runs = [_run_section(r) for r in refs]
-    points = [r for r in runs if "r_img" in r and "gain_E" in r]
-    corr = rank_correlation([r["r_img"] for r in points], [r["gain_E"]["diff"] for r in points])
-    corr["runs"] = [f"{r['arch']}@{r['env']}" for r in points]
-    return {"runs": runs, "rimg_vs_gain": corr}
+    grouped: dict[str, list[RunRef]] = {}
+    for r in refs:
+        grouped.setdefault(r.member, []).append(r)
+    members = [_member_section(m, rs) for m, rs in grouped.items() if len(rs) > 1]
+    points = _points(runs)
+    corr = rank_correlation([p["r_img"] for p in points], [p["gain"] for p in points])
+    corr["members"] = [p["member"] for p in points]
+    corr["seeds"] = {p["member"]: p["seeds"] for p in points}
+    return {"runs": runs, "members": members, "rimg_vs_gain": corr}
 
 
 def _pct(x: float) -> str:
@@ -191,9 +257,12 @@ def markdown(result: dict, name: str) -> str:
 
     runs = [r for r in result["runs"] if "r_img" in r]
     lines = [f"# The paper's observations: `{name}`", ""]
+    seeded = [r for r in result["runs"] if r.get("seed") is not None]
     lines += [
-        f"{len(result['runs'])} runs (architecture @ environment); each number from its run's "
-        "diagnose cell (R_img) or its E and diagnose cells paired by episode (gain).",
+        f"{len(result['runs'])} runs (architecture @ environment"
+        f"{', one per training seed where a member lists seeds' if seeded else ''}); each "
+        "number from its run's diagnose cell (R_img) or its E and diagnose cells paired by "
+        "episode (gain).",
         "",
     ]
     if "comparisons" in result:
@@ -201,14 +270,16 @@ def markdown(result: dict, name: str) -> str:
     lines += [
         "## R_img per architecture and environment (observations 1 and 2)",
         "",
-        "| arch | env | R_img % (95% CI) | E_img | E_prop | inferences | success diagnose % (95% CI) |",
-        "|---|---|---|---|---|---|---|",
+        "| arch | env | seed | R_img % (95% CI) | E_img | E_prop | inferences "
+        "| success diagnose % (95% CI) |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in runs:
         s = r["success"].get(r["diagnose"], {})
         ci = s.get("ci95", [math.nan, math.nan])
+        seed = "–" if r.get("seed") is None else r["seed"]
         lines.append(
-            f"| {r['arch']} | {r['env']} | {_pct(r['r_img'])} [{_pct(r['r_img_ci95'][0])}, "
+            f"| {r['arch']} | {r['env']} | {seed} | {_pct(r['r_img'])} [{_pct(r['r_img_ci95'][0])}, "
             f"{_pct(r['r_img_ci95'][1])}] | {r['e_img']:.3g} | {r['e_prop']:.3g} | "
             f"{r['inferences']} | {_pct(s.get('rate', math.nan))} [{_pct(ci[0])}, {_pct(ci[1])}] |"
         )
@@ -221,6 +292,7 @@ def markdown(result: dict, name: str) -> str:
         "",
         "![R_img heatmap](figures/observations_rimg_heatmap.png)",
         "",
+        *_members_markdown(result.get("members") or []),
         "## IDR mode E against diagnose, per run (exploratory unless a primary endpoint)",
         "",
         "| arch | env | Δ success pp (95% CI) | McNemar p | pairs |",
@@ -231,7 +303,7 @@ def markdown(result: dict, name: str) -> str:
         if g is None:
             continue
         lines.append(
-            f"| {r['arch']} | {r['env']} | {100 * g['diff']:+.1f} [{100 * g['ci95'][0]:+.1f}, "
+            f"| {r.get('label') or r['arch']} | {r['env']} | {100 * g['diff']:+.1f} [{100 * g['ci95'][0]:+.1f}, "
             f"{100 * g['ci95'][1]:+.1f}] | {g['mcnemar_p']:.3g} | {g['n_pairs']} |"
         )
     c = result["rimg_vs_gain"]
@@ -239,9 +311,11 @@ def markdown(result: dict, name: str) -> str:
     p = "–" if not np.isfinite(c["p"]) else f"{c['p']:.3g}"
     lines += [
         "",
-        "## R_img against IDR's gain across runs (exploratory)",
+        "## R_img against IDR's gain across members (exploratory)",
         "",
-        f"Spearman ρ = {rho} over {c['n']} runs, permutation p = {p}: **{c['finding']}**.",
+        f"Spearman ρ = {rho} over {c['n']} members, one point per architecture @ environment "
+        f"(the mean over its training seeds: {_seed_counts(c)}), permutation p = {p}: "
+        f"**{c['finding']}**.",
         "",
         "## R_img over task progress (observation 3)",
         "",
@@ -250,17 +324,73 @@ def markdown(result: dict, name: str) -> str:
     ]
     for r in runs:
         lines.append(
-            f"| {r['arch']}@{r['env']} | " + " | ".join(_pct(v) for v in r["progress"]) + " |"
+            f"| {r.get('label') or r['arch'] + '@' + r['env']} | "
+            + " | ".join(_pct(v) for v in r["progress"])
+            + " |"
         )
     lines += ["", "![R_img over progress](figures/observations_rimg_progress.png)", ""]
     return "\n".join(lines)
+
+
+def _seed_counts(c: dict) -> str:
+    seeds = c.get("seeds") or {}
+    return ", ".join(f"{m} {k}" for m, k in seeds.items()) or "none"
+
+
+def _interval(rec: dict, scale: float = 100, signed: bool = False) -> str:
+    fmt = "+.1f" if signed else ".1f"
+    v, (lo, hi) = rec["value"], rec["ci95"]
+    if not np.isfinite(v):
+        return "–"
+    return f"{scale * v:{fmt}} [{scale * lo:{fmt}}, {scale * hi:{fmt}}]"
+
+
+def _members_markdown(members: list[dict]) -> list[str]:
+    """Members trained with several seeds: their figures pooled over the seeds."""
+    rows = [m for m in members if "r_img" in m]
+    if not rows:
+        return []
+    lines = [
+        "## Members over their training seeds (seeds as a random effect)",
+        "",
+        "Each figure is the mean of the seeds' figures; its 95% interval resamples training "
+        "seeds, then episodes within each task of each drawn seed (two-level bootstrap), so it "
+        "speaks for another seed of the same recipe, which an interval over one seed's episodes "
+        "does not. Per seed in parentheses.",
+        "",
+        "| member | seeds | R_img % | success diagnose % | success E % | E − diagnose pp | "
+        "p (bootstrap) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for m in rows:
+        diag, e = m["success"].get(m["diagnose"]), m["success"].get("E")
+        gain = m.get("gain_E")
+
+        def per(rec: dict | None, signed: bool = False) -> str:
+            if not rec:
+                return "–"
+            seeds = ", ".join(
+                f"s{k} {100 * v:{'+.1f' if signed else '.1f'}}" for k, v in rec["per_seed"].items()
+            )
+            return f"{_interval(rec, signed=signed)} ({seeds})"
+
+        lines.append(
+            f"| {m['member']} | {len(m['seeds'])} | {per(m['r_img'])} | {per(diag)} | {per(e)} "
+            f"| {per(gain, signed=True)} | {_pct_p(gain)} |"
+        )
+    return [*lines, ""]
+
+
+def _pct_p(gain: dict | None) -> str:
+    return "–" if not gain or not np.isfinite(gain["p"]) else f"{gain['p']:.3g}"
 
 
 def heatmap_matrix(result: dict) -> pd.DataFrame:
     rows = {}
     for r in result["runs"]:
         for task, v in (r.get("per_task") or {}).items():
-            rows.setdefault(r["arch"], {})[f"{r['env']}\n{task}"] = v
+            row = r["arch"] if r.get("seed") is None else f"{r['arch']}:seed{r['seed']}"
+            rows.setdefault(row, {})[f"{r['env']}\n{task}"] = v
     return pd.DataFrame(rows).T.sort_index().sort_index(axis=1)
 
 
@@ -294,7 +424,13 @@ def write(
     x = (np.arange(BINS) + 0.5) / BINS
     for r in result["runs"]:
         if "progress" in r:
-            ax.plot(x, r["progress"], marker="o", ms=3, label=f"{r['arch']}@{r['env']}")
+            ax.plot(
+                x,
+                r["progress"],
+                marker="o",
+                ms=3,
+                label=r.get("label") or f"{r['arch']}@{r['env']}",
+            )
     ax.set(xlim=(0, 1), ylim=(0, 1), xlabel="normalized task progress", ylabel="R_img")
     ax.set_title("R_img over task progress (diagnose cells)")
     if ax.get_legend_handles_labels()[0]:  # no run with a diagnose cell: no lines to name

@@ -55,7 +55,18 @@ runs:
         ("runs: []", "non-empty list"),
         ("name: x", "runs:"),
         (f"runs: [{{arch: a, config: {SMOKE}}}]", r"missing \['env'\]"),
-        (f"runs: [{{arch: a, env: e, config: {SMOKE}, seed: 1}}]", r"unknown keys \['seed'\]"),
+        (f"runs: [{{arch: a, env: e, config: {SMOKE}, sed: 1}}]", r"unknown keys \['sed'\]"),
+        (f"runs: [{{arch: a, env: e, config: {SMOKE}, seed: -1}}]", r"seed: .*integer >= 0"),
+        (
+            f"runs: [{{arch: a, env: e, config: {SMOKE}, seed: 0}}, "
+            f"{{arch: a, env: e, config: {SMOKE}}}]",
+            r"runs of a@e: 1 without a seed beside seeds \[0\]; give every run",
+        ),
+        (
+            f"runs: [{{arch: a, env: e, config: {SMOKE}, seed: 2}}, "
+            f"{{arch: a, env: e, config: {SMOKE}, seed: 2}}]",
+            r"a@e:seed2.*appear twice",
+        ),
         (f"runs: [{{arch: a, env: e, config: {SMOKE}, set: seed}}]", "key=value"),
         (
             f"runs: [{{arch: a, env: e, config: {SMOKE}}}, {{arch: a, env: e, config: {SMOKE}}}]",

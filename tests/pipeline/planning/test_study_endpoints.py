@@ -54,7 +54,7 @@ def test_endpoints_are_read_in_their_declared_order(tmp_path: Path) -> None:
     [
         (
             "endpoints: {primary: [{member: a@fak, compare: [E, diagnose]}]}",
-            r"endpoints\.primary\[0\]\.member: 'a@fak' is not a run of this study; "
+            r"endpoints\.primary\[0\]\.member: 'a@fak' is not a member or run of this study; "
             r"did you mean 'a@fake'",
         ),
         (
