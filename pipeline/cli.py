@@ -23,6 +23,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 
+from pipeline.cli_reliance import add_reliance
 from pipeline.errors import RunError, is_disk_full
 from pipeline.execution.signals import RunInterrupted, stop_on_signals
 from pipeline.planning.config import ConfigError
@@ -279,6 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
         _add_compare,
         _add_ui,
         _add_list,
+        add_reliance,
     ):
         add(sub)
     return p

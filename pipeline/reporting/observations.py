@@ -41,6 +41,7 @@ if TYPE_CHECKING:
 EPS = agg.RIMG_EPS
 N_BOOT = 2000
 BINS = 10
+FIFTHS = 5  # the open-loop reliance's progress labels (pipeline.api.frames.FIFTHS)
 OBS_MD = "observations.md"
 OBS_JSON = "observations.json"
 CONTROL = "@image_blackout"  # the image-zeroed control's perturbation
@@ -174,6 +175,14 @@ def _run_section(ref: RunRef) -> dict:
         ratio(steps["e_img"].to_numpy()[binned == b], steps["e_prop"].to_numpy()[binned == b])
         for b in range(BINS)
     ]
+    # the open-loop measure's labels (pipeline.reporting.reliance): fifths, with intervals
+    fifth = np.minimum((steps["progress"].to_numpy() * FIFTHS).astype(int), FIFTHS - 1)
+    out["progress_fifths"] = []
+    for f in range(FIFTHS):
+        point, lo, hi = rimg_interval(steps[fifth == f])
+        out["progress_fifths"].append(
+            {"r_img": point, "ci95": [lo, hi], "steps": int((fifth == f).sum())}
+        )
     ok = data.episodes[data.episodes["error"].isna()]
     rates = ok.groupby("cell_id")["success"].agg(["sum", "count"])
     out["success"] = {
@@ -327,6 +336,26 @@ def markdown(result: dict, name: str) -> str:
             f"| {r.get('label') or r['arch'] + '@' + r['env']} | "
             + " | ".join(_pct(v) for v in r["progress"])
             + " |"
+        )
+    lines += [
+        "",
+        "By fifths of progress, with 95% intervals (episodes resampled), as the open-loop "
+        "measure on held-out frames labels them (`idr-eval reliance`):",
+        "",
+        "| run | "
+        + " | ".join(f"{f / FIFTHS:.1f}-{(f + 1) / FIFTHS:.1f}" for f in range(FIFTHS))
+        + " |",
+        "|---|" + "---|" * FIFTHS,
+    ]
+    for r in runs:
+        cells = [
+            "–"
+            if not np.isfinite(f["r_img"])
+            else f"{_pct(f['r_img'])} [{_pct(f['ci95'][0])}, {_pct(f['ci95'][1])}]"
+            for f in r.get("progress_fifths") or []
+        ]
+        lines.append(
+            f"| {r.get('label') or r['arch'] + '@' + r['env']} | " + " | ".join(cells) + " |"
         )
     lines += ["", "![R_img over progress](figures/observations_rimg_progress.png)", ""]
     return "\n".join(lines)
