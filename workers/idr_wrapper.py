@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 from idr_core.methods import passes, sample_seeds
+from idr_core.refiner import clip_into
 from idr_core.three_pass import PassRequest, PassResult, infer_requests
 
 from workers.backbones.base import (
@@ -205,6 +206,7 @@ class IDRWrapper:
             # one request of the factual pass alone is one call either way
             batched=self.batched and (needs or len(requests) > 1),
         )
+        results = self._clipped(requests, results)
         finish = backbone_member(self.backbone, "finish_chunk")
         if finish is None:
             return results
@@ -212,6 +214,20 @@ class IDRWrapper:
         return [
             r if t else replace(r, action=finish(r.action))
             for r, t in zip(results, temporal, strict=True)
+        ]
+
+    def _clipped(self, requests: list[PassRequest], results: list[PassResult]) -> list[PassResult]:
+        """Refined chunks clipped into the base's action bounds (``clip_into``: the dataset's
+        min/max widened to the base action), as the idr policy clips them; a base without
+        bounds, a mode that executes a_base, or ``clip_actions: false`` are left as they are."""
+        bounds = backbone_member(self.backbone, "action_bounds")
+        if bounds is None:
+            return results
+        return [
+            replace(r, action=clip_into(r.action, r.a_base, *bounds)[0])
+            if q.cfg.refines and q.cfg.clip_actions
+            else r
+            for q, r in zip(requests, results, strict=True)
         ]
 
     def finish(self, action: Any) -> Any:

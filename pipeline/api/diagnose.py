@@ -4,7 +4,7 @@ The measure is the harness's own, on frames instead of an episode: the policy be
 harness's lerobot backbone (``workers.backbones.lerobot.adapter.LerobotBackbone``), wrapped by
 ``workers.idr_wrapper.IDRWrapper`` in mode ``diagnose`` (three passes sharing one noise draw:
 factual, do(V), do(S); the executed action is the base's), with the default config's
-interventions (``zero``; do(V) on raw pixels, do(S) after the normalizer). Per frame
+interventions (``zero``; do(V) on raw pixels, do(S) about the dataset mean state). Per frame
 E_img = ||a - a_do(V)||, E_prop = ||a - a_do(S)|| over the whole chunk and
 R_img = E_img / (E_img + E_prop + eps), exactly the step table's columns of a closed-loop run.
 

@@ -136,10 +136,13 @@ def _image_size(env: EnvIO, policy: PolicyIO, mapping: Mapping[str, str]) -> int
 
 
 def resolve_replan(requested: Replan | None, env: EnvIO | None, policy: PolicyIO | None) -> Replan:
-    """Actions executed per inference: as configured, else the env protocol's rule, else 4;
-    ``chunk`` is the checkpoint's n_action_steps where it declares one."""
+    """Actions executed per inference: as configured, else the env protocol's rule, else the
+    n_action_steps of a checkpoint trained on data (what the idr policy executes in lerobot's
+    tools), else 4; ``chunk`` is the checkpoint's n_action_steps where it declares one."""
     rule = requested if requested is not None else (env.replan if env else None)
     if rule is None:
+        if policy is not None and policy.trained_on_data:
+            return policy.chunk_len
         return DEFAULT_REPLAN_STEPS
     if rule == "chunk" and policy is not None:
         return policy.chunk_len

@@ -35,7 +35,8 @@ class BackboneConfig(StrictModel):
         default=None,
         description="actions executed per inference: a number, 'chunk' (the whole chunk the "
         "backbone returns: a lerobot checkpoint's n_action_steps), or None: the env "
-        f"protocol's rule (LIBERO openpi 5, lerobot 'chunk'), else {DEFAULT_REPLAN_STEPS}",
+        "protocol's rule (LIBERO openpi 5, lerobot 'chunk'), else a lerobot checkpoint's "
+        f"n_action_steps (as the idr policy executes), else {DEFAULT_REPLAN_STEPS}",
     )
     batched: bool | None = Field(default=None, description="one 3B forward (None: if it can)")
 

@@ -48,6 +48,7 @@ SHORT_NAMES = {
     "samples": "k",
     "te_coeff": "tec",
     "horizon": "h",
+    "clip_actions": "clip",
 }
 #: modes that keep today's rule for IDR's settings on a grid axis (baseline and diagnose
 #: collapse over them; E's ablations ignore what they drop): the other methods refuse a

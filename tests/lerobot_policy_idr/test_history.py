@@ -36,7 +36,7 @@ def test_diffusion_with_two_observation_steps_is_the_same_in_harness_and_plugin(
 
     base = build_diffusion(tmp_path / "diffusion", n_obs_steps=2)
     folder = make_idr(
-        base, tmp_path / "idr", "--tau", "1e9", "--mode", mode, "--no-clip",
+        base, tmp_path / "idr", "--tau", "1e9", "--mode", mode,
         "--diagnostics-dir", str(tmp_path / "d"),
     )  # fmt: skip
     policy, pre, post = load(folder)

@@ -27,17 +27,14 @@ def _base(path):
 
 
 def _harness(base, tau: float, mode: str = "E"):
-    """idr-eval's IDRWrapper around its lerobot backbone of ``base``, mode ``mode``, do(S) in
-    normalized space (the plugin's default)."""
+    """idr-eval's IDRWrapper around its lerobot backbone of ``base``, mode ``mode``, on the
+    runtime's defaults, which are the plugin's (do(S) centered, refined actions clipped)."""
     from workers.backbones.lerobot import LerobotBackbone
     from workers.idr import RefinerConfig
     from workers.idr_wrapper import IDRWrapper
-    from workers.interventions import InterventionConfig
 
     backbone = LerobotBackbone(str(base))
-    policy = IDRWrapper(
-        backbone, RefinerConfig(mode=mode, tau=tau), InterventionConfig(state_space="normalized")
-    )
+    policy = IDRWrapper(backbone, RefinerConfig(mode=mode, tau=tau))
     return backbone, policy
 
 
@@ -135,9 +132,7 @@ def test_postprocessor_steps_after_the_unnormalizer_apply_to_the_refined_chunk(
     binarize = {"registry_name": "vla_jepa_binarize_gripper"}
     post["steps"].insert(names.index("unnormalizer_processor") + 1, binarize)
     post_json.write_text(json.dumps(post))
-    folder = make_idr(
-        base, tmp_path / "idr", "--tau", "1e9", "--no-clip", "--diagnostics-dir", str(tmp_path)
-    )
+    folder = make_idr(base, tmp_path / "idr", "--tau", "1e9", "--diagnostics-dir", str(tmp_path))
     backbone, harness = _harness(base, 1e9)
     assert backbone.finish_chunk is not None
     policy, pre, post_ = load(folder)
@@ -186,7 +181,6 @@ def test_mode_equals_the_harness_exactly(bases, tmp_path, kind, mode) -> None:
         tau,
         "--mode",
         mode,
-        "--no-clip",
         "--diagnostics-dir",
         str(tmp_path / "d"),
     )
@@ -240,7 +234,7 @@ def test_refined_actions_stay_in_the_bases_bounds(bases, tmp_path) -> None:
     policy, pre, _ = load(folder)
     with torch.inference_mode():
         out = policy.predict_action_chunk(pre(obs_batch(2)))
-    lo, hi = policy._bounds
+    lo, hi = (torch.as_tensor(b) for b in policy._bounds)
     # the fixture's bounds are [-1, 1]; the base action itself may lie outside them
     policy_dx = make_idr(
         bases["act"],
@@ -349,7 +343,6 @@ def test_flow_matching_E_equals_the_harness_with_shared_noise(tmp_path, monkeypa
         tmp_path / "idr",
         "--tau",
         "1e9",
-        "--no-clip",
         "--diagnostics-dir",
         str(tmp_path / "d"),
     )
@@ -394,7 +387,6 @@ def test_xvla_E_equals_the_harness_and_keeps_xvlas_env_processors(tmp_path) -> N
         tmp_path / "idr",
         "--tau",
         "1e9",
-        "--no-clip",
         "--diagnostics-dir",
         str(tmp_path / "d"),
     )

@@ -85,7 +85,6 @@ def test_mode_E_equals_the_harness_and_the_image_moves_the_decoded_actions(
         tmp_path / "idr",
         "--tau",
         "1e9",
-        "--no-clip",
         "--diagnostics-dir",
         str(tmp_path / "d"),
     )

@@ -313,3 +313,22 @@ def test_the_old_name_of_the_refiner_settings_still_imports_with_a_warning() -> 
     with pytest.warns(FutureWarning, match=r"now workers.idr.RefinerConfig"):
         old = idr.IDRConfig
     assert old is RefinerConfig
+
+
+@pytest.mark.parametrize("lib", ["numpy", "torch"])
+def test_clip_into_cuts_what_a_refinement_adds_beyond_the_data_not_the_base(lib) -> None:
+    """The bounds widen to the base action: a base outside its data's range stays where it
+    is; a refinement is cut back to the wider of the two; counts are elements per sample."""
+    from idr_core.refiner import clip_into
+
+    lo, hi = np.array([-1.0, -1.0], np.float32), np.array([1.0, 1.0], np.float32)
+    a_base = np.array([[[0.5, 1.5]], [[0.0, 0.0]]], np.float32)  # (B=2, T=1, D=2)
+    final = np.array([[[1.2, 1.8]], [[-0.5, 3.0]]], np.float32)
+    if lib == "torch":
+        a_base, final = torch.from_numpy(a_base), torch.from_numpy(final)
+    bounded, clipped = clip_into(final, a_base, lo, hi)
+    assert type(bounded) is type(final) and bounded.dtype == final.dtype
+    want = np.array([[[1.0, 1.5]], [[-0.5, 1.0]]], np.float32)  # dim 1 of sample 0: the base
+    assert np.array_equal(np.asarray(bounded), want) and clipped == [2, 1]
+    inside, none = clip_into(a_base, a_base, lo, hi)
+    assert np.array_equal(np.asarray(inside), np.asarray(a_base)) and none == [0, 0]

@@ -128,6 +128,13 @@ OPTIONAL_BACKBONE_MEMBERS: dict[str, tuple[Any, str]] = {
         "episode loop sends the past ones with each request (extras HISTORY_IMAGES and "
         "HISTORY_STATE, taken at every env step); 1: the current frame alone",
     ),
+    "action_bounds": (
+        None,
+        "(lo, hi), numpy (action_dim,) each: the min and max of its training data's actions in "
+        "the space predict_chunk returns (a lerobot checkpoint's unnormalizer statistics): a "
+        "refined chunk is clipped into them, widened to the base action (idr.clip_actions); "
+        "None: not clipped",
+    ),
     "state_mean": (
         None,
         "numpy (state_dim,): the mean state of the data it was trained on, in physical units "

@@ -103,6 +103,9 @@ class RefinerConfig:
     samples: int = 3  # chunks averaged by ensemble (3: IDR's forwards)
     te_coeff: float = 0.01  # temporal ensembling's coefficient (lerobot's ACT default)
     horizon: int | None = None  # actions executed per inference; None: the runtime's default
+    # a refined action is clipped into the base's action bounds (the dataset's min/max, widened
+    # to the base action itself) where the base knows them: clip_into
+    clip_actions: bool = True
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -130,6 +133,10 @@ class RefinerConfig:
                 or not math.isfinite(value)
             ):
                 raise ValueError(f"RefinerConfig.{name}={value!r} must be a finite number")
+        if not isinstance(self.clip_actions, bool):
+            raise ValueError(
+                f"RefinerConfig.clip_actions={self.clip_actions!r} must be true or false"
+            )
         if isinstance(self.samples, bool) or not isinstance(self.samples, int) or self.samples < 2:
             raise ValueError(
                 f"RefinerConfig.samples={self.samples!r} must be an integer >= 2 (chunks averaged)"
@@ -327,6 +334,27 @@ def refine(
     elif cfg.mode == "shuffled":
         correction = correction[..., derangement(correction.shape[-1], seed)]
     return a_base + g * correction, diag
+
+
+def clip_into(final: Any, a_base: Any, lo: Any, hi: Any) -> tuple[Any, list[int]]:
+    """``final`` clipped into ``[min(lo, a_base), max(hi, a_base)]`` per action dim (``lo`` /
+    ``hi``: the base's dataset action min/max, (D,)), and the elements clipped per sample. The
+    bounds widen to the base action itself, so a base that leaves its data's range is never
+    pulled back: only what a refinement added beyond it is cut."""
+    b = final.shape[0]
+    if _is_torch(final):
+        import torch
+
+        lo_t = torch.as_tensor(np.asarray(lo), dtype=final.dtype, device=final.device)
+        hi_t = torch.as_tensor(np.asarray(hi), dtype=final.dtype, device=final.device)
+        low, high = torch.minimum(lo_t, a_base), torch.maximum(hi_t, a_base)
+        bounded = torch.maximum(torch.minimum(final, high), low)
+        return bounded, (bounded != final).reshape(b, -1).sum(dim=1).tolist()
+    final_np, base_np = np.asarray(final), np.asarray(a_base)
+    low = np.minimum(np.asarray(lo, dtype=final_np.dtype), base_np)
+    high = np.maximum(np.asarray(hi, dtype=final_np.dtype), base_np)
+    bounded = np.maximum(np.minimum(final_np, high), low)
+    return bounded, (bounded != final_np).reshape(b, -1).sum(axis=1).tolist()
 
 
 def derangement(n: int, seed: int) -> np.ndarray:

@@ -178,6 +178,7 @@ class IDRConfig(PreTrainedConfig):
                 mode=self.mode,
                 guidance=self.guidance,
                 w=self.w,
+                clip_actions=self.clip_actions,
             )
         except ValueError as e:
             raise IDRConfigError(str(e).replace("RefinerConfig.", "policy.")) from None

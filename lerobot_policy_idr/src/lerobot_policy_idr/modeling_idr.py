@@ -24,7 +24,7 @@ from typing import Any
 
 import torch
 from idr_core.methods import combine, method_of
-from idr_core.refiner import refine
+from idr_core.refiner import clip_into, refine
 from idr_core.sampling import crn_mode, noise_shape
 from idr_core.sidecar import SidecarWriter
 from idr_core.three_pass import repeat3, split3
@@ -41,6 +41,7 @@ from lerobot_policy_idr.configuration_idr import (
 from lerobot_policy_idr.processor_idr import BATCH_SIZE_KEY, STATE_KEY, is_image_key
 from lerobot_policy_idr.runtime import (
     ACTION,
+    action_bounds,
     base_input,
     history_length,
 )
@@ -253,12 +254,8 @@ class IDRPolicy(PreTrainedPolicy):
         if not bool(torch.isfinite(final).all()):
             return a_base, diag, [0] * b, ["nonfinite"] * b
         clipped = [0] * b
-        if self._bounds is not None and self.config.clip_actions:
-            lo, hi = (x.to(final.device) for x in self._bounds)
-            lo, hi = torch.minimum(lo, a_base), torch.maximum(hi, a_base)
-            bounded = torch.maximum(torch.minimum(final, hi), lo)
-            clipped = (bounded != final).reshape(b, -1).sum(dim=1).tolist()
-            final = bounded
+        if self._bounds is not None and self.refiner_cfg.clip_actions:
+            final, clipped = clip_into(final, a_base, *self._bounds)
         return final, diag, clipped, [""] * b
 
     def _physical(self, actions: torch.Tensor) -> torch.Tensor:
@@ -400,10 +397,4 @@ def _action_unnormalizer(base_dir: Path, config: IDRConfig):
         to_transition=policy_action_to_transition,
         to_output=transition_to_policy_action,
     )
-    stats = (step.stats or {}).get(ACTION, {})
-    bounds = None
-    if "min" in stats and "max" in stats:
-        lo = torch.as_tensor(stats["min"], dtype=torch.float32).reshape(-1)
-        hi = torch.as_tensor(stats["max"], dtype=torch.float32).reshape(-1)
-        bounds = (lo, hi)
-    return unnormalize, bounds
+    return unnormalize, action_bounds([step])

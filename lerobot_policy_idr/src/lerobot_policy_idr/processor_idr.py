@@ -231,7 +231,7 @@ def insert_idr_steps(
         if iv.state_space == "centered" and STATE_KEY in expects:
             from lerobot_policy_idr.runtime import state_mean
 
-            found = state_mean(steps)
+            found = state_mean(steps, int(expects[STATE_KEY][0]))
             if found is None:
                 raise ValueError(
                     "policy.state_space='centered' but the base's preprocessor holds no dataset "

@@ -121,11 +121,15 @@ def base_input(
 
 
 # -- do(S) centered: the base's dataset mean state ----------------------------------------------
-def state_mean(steps: list[Any]) -> np.ndarray | None:
+def state_mean(steps: list[Any], dim: int | None = None) -> np.ndarray | None:
     """The mean of ``observation.state`` in the statistics of the first normalizer among a
     preprocessor's ``steps`` (float32, as that normalizer subtracts it); None where no
     normalizer holds one. Every normalization mode keeps the mean (lerobot computes all stats
-    for every feature), so one definition serves MEAN_STD, MIN_MAX and IDENTITY bases alike."""
+    for every feature), so one definition serves MEAN_STD, MIN_MAX and IDENTITY bases alike.
+
+    ``dim``: the state's own size. A base that pads its state to a larger size before its
+    normalizer (lerobot pads at the end) holds statistics of the padded vector: its leading
+    ``dim`` entries are the state's; statistics shorter than the state give None."""
     for step in steps:
         if type(step).__name__ != "NormalizerProcessorStep":
             continue
@@ -137,5 +141,29 @@ def state_mean(steps: list[Any]) -> np.ndarray | None:
             return None
         if isinstance(mean, torch.Tensor):
             mean = mean.detach().cpu().float().numpy()
-        return np.asarray(mean, dtype=np.float32).reshape(-1)
+        mean = np.asarray(mean, dtype=np.float32).reshape(-1)
+        if dim is None:
+            return mean
+        return mean[:dim] if len(mean) >= dim else None
+    return None
+
+
+def action_bounds(steps: list[Any]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The dataset's action min and max (float32, physical units) in the statistics of the
+    first action unnormalizer among a postprocessor's ``steps``; None without one or without
+    both. A refined chunk is clipped into them (``idr_core.refiner.clip_into``)."""
+    for step in steps:
+        if type(step).__name__ != "UnnormalizerProcessorStep":
+            continue
+        stats = (getattr(step, "stats", None) or {}).get(ACTION) or {}
+        if "min" not in stats or "max" not in stats:
+            return None
+        lo, hi = (
+            np.asarray(
+                v.detach().cpu().float().numpy() if isinstance(v, torch.Tensor) else v,
+                dtype=np.float32,
+            ).reshape(-1)
+            for v in (stats["min"], stats["max"])
+        )
+        return lo, hi
     return None

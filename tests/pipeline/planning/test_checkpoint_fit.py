@@ -128,7 +128,10 @@ def test_replan_rule() -> None:
     assert resolve_replan(None, env, policy) == 10  # the protocol's rule, the checkpoint's n
     assert resolve_replan(3, env, policy) == 3  # the config wins
     assert resolve_replan(None, _env(replan=5), policy) == 5
-    assert resolve_replan(None, _env(), policy) == 4  # no rule anywhere
+    assert resolve_replan(None, _env(), policy) == 4  # no rule, a base of unknown training
+    trained = _policy(chunk_len=10, trained_on_data=True)  # a lerobot checkpoint
+    assert resolve_replan(None, _env(), trained) == 10  # its n_action_steps, as the plugin runs
+    assert resolve_replan(None, None, trained) == 10
     assert resolve_replan(None, None, None) == 4
     assert resolve_replan("chunk", None, None) == "chunk"  # the backbone's chunk at run time
     fit = fit_backbone_to_env(env, policy, None, None)

@@ -206,25 +206,30 @@ def test_a_history_fed_baseline_follows_lerobot_evals_own_rollout_on_pusht(tmp_p
 @pytest.mark.parametrize("mode", ["E", "random"])
 def test_idr_in_lerobot_eval_is_the_harness_cell_step_for_step(tmp_path, mode) -> None:
     """The idr policy as lerobot-eval runs it (an IDR folder around ACT) and idr-eval's cell of
-    the same mode, closed loop on PushT over 2 episodes of 50 steps, under the settings that
-    make them one runtime (executed horizon = the base's n_action_steps, no clipping, do(S)
-    after the normalizer): the same action at every step. A placebo's direction comes from
-    the harness's step seed; lerobot-eval's run is given the same seeds."""
+    the same mode, closed loop on PushT over 2 episodes of 50 steps, each side on its default
+    runtime settings (executed horizon: the base's n_action_steps under lerobot's protocol;
+    refined actions clipped into the dataset's bounds; do(S) about the dataset mean): the same
+    action at every step. A push large enough that the clipping acts (alpha 2, and the same
+    cell unclipped differs). A placebo's direction comes from the harness's step seed;
+    lerobot-eval's run is given the same seeds."""
     from lerobot.envs.configs import PushtEnv
 
     from tests.lerobot_policy_idr.conftest import make_idr
 
     size = 96
     ckpt = _act(tmp_path, size, 2, "image!")
-    folder = make_idr(ckpt, tmp_path / "idr", "--mode", mode, "--tau", "1e9", "--no-clip")
+    folder = make_idr(ckpt, tmp_path / "idr", "--mode", mode, "--tau", "1e9", "--alpha", "2")
     env = {"observation_height": size, "observation_width": size, "episode_length": STEPS}
-    cell = {"mode": mode, "tau": 1e9, "intervention": {"state_space": "normalized"}}
+    cell = {"mode": mode, "tau": 1e9, "alpha": 2.0}
     ours, rows = _our_episodes(ckpt, tmp_path, {"type": "pusht", **env}, cell=cell)
     seeds = _harness_seeds(rows, replan=5)
     theirs, info = _lerobot_eval_with_seeds(PushtEnv(**env), folder, seeds)
     _assert_same_episodes(theirs, info, ours, rows)
     base, _ = _our_episodes(ckpt, tmp_path / "base", {"type": "pusht", **env})
     assert not np.array_equal(np.stack(base[0]), np.stack(ours[0]))  # the mode refined
+    unclipped = {**cell, "clip_actions": False}
+    loose, _ = _our_episodes(ckpt, tmp_path / "loose", {"type": "pusht", **env}, cell=unclipped)
+    assert not np.array_equal(np.stack(loose[0]), np.stack(ours[0]))  # the clipping acted
 
 
 @pytest.mark.slow

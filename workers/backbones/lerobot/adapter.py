@@ -146,7 +146,8 @@ def policy_io(path: Path, chunk_len: int | None = None) -> PolicyIO:
         or cfg.get("action_chunk_size")  # VQ-BeT
         or 1
     )
-    mean, mean_source = saved_state_mean(path) if state is not None else (None, None)
+    dim = _shape(cfg_path, STATE_KEY, state)[0] if state is not None else None
+    mean, mean_source = saved_state_mean(path, dim) if dim is not None else (None, None)
     return PolicyIO(
         images=images,
         state_dim=_shape(cfg_path, STATE_KEY, state)[0] if state is not None else None,
@@ -161,10 +162,11 @@ def policy_io(path: Path, chunk_len: int | None = None) -> PolicyIO:
     )
 
 
-def saved_state_mean(path: Path) -> tuple[tuple[float, ...] | None, str | None]:
+def saved_state_mean(path: Path, dim: int) -> tuple[tuple[float, ...] | None, str | None]:
     """The mean of ``observation.state`` in the checkpoint's saved preprocessor normalizer
     (the first normalizer step's state file), read without torch; (None, None) where there is
-    none. The same values the loaded normalizer subtracts (``runtime.state_mean``)."""
+    none. The same values the loaded normalizer subtracts (``runtime.state_mean``: the leading
+    ``dim`` of statistics of a padded state)."""
     from safetensors.numpy import load_file
 
     pre = path / "policy_preprocessor.json"
@@ -178,9 +180,10 @@ def saved_state_mean(path: Path) -> tuple[tuple[float, ...] | None, str | None]:
         if not stats_file.is_file():
             return None, None
         mean = load_file(str(stats_file)).get(f"{STATE_KEY}.mean")
-        if mean is None:
+        flat = mean.reshape(-1) if mean is not None else None
+        if flat is None or len(flat) < dim:
             return None, None
-        return tuple(float(v) for v in mean.reshape(-1)), str(stats_file)
+        return tuple(float(v) for v in flat[:dim]), str(stats_file)
     return None, None
 
 
@@ -330,6 +333,10 @@ class LerobotBackbone:
         cfg = self.config
         self.pre = pre
         self.post, self.finish_chunk = split_postprocessor(post)
+        from lerobot_policy_idr.runtime import action_bounds
+
+        # refined chunks are clipped into these (idr.clip_actions), as the idr policy clips
+        self.action_bounds = action_bounds(self.post.steps)
         self.name = f"lerobot:{cfg.type}"
         image_keys = [k for k in cfg.input_features if image_suffix(k) is not None]
         self._image_key = {str(image_suffix(k)): k for k in image_keys}  # suffix -> policy key
@@ -368,7 +375,10 @@ class LerobotBackbone:
         from lerobot_policy_idr.runtime import state_mean
 
         # do(S) under state_space=centered: about the dataset mean state, in physical units
-        self.state_mean = state_mean(self.pre.steps) if STATE_KEY in cfg.input_features else None
+        state_feature = cfg.input_features.get(STATE_KEY)
+        self.state_mean = (
+            state_mean(self.pre.steps, int(state_feature.shape[0])) if state_feature else None
+        )
         self._pending_do: tuple[torch.Tensor, Any] | None = None
         self.pre.register_after_step_hook(self._state_intervention_hook)
 
