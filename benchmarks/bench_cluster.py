@@ -11,6 +11,7 @@ with ``ray start``, one CPU each; this process is the driver (``executor.address
    one node (one actor) vs two nodes (two actors, ``executor.placement=spread``).
 
 Writes ``benchmarks/results/cluster.json``. Usage: ``python benchmarks/bench_cluster.py [--quick]``
+(``--quick``: small sizes, written to a new temporary folder unless ``--out`` is given)
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+from results_path import results_path
 
 from workers.hardware import machine_record
 
@@ -66,9 +69,12 @@ def _connect(address: str | None, cpus: float | None = None) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument(
+        "--out", type=Path, default=None, help="default: results/cluster.json; --quick: a temp dir"
+    )
     ap.add_argument("--quick", action="store_true", help="small sizes, for a smoke check")
     args = ap.parse_args()
+    args.out = results_path(RESULTS, args.out, "--quick" if args.quick else None)
     n_fast, n_busy, busy_s = (10, 6, 0.05) if args.quick else (60, 32, 0.05)
 
     from localcluster import RayCluster

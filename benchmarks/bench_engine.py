@@ -6,6 +6,7 @@
 4. Time to aggregate a synthetic steps table of 10 million rows (target <= 10 s here).
 
 Writes ``benchmarks/results/engine.json``. Usage: ``python benchmarks/bench_engine.py``
+(``--quick``: small sizes, written to a new temporary folder unless ``--out`` is given)
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
+from results_path import results_path
 
 from pipeline.execution.cluster import init_ray
 from pipeline.execution.runner import plan_run, run_episodes
@@ -153,9 +155,12 @@ def aggregate_speed(n_rows: int) -> dict[str, Any]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument(
+        "--out", type=Path, default=None, help="default: results/engine.json; --quick: a temp dir"
+    )
     ap.add_argument("--quick", action="store_true", help="small sizes, for a smoke check")
     args = ap.parse_args()
+    args.out = results_path(RESULTS, args.out, "--quick" if args.quick else None)
     q = args.quick
     init_ray(None, 2)
     res: dict[str, Any] = {"machine": machine_record()}

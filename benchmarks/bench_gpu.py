@@ -21,7 +21,8 @@ policy's own ``dtype="bfloat16"``, which keeps the vision tower in fp32 as lerob
 Writes ``benchmarks/results/gpu_idr_passes.json`` (and prints a table); each backbone runs in a
 try block, so a failure is recorded in the JSON with its error and the others still run.
 Usage: ``python benchmarks/bench_gpu.py [--device cuda] [--rounds 40] [--pi pi05,pi0] [--out PATH]``
-(``--device cpu --tiny`` checks the script on a machine without a GPU, at toy sizes).
+(``--device cpu --tiny`` checks the script on a machine without a GPU, at toy sizes, and
+writes to a new temporary folder unless ``--out`` is given).
 lerobot 0.6.1's pi0/pi0.5 need transformers >=5.4,<5.6 (with 5.17 inference fails in
 ``pi_gemma.py``: ``create_causal_mask() got an unexpected keyword argument 'cache_position'``);
 where the installed transformers is newer, run pi in a second process with 5.5.4 first on
@@ -43,6 +44,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import torch
+from results_path import results_path
 
 from workers.hardware import machine_record
 
@@ -406,13 +408,19 @@ def main() -> None:
     ap.add_argument("--pi-batch-sizes", default="1,4")
     ap.add_argument("--pi-rounds", type=int, default=15)
     ap.add_argument("--tiny", action="store_true", help="toy sizes, for a CPU check")
-    ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help=f"default: {RESULTS.relative_to(ROOT)}; with --tiny a new temporary folder",
+    )
     ap.add_argument(
         "--merge",
         action="store_true",
         help="add to an existing --out (e.g. pi run in another process with its own transformers)",
     )
     args = ap.parse_args()
+    args.out = results_path(RESULTS, args.out, "--tiny" if args.tiny else None)
 
     device = torch.device(args.device)
     torch.backends.cuda.matmul.allow_tf32 = False  # fp32 means fp32

@@ -22,6 +22,8 @@ know, a model that cannot be built, a B that does not fit in memory: each record
 
 ``--dry``: the same code paths on the CPU at toy sizes (1-layer Gemmas, 56 px, B = 1, 2,
 ``torch.compile`` with the ``eager`` backend: traced by dynamo, no code generated), in seconds: CI runs it, so a timed path that goes away fails there.
+Its JSON goes to a new temporary folder (printed) unless ``--out`` is given: toy CPU figures
+never replace the committed device measurement.
 
 Usage (device): ``python benchmarks/bench_gpu_supply.py --out benchmarks/results/gpu_supply.json``
 (defaults: pi05, pi0, smolvla; B = 1..32; eager and compiled. On an H200 pi0.5's eager pass
@@ -49,6 +51,7 @@ for p in (ROOT, ROOT / "benchmarks"):  # run as a plain script from a checkout
         sys.path.insert(0, str(p))
 
 from bench_gpu import PiGpuBackbone, _hide_broken_optional, _machine, _obs, _sync  # noqa: E402
+from results_path import results_path  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results" / "gpu_supply.json"
 KNOWN = ("pi05", "pi0", "smolvla")
@@ -170,7 +173,7 @@ def build(name: str, device: torch.device, dry: bool, compiled: str | None, vlm:
 def _tiny_gemmas() -> None:
     from _pytest.monkeypatch import MonkeyPatch
 
-    from tests.workers.backbones.lerobot_fixtures import tiny_pi_gemma
+    from training.toy_checkpoints import tiny_pi_gemma
 
     tiny_pi_gemma(MonkeyPatch())  # for the rest of this process: the dry run only
 
@@ -225,8 +228,14 @@ def main(argv: list[str] | None = None) -> int:
         "was not started is recorded as skipped with this reason",
     )
     ap.add_argument("--dry", action="store_true", help="CPU, toy sizes, B = 1, 2: a CI check")
-    ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help=f"default: {RESULTS.relative_to(ROOT)}; with --dry a new temporary folder",
+    )
     args = ap.parse_args(argv)
+    args.out = results_path(RESULTS, args.out, "--dry" if args.dry else None)
     if args.dry:
         args.device, args.batches, args.rounds, args.warmup = "cpu", "1,2", 2, 1
         args.compile_mode, args.compile_batches = "eager", "1"

@@ -94,7 +94,7 @@ def measure(name: str, base: Path, work: Path, rounds: int, warmup: int = 3) -> 
 
 
 def main() -> None:
-    from tests.workers.backbones.lerobot_fixtures import build_act
+    from training.toy_checkpoints import build_act
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rounds", type=int, default=30)

@@ -123,7 +123,7 @@ def overlap(episodes: int) -> dict[str, Any]:
             "replan_steps": 4,
         },
         "env": {
-            "suite": "tests.doubles.envs:SlowMarkerEnv",
+            "suite": "workers.envs.fakes:SlowMarkerEnv",
             "tasks": ["reach_chain"],
             "params": {"step_ms": 15.0},
         },

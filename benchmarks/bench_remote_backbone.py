@@ -1,9 +1,9 @@
 """The remote backbone's cost per inference over loopback: IDR's three passes as one batched
 request vs three requests, against the same closed-form policy called in this process.
 
-The server is the fake openpi-protocol server of the tests (another process, websockets);
-the in-process reference is its policy as a backbone (tests.doubles.closed_form) on the same
-observations.
+The server is the fake openpi-protocol server (``workers.backbones.websocket.fake_server``,
+another process, websockets); the in-process reference is its policy as a backbone
+(``workers.backbones.websocket.fake_backbone``) on the same observations.
 Writes ``benchmarks/results/remote_backbone.json``.
 Usage: ``python benchmarks/bench_remote_backbone.py [--calls 300]``
 """
@@ -53,8 +53,8 @@ def main() -> None:
     ap.add_argument("--calls", type=int, default=300)
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
-    from tests.doubles.closed_form import KEY_MAP, ClosedFormBackbone
     from workers.backbones.websocket.client import WebsocketBackbone
+    from workers.backbones.websocket.fake_backbone import KEY_MAP, ClosedFormBackbone
     from workers.idr_wrapper import IDRWrapper
     from workers.observation import to_policy_observation
 
@@ -72,7 +72,14 @@ def main() -> None:
     for label, flags in (("three_requests_ms", []), ("one_batched_request_ms", ["--batch"])):
         port = _port()
         server = subprocess.Popen(
-            [sys.executable, "-m", "tests.doubles.openpi_server", "--port", str(port), *flags],
+            [
+                sys.executable,
+                "-m",
+                "workers.backbones.websocket.fake_server",
+                "--port",
+                str(port),
+                *flags,
+            ],
             cwd=ROOT,
             stdout=subprocess.PIPE,
             text=True,

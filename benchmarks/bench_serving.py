@@ -22,7 +22,7 @@ the refinement) of one model through:
 Both batching servers wait the same ``--wait-ms`` for a batch (ours: ``executor.batch_wait_ms``;
 vla-eval's ``max_wait_time``) and take at most ``--max-batch`` requests per forward. Models: the
 tiny VLA (``checkpoints/tiny_vla``, two 96 px cameras, 8-d state) and the closed-form fake
-(``tests.doubles.closed_form``: near-zero compute, one camera).
+(``workers.backbones.websocket.fake_backbone``: near-zero compute, one camera).
 
 Per B concurrent clients: the round trip (median, p90), the throughput mu(B) (requests answered
 per second), and the per-request overhead, round trip minus the in-process compute of one forward
@@ -67,7 +67,7 @@ MODELS: dict[str, dict[str, Any]] = {
         "state_dim": 8,
     },
     "closed_form": {
-        "kind": "tests.doubles.closed_form:ClosedFormBackbone",
+        "kind": "workers.backbones.websocket.fake_backbone:ClosedFormBackbone",
         "params": {},
         "cameras": ("agentview",),
         "state_dim": 8,
@@ -239,8 +239,8 @@ def _run_job(job: dict[str, Any], state: _ClientState, ready: Any) -> dict[str, 
         request = wire_request(raws[0], 0)
         return _timed(lambda raw, seed: ray.get(echo.infer.remote(request)), raws, n, warmup, ready)
     if path == "openpi":
-        from tests.doubles.closed_form import KEY_MAP
         from workers.backbones.websocket.client import WebsocketBackbone
+        from workers.backbones.websocket.fake_backbone import KEY_MAP
         from workers.idr_wrapper import IDRWrapper
 
         backbone = WebsocketBackbone(port=ep["port"], key_map=KEY_MAP)
@@ -445,7 +445,7 @@ class Server:
                 [
                     str(OPENPI_PYTHON),
                     "-m",
-                    "tests.doubles.openpi_real_server",
+                    "workers.backbones.websocket.fake_server_openpi",
                     *("--port", str(port), "--batch", "--noise-std", "0"),
                 ],
                 cwd=ROOT,

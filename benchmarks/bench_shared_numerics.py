@@ -68,7 +68,7 @@ def _requests(n: int, backbone: Any) -> list[Any]:
 
 
 def forward_cost(rounds: int) -> dict[str, Any]:
-    from tests.workers.backbones.lerobot_fixtures import build_act
+    from training.toy_checkpoints import build_act
     from workers.backbones.factory import make_backbone
     from workers.forward_shape import fix_forward_shape, set_torch_threads
     from workers.idr_wrapper import IDRWrapper

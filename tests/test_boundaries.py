@@ -1,12 +1,14 @@
 """The import boundaries of the design, checked on the source (AST), so a change that crosses
 one fails here instead of in a review: pipeline/ imports workers/, never the reverse; envs/ and
-backbones/ never import each other; training/ and tests/ are imported by nothing shipped; the
+backbones/ never import each other; training/ and tests/ are imported by nothing shipped (the
+benchmarks included: the fakes and toy checkpoints they share with the tests are shipped); the
 method's distribution (lerobot_policy_idr/) imports nothing of the harness, and its idr_core
 nothing of lerobot."""
 
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -19,6 +21,9 @@ FORBIDDEN = {
     "workers/envs": ("workers.backbones", "workers.experts", "workers.actor"),
     "workers/backbones": ("workers.envs", "workers.experts", "workers.actor"),
     "pipeline": ("training", "tests"),
+    "training": ("tests",),
+    # shipped scripts: what they time stands on shipped code (fakes, toy checkpoints), not tests/
+    "benchmarks": ("tests",),
     # the method's own distribution installs on a robot computer without the harness
     "lerobot_policy_idr": ("workers", "pipeline", "training", "tests", "benchmarks"),
     # the method on arrays: no model, no simulator, no lerobot (torch only lazily, for torch
@@ -119,12 +124,29 @@ def test_suites_do_not_import_each_other() -> None:
     assert not crossings, crossings
 
 
-def test_no_import_circle_between_pipeline_modules() -> None:
+# a string naming a module of tests/ ("tests.doubles.envs:SlowMarkerEnv", "-m", "tests.x"):
+# an import all the same, made by a config, a subprocess or a Ray worker
+TESTS_MODULE = re.compile(r"tests(\.\w+)+(:\w+)?")
+
+
+def test_no_benchmark_names_a_module_of_the_tests() -> None:
+    named = [
+        f"{f.relative_to(ROOT)}:{node.lineno} names {node.value!r}"
+        for f in sorted((ROOT / "benchmarks").rglob("*.py"))
+        for node in ast.walk(ast.parse(f.read_text(), filename=str(f)))
+        if isinstance(node, ast.Constant) and isinstance(node.value, str)
+        if TESTS_MODULE.fullmatch(node.value)
+    ]
+    assert not named, named
+
+
+@pytest.mark.parametrize("package", ["pipeline", "training"])
+def test_no_import_circle_between_modules(package) -> None:
     """Within a layer too: modules import one way (lazy imports inside functions included)."""
     graph: dict[str, set[str]] = {}
-    for f in sorted((ROOT / "pipeline").rglob("*.py")):
+    for f in sorted((ROOT / package).rglob("*.py")):
         mod = ".".join(f.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
-        graph[mod] = {n for n in _imports(f) if n.startswith("pipeline.") and n != mod}
+        graph[mod] = {n for n in _imports(f) if n.startswith(f"{package}.") and n != mod}
     for mod in graph:
         graph[mod] = {n for n in graph[mod] if n in graph}
     seen: dict[str, int] = {}  # 1 on the stack, 2 done

@@ -36,6 +36,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from training.zoo_data import dataset_tasks
 from training.zoo_hub import SMOLVLM, XVLA_TOKENIZER, install, repo_id, xvla_florence_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -242,12 +243,6 @@ MEMBERS: dict[str, Member] = {
         },
     ),
 }
-
-
-def dataset_tasks(root: Path) -> list[str]:
-    import pandas as pd
-
-    return sorted(pd.read_parquet(root / "meta" / "tasks.parquet").index.astype(str))
 
 
 def vocab_flag(root: Path) -> str:

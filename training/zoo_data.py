@@ -1,4 +1,6 @@
-"""Merge recorded LeRobotDataset parts into the one dataset ``lerobot-train`` reads.
+"""The zoo's dataset: merge recorded LeRobotDataset parts into the one dataset ``lerobot-train``
+reads, and read its task instructions (the vocabulary, tokenizers and VLM files are built from
+them).
 
 ``scripts/record_zoo_data.sh`` records the zoo's tabletop demonstrations in parts (expert, DART
 and DAgger-labelled episodes, two recorders at a time on two cores) with
@@ -42,6 +44,13 @@ def merge(parts: list[Path], out: Path, repo_id: str = "local/zoo_tabletop") -> 
     }
     (out / "meta" / "zoo_parts.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
+
+
+def dataset_tasks(root: Path) -> list[str]:
+    """The task instructions of the LeRobotDataset at ``root``, sorted."""
+    import pandas as pd
+
+    return sorted(pd.read_parquet(root / "meta" / "tasks.parquet").index.astype(str))
 
 
 def main() -> None:

@@ -21,6 +21,8 @@ import json
 import shutil
 from pathlib import Path
 
+from training.zoo_data import dataset_tasks
+
 ROOT = Path(__file__).resolve().parents[1]
 HUB_DIR = ROOT / "checkpoints" / "zoo" / "hub"
 ORG = "idr-eval"
@@ -173,8 +175,6 @@ def build_smolvlm(out: Path, instructions: list[str]) -> Path:
 
 
 def build(dataset: Path) -> None:
-    from training.zoo import dataset_tasks
-
     tasks = dataset_tasks(dataset)
     build_word_tokenizer(HUB_DIR / XVLA_TOKENIZER, tasks)
     build_smolvlm(HUB_DIR / SMOLVLM, tasks)

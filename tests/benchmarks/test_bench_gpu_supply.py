@@ -5,6 +5,7 @@ latency) and writes the JSON a device run writes; unknown models are skipped wit
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -56,3 +57,26 @@ def test_a_spent_budget_starts_nothing_and_says_so(tmp_path) -> None:
         for mode in ("eager", "compiled"):
             assert r["models"][name][mode] == {"skipped": "not started: --budget-s 0 s spent"}
     assert r["plugin_latency_B1"]["skipped"].endswith("--budget-s 0 s spent")
+
+
+def test_a_dry_run_without_out_leaves_the_committed_results_alone(tmp_path) -> None:
+    """Toy CPU figures never replace the device's measurement: without ``--out`` a dry run
+    writes to a new folder of the temporary directory, and says where."""
+    committed = ROOT / "benchmarks" / "results" / "gpu_supply.json"
+    before = committed.read_bytes()
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "bench_gpu_supply.py"), "--dry"]
+    run = subprocess.run(
+        [*cmd, "--models", "pi0", "--budget-s", "0"],  # nothing started: seconds
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**os.environ, "TMPDIR": str(tmp)},
+    )
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert committed.read_bytes() == before
+    [written] = tmp.rglob("gpu_supply.json")
+    assert f"written to {written}" in run.stdout
+    assert json.loads(written.read_text())["dry"] is True

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import time
 from dataclasses import replace
 
 from tests.doubles import faults
@@ -149,22 +148,6 @@ class ServerFaultEnv(FakeMarkerEnv):
                 return images[cam]
 
         return replace(obs, images=Logged.fromkeys(images))
-
-
-class SlowMarkerEnv(FakeMarkerEnv):
-    """FakeMarkerEnv whose step keeps a core busy for ``step_ms`` (a simulator's physics and
-    rendering, CPU-bound and holding the GIL as MuJoCo's Python loop would): for measuring how
-    simulators and a policy overlap, without a simulator's noise."""
-
-    def __init__(self, image_size: int = 32, step_ms: float = 15.0) -> None:
-        super().__init__(image_size=image_size)
-        self.step_s = step_ms / 1e3
-
-    def step(self, action):  # type: ignore[no-untyped-def]
-        end = time.perf_counter() + self.step_s
-        while time.perf_counter() < end:
-            pass
-        return super().step(action)
 
 
 class ChattyMarkerEnv(FakeMarkerEnv):

@@ -9,7 +9,7 @@ import torch
 from lerobot_policy_idr.loading import load_idr
 from lerobot_policy_idr.wrap import main as wrap_main
 
-from tests.workers.backbones.lerobot_fixtures import build_act, build_diffusion
+from training.toy_checkpoints import build_act, build_diffusion
 
 
 @pytest.fixture(scope="session")

@@ -14,7 +14,7 @@ from idr_core.sidecar import read_sidecar
 
 from tests.lerobot_policy_idr.conftest import load, make_idr, obs_batch
 from tests.lerobot_policy_idr.test_modeling_idr import _harness
-from tests.workers.backbones.lerobot_fixtures import build_diffusion
+from training.toy_checkpoints import build_diffusion
 
 pytestmark = pytest.mark.slow
 STEPS = 24  # 6 inferences of 4 executed actions

@@ -19,7 +19,7 @@ from idr_core.sidecar import read_sidecar
 
 from tests.lerobot_policy_idr.conftest import make_idr
 from tests.support.lerobot_eval import lerobot_eval_libero
-from tests.workers.backbones.lerobot_fixtures import build_act
+from training.toy_checkpoints import build_act
 
 pytestmark = pytest.mark.slow
 BIN = Path(sys.executable).parent

@@ -328,7 +328,7 @@ def test_training_is_refused_with_one_line(bases, tmp_path) -> None:
 def test_flow_matching_E_equals_the_harness_with_shared_noise(tmp_path, monkeypatch, kind) -> None:
     """pi0 / pi0.5 (shrunk widths, lerobot's classes): one draw of noise for the three thirds;
     the plugin's chunk and E_img equal the harness's for the same noise."""
-    from tests.workers.backbones.lerobot_fixtures import (
+    from training.toy_checkpoints import (
         build_local_tokenizer,
         build_pi,
         tiny_pi_gemma,
@@ -377,7 +377,7 @@ def test_xvla_E_equals_the_harness_and_keeps_xvlas_env_processors(tmp_path) -> N
     from lerobot.envs.configs import LiberoEnv
     from lerobot.envs.factory import make_env_pre_post_processors
 
-    from tests.workers.backbones.lerobot_fixtures import build_local_tokenizer, build_xvla
+    from training.toy_checkpoints import build_local_tokenizer, build_xvla
     from workers.backbones.base import Observation
 
     tok = build_local_tokenizer(tmp_path / "tok", ["pick it", "place it"])

@@ -102,7 +102,7 @@ def test_pi_pipelines_get_three_consistent_thirds(tmp_path, monkeypatch, kind) -
     """pi0 tokenizes the task before its normalizer, pi0.5 turns the normalized state into
     text tokens after it: wherever the steps sit, every tensor reaching the model has 3B rows,
     do(V) leaves the tokens alone and, for pi0.5, do(S) reaches the state's tokens."""
-    from tests.workers.backbones.lerobot_fixtures import (
+    from training.toy_checkpoints import (
         build_local_tokenizer,
         build_pi,
         tiny_pi_gemma,

@@ -13,7 +13,7 @@ from idr_core.sidecar import read_sidecar
 
 from tests.lerobot_policy_idr.conftest import load, make_idr, obs_batch, rollout
 from tests.lerobot_policy_idr.test_modeling_idr import _base, _harness
-from tests.workers.backbones.lerobot_fixtures import (
+from training.toy_checkpoints import (
     build_multi_task_dit,
     build_tiny_clip,
     build_vqbet,

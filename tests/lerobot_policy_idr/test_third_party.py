@@ -27,7 +27,7 @@ def fake_sampler_base(tmp_path, monkeypatch) -> Path:
     assert "fake_sampler" in PreTrainedConfig.get_known_choices()
     from lerobot.policies.factory import get_policy_class
 
-    from tests.workers.backbones.lerobot_fixtures import _features, _stats, save_checkpoint
+    from training.toy_checkpoints import _features, _stats, save_checkpoint
 
     inputs, outputs = _features(64, 8, 7, ("agentview",))
     cfg = PreTrainedConfig.get_choice_class("fake_sampler")(
@@ -120,7 +120,7 @@ def test_a_real_plugin_that_trains_at_test_time_is_refused_at_its_first_chunk(tm
     own code path) runs it unchanged."""
     from lerobot_policy_idr.configuration_idr import IDRConfigError, is_third_party_type
 
-    from tests.workers.backbones.lerobot_fixtures import build_act_ttt
+    from training.toy_checkpoints import build_act_ttt
 
     base = build_act_ttt(tmp_path / "b")
     assert is_third_party_type("act_ttt")

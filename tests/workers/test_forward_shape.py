@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.workers.backbones.lerobot_fixtures import build_act
+from training.toy_checkpoints import build_act
 from workers.backbones.base import Observation, concat_observations
 from workers.backbones.factory import make_backbone
 from workers.forward_shape import (

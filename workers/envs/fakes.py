@@ -4,11 +4,13 @@
 position is shown *only in the image* (the state is the agent's own position), so a policy
 that ignores the image fails unless the marker happens to be near the centre. Task
 ``reach_chain`` shows three markers one after another: a 3-subtask chain that stops at the
-first failure (when the step budget runs out), for Avg Len.
+first failure (when the step budget runs out), for Avg Len. ``SlowMarkerEnv`` is the same env
+with a CPU-bound step, for benchmarks of how simulators and a policy overlap.
 """
 
 from __future__ import annotations
 
+import time
 from typing import Annotated, ClassVar
 
 import numpy as np
@@ -127,3 +129,23 @@ class FakeMarkerEnv:
 
     def close(self) -> None:
         self._clock = EpisodeClock(self.action_dim)
+
+
+class SlowMarkerEnv(FakeMarkerEnv):
+    """FakeMarkerEnv whose step keeps a core busy for ``step_ms`` (a simulator's physics and
+    rendering, CPU-bound and holding the GIL as MuJoCo's Python loop would): for measuring how
+    simulators and a policy overlap, without a simulator's noise."""
+
+    def __init__(
+        self,
+        image_size: Annotated[int, Doc("px per side of the one camera")] = IMAGE_SIZE,
+        step_ms: Annotated[float, Doc("ms of busy CPU per step, before the step itself")] = 15.0,
+    ) -> None:
+        super().__init__(image_size=image_size)
+        self.step_s = step_ms / 1e3
+
+    def step(self, action: np.ndarray) -> EnvObservation:
+        end = time.perf_counter() + self.step_s
+        while time.perf_counter() < end:
+            pass
+        return super().step(action)

@@ -4,17 +4,14 @@ from __future__ import annotations
 
 import json
 import re
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-sys.path.insert(0, str(Path(__file__).parent))
-from lerobot_fixtures import build_act, build_diffusion
-
 from pipeline.planning.config import ConfigError
+from training.toy_checkpoints import build_act, build_diffusion
 from workers.backbones.base import Observation
 from workers.idr import RefinerConfig
 from workers.idr_wrapper import IDRWrapper
@@ -396,8 +393,7 @@ def test_the_preflight_takes_cameras_size_and_replan_from_the_checkpoint(tmp_pat
 def test_a_policy_that_trains_at_test_time_is_refused(tmp_path) -> None:
     """lerobot-policy-act-ttt (a real plugin: ACT whose backbone takes optimizer steps on what
     it sees, at inference too): the first chunk is refused, naming why."""
-    from lerobot_fixtures import build_act_ttt
-
+    from training.toy_checkpoints import build_act_ttt
     from workers.backbones.lerobot import LerobotBackbone
 
     backbone = LerobotBackbone(str(build_act_ttt(tmp_path / "ttt")))

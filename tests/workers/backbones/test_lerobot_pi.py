@@ -10,15 +10,11 @@ from __future__ import annotations
 
 import json
 import socket
-import sys
-from pathlib import Path
 
 import pytest
 import torch
 
-sys.path.insert(0, str(Path(__file__).parent))
-from lerobot_fixtures import build_local_tokenizer, build_pi, tiny_pi_gemma
-
+from training.toy_checkpoints import build_local_tokenizer, build_pi, tiny_pi_gemma
 from workers.backbones.base import Observation
 from workers.idr import RefinerConfig
 from workers.idr_wrapper import IDRWrapper

@@ -44,9 +44,9 @@ class Server:
     def __init__(self, *flags: str, port: int | None = None, real: bool = False) -> None:
         self.port = port or _free_port()
         python, module = (
-            (str(OPENPI_PYTHON), "tests.doubles.openpi_real_server")
+            (str(OPENPI_PYTHON), "workers.backbones.websocket.fake_server_openpi")
             if real
-            else (sys.executable, "tests.doubles.openpi_server")
+            else (sys.executable, "workers.backbones.websocket.fake_server")
         )
         self.proc = subprocess.Popen(
             [python, "-m", module, "--port", str(self.port), *flags],
@@ -105,7 +105,12 @@ def test_codec_round_trips_through_openpi_clients_own():
         "prompt": "pick up the red cube",
     }
     r = subprocess.run(
-        [str(OPENPI_PYTHON), "-m", "tests.doubles.openpi_real_server", "--codec-check"],
+        [
+            str(OPENPI_PYTHON),
+            "-m",
+            "workers.backbones.websocket.fake_server_openpi",
+            "--codec-check",
+        ],
         input=codec.packb(msg),
         capture_output=True,
         cwd=ROOT,

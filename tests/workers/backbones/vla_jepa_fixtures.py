@@ -15,7 +15,6 @@ from pathlib import Path
 
 import torch
 
-from tests.workers.backbones.lerobot_fixtures import _features, _stats, save_checkpoint
 from tests.workers.backbones.vlm_fixtures import (
     CHAT_TEMPLATE,
     fresh_dir,
@@ -24,6 +23,7 @@ from tests.workers.backbones.vlm_fixtures import (
     save_random,
     toy_tokenizer_and_ids,
 )
+from training.toy_checkpoints import _features, _stats, save_checkpoint
 
 # ----------------------------------------------------------------------------------------------
 # Toy sizes

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-from tests.workers.backbones.lerobot_fixtures import _features, _stats, save_checkpoint
+from training.toy_checkpoints import _features, _stats, save_checkpoint
 
 # ----------------------------------------------------------------------------------------------
 # Toy sizes

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from tests.support.lerobot_eval import lerobot_eval_env
-from tests.workers.backbones.lerobot_fixtures import build_act
+from training.toy_checkpoints import build_act
 
 STEPS = 50
 EPISODES = 2
@@ -181,7 +181,7 @@ def test_a_history_fed_baseline_follows_lerobot_evals_own_rollout_on_pusht(tmp_p
     checkpoint (codes sampled near temperature 0: the argmax)."""
     from lerobot.envs.configs import PushtEnv
 
-    from tests.workers.backbones.lerobot_fixtures import build_vqbet
+    from training.toy_checkpoints import build_vqbet
 
     size = 96
     ckpt = build_vqbet(
@@ -243,7 +243,7 @@ def test_a_history_fed_sampling_base_under_idr_is_the_harness_cell_in_lerobot_ev
     from lerobot.envs.configs import PushtEnv
 
     from tests.lerobot_policy_idr.conftest import make_idr
-    from tests.workers.backbones.lerobot_fixtures import build_diffusion
+    from training.toy_checkpoints import build_diffusion
 
     size = 96
     ckpt = build_diffusion(

@@ -86,7 +86,7 @@ def test_with_images_idr_diagnoses_a_policy_on_the_plugin_env(tmp_path: Path):
     """image_obs=true: one 128 px camera (``front``) and the 14-d state, ACT built offline
     with those keys; mode diagnose runs the three passes on the plugin's frames."""
     from pipeline.execution.runner import plan_run
-    from tests.workers.backbones.lerobot_fixtures import build_act
+    from training.toy_checkpoints import build_act
     from workers.actor import EpisodeWorker
 
     ckpt = build_act(

@@ -14,7 +14,7 @@ import pytest
 from pipeline.execution.runner import execute, plan_run
 from pipeline.planning.config import ConfigError, config_from_dict, load_config
 from pipeline.results.store import RunStore
-from tests.workers.backbones.lerobot_fixtures import build_act
+from training.toy_checkpoints import build_act
 from workers.envs.checks import check_env
 from workers.envs.factory import make_env
 

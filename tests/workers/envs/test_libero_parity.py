@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from tests.support.lerobot_eval import lerobot_eval_libero, sim_state
-from tests.workers.backbones.lerobot_fixtures import build_act
+from training.toy_checkpoints import build_act
 
 SIZE = 64  # the checkpoint declares 64 px; our pre-flight renders at it, lerobot is told it
 STEPS = 40

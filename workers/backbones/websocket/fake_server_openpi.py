@@ -1,9 +1,9 @@
-"""The closed-form test policy of ``tests.doubles.openpi_server`` served by the real
-``openpi-server`` package (``WebsocketPolicyServer`` around an ``openpi_client`` BasePolicy),
-in its own interpreter (``.venv-openpi``: openpi-client pins numpy < 2).
-Run as ``.venv-openpi/bin/python -m tests.doubles.openpi_real_server --port P [--batch] ...``;
-``--codec-check`` instead round-trips a message through openpi_client.msgpack_numpy (stdin to
-stdout) for the codec test."""
+"""The fake server's closed-form policy (``workers.backbones.websocket.fake_server``) served by
+the real ``openpi-server`` package (``WebsocketPolicyServer`` around an ``openpi_client``
+BasePolicy), in its own interpreter (``.venv-openpi``: openpi-client pins numpy < 2).
+Run as ``.venv-openpi/bin/python -m workers.backbones.websocket.fake_server_openpi --port P
+[--batch] ...``; ``--codec-check`` instead round-trips a message through
+openpi_client.msgpack_numpy (stdin to stdout) for the codec test."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import sys
 
 from openpi_client import base_policy, msgpack_numpy
 
-from tests.doubles.openpi_server import metadata_of, parser, respond
+from workers.backbones.websocket.fake_server import metadata_of, parser, respond
 
 
 class ClosedFormPolicy(base_policy.BasePolicy):

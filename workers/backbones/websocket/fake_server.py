@@ -1,12 +1,13 @@
-"""A fake policy server speaking openpi's websocket protocol, for the remote backbone's tests.
+"""A fake policy server speaking openpi's websocket protocol, for the remote backbone's tests
+and benchmarks: closed-form, not learned. Named as a fake.
 
 Its policy is closed-form, so IDR's effects have exact expected values: every action of the
 (T, D) chunk is ``img_gain * m + state_gain * s + noise_std * noise``, with m the mean of the
 ``observation/image`` pixels in [0, 1] and s the mean of ``observation/state``; so
 E_img = img_gain * m * sqrt(T * D) and E_prop = state_gain * |s| * sqrt(T * D) for zeroing.
-Run as ``python -m tests.doubles.openpi_server --port P [--batch] [--noise] [--fail-on N]``;
-``--fail-on N`` answers the N-th request with a traceback string (the protocol's error form),
-``--exit-on N`` dies there (a server that crashes mid-episode)."""
+Run as ``python -m workers.backbones.websocket.fake_server --port P [--batch] [--noise]
+[--fail-on N]``; ``--fail-on N`` answers the N-th request with a traceback string (the
+protocol's error form), ``--exit-on N`` dies there (a server that crashes mid-episode)."""
 
 from __future__ import annotations
 

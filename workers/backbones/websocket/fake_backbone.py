@@ -1,7 +1,8 @@
-"""The fake openpi server's closed-form policy (``tests.doubles.openpi_server.act``) as a
-backbone in this process: the same rows as the remote backbone sends, the same actions, so a
-benchmark can serve one near-zero-compute model through every path (in process, our policy
-service, vla-eval's server, openpi's server)."""
+"""The fake openpi server's closed-form policy (``fake_server.act``) as a backbone in this
+process (a fake, not learned): the same rows as the remote backbone sends, the same actions, so
+a benchmark can serve one near-zero-compute model through every path (in process, our policy
+service, vla-eval's server, openpi's server). Named in a config as
+``workers.backbones.websocket.fake_backbone:ClosedFormBackbone``."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from tests.doubles.openpi_server import act
+from workers.backbones.websocket.fake_server import act
 
 # the remote backbone's key map for this policy (ours -> the server's)
 KEY_MAP = {"image:agentview": "observation/image", "state": "observation/state", "prompt": "prompt"}

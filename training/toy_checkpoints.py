@@ -1,4 +1,8 @@
-"""Small real lerobot policies built offline from their configs and saved as checkpoints."""
+"""Toy lerobot checkpoints: small real lerobot policies (random weights) built offline from
+their configs and saved as checkpoints, for the tests and the benchmarks (no hub, no training).
+
+lerobot's classes and code paths at toy widths; ``full_size`` in ``build_act`` keeps lerobot's
+default widths (the benchmarks time those)."""
 
 from __future__ import annotations
 
@@ -246,9 +250,10 @@ def build_multi_task_dit(
 # lerobot 0.6.1 cannot run its smallest pi variant (paligemma_variant="gemma_300m"): the SigLIP
 # projector is hard-wired to 2048-d while gemma_300m's language embeddings are 1024-d, so
 # embed_prefix fails; with that fixed it would still be ~1.9B parameters (~66 s to build,
-# ~9.5 GB RSS on CPU). The tests therefore shrink lerobot's gemma variant table and the
-# PaliGemma vision config in-process (``tiny_pi_gemma``): same classes, same code paths, tiny
-# widths. The patch must be active both when building and when loading a checkpoint.
+# ~9.5 GB RSS on CPU). The tests and the benchmarks' dry runs therefore shrink lerobot's gemma
+# variant table and the PaliGemma vision config in-process (``tiny_pi_gemma``): same classes,
+# same code paths, tiny widths. The patch must be active both when building and when loading a
+# checkpoint.
 
 PI_SPECIAL_TOKENS = ("<pad>", "<eos>", "<bos>", "<unk>")  # PaliGemma's ids 0, 1, 2, 3
 
@@ -280,7 +285,8 @@ def build_local_tokenizer(out: Path, instructions: list[str]) -> Path:
 
 
 def tiny_pi_gemma(mp, width: int = 64, depth: int = 2) -> None:
-    """Shrink pi0/pi0.5's gemma variants and SigLIP tower via ``mp`` (a pytest MonkeyPatch).
+    """Shrink pi0/pi0.5's gemma variants and SigLIP tower via ``mp`` (a pytest MonkeyPatch: the
+    patch lasts until ``mp.undo()``).
 
     lerobot's joint attention hard-codes 8 heads (``1 * 8 * head_dim``): keep num_heads=8."""
     from lerobot.policies.pi0 import modeling_pi0
