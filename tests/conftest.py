@@ -11,7 +11,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")  # nothing may download at run time
 
 # MuJoCo reads its GL backend once, at its first import: choose it before any test module (or a
 # library one imports) can import mujoco, so which tests share a worker never decides it
-from workers.rendering import configure_rendering  # noqa: E402
+from workers.rendering import configure_rendering
 
 configure_rendering()
 
