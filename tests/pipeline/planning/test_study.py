@@ -110,3 +110,25 @@ runs:
         load_study(p, only=["a@fake", "d@fake"])
     with pytest.raises(ConfigError, match="no run"):
         load_study(p, only=[])
+
+
+def test_the_confirmatory_study_declares_seeded_members_and_says_how_each_is_built() -> None:
+    """Declared before its data: three training seeds per member, 30 episodes per task, a
+    held-out calibration, E against diagnose and against its random placebo per member; every
+    checkpoint it names is shipped or listed with the command that builds it."""
+    import json
+
+    study = load_study(CONF / "paper" / "confirmatory.yaml")
+    seeds: dict[str, set] = {}
+    for r in study.runs:
+        seeds.setdefault(r.member, set()).add(r.seed)
+        assert r.config.episodes_per_task == 30 and r.config.calibration is not None
+        assert [c.cell_id for c in r.config.cells()] == ["diagnose", "E", "random"]
+        path = Path(r.config.backbone.params["path"])
+        rebuild = json.loads((path.parent / "REBUILD.json").read_text())
+        assert (path / "config.json").is_file() or path.name in rebuild, path
+    assert seeds == {
+        m: {0, 1, 2} for m in ("tiny_vla@metaworld", "act@metaworld", "smolvla@metaworld")
+    }
+    declared = {(e.member, e.cell, e.reference) for e in study.endpoints}
+    assert declared == {(m, "E", ref) for m in seeds for ref in ("diagnose", "random")}
