@@ -107,6 +107,54 @@ def key_values(rows: Iterable[tuple[str, Any]]) -> str:
     return table(["what", "figure"], rows)
 
 
+def reliance_metaworld(d: Data) -> str:
+    """reliance_metaworld.json (a copy of ``idr-eval reliance``'s reliance.json): open-loop R_img
+    per member on the shared held-out frames, by fifth of progress and by gripper phase, and one
+    member under each intervention strategy."""
+
+    def cell(f: Mapping[str, Any]) -> str:
+        if not f["frames"]:
+            return "–"
+        return f"{f['r_img']:.2f} [{f['ci95'][0]:.2f}, {f['ci95'][1]:.2f}]"
+
+    members = d["members"]
+    overall = table(
+        ["member", "R_img (95% CI)", "E_img", "E_prop", "frames", "episodes"],
+        [
+            [name, cell(m), num(m["e_img"]), num(m["e_prop"]), str(m["frames"]), str(m["episodes"])]
+            for name, m in members.items()
+        ],
+    )
+    fifths = table(
+        ["member", *(f"{f / 5:.1f}-{(f + 1) / 5:.1f}" for f in range(5))],
+        [[name, *(cell(f) for f in m["by_fifth"])] for name, m in members.items()],
+    )
+    phases = table(
+        ["member", "open", "closed", "released", "frames without a grasp"],
+        [
+            [name, *(f"{cell(m['by_phase'][p])} (n={m['by_phase'][p]['frames']})"
+                     for p in ("open", "closed", "released")), str(m["no_gripper_frames"])]
+            for name, m in members.items()
+        ],
+    )  # fmt: skip
+    parts = [overall, "By fifth of progress through the episode:", fifths,
+             "By gripper phase (the demonstration's own gripper command):", phases]  # fmt: skip
+    if "strategies" in d:
+        s = d["strategies"]
+        parts += [
+            f"{s['member']} under each intervention strategy (do(V) and do(S) alike):",
+            table(
+                ["strategy", "R_img (95% CI)"], [[k, cell(v)] for k, v in s["by_strategy"].items()]
+            ),
+        ]
+    frames = d["frames"]
+    note = (
+        f"{frames['n']} frames of {frames['episodes']} held-out episodes (`{frames['source']}`), "
+        f"do(S) {d['intervention']['state_space']}, {d.get('wall_seconds', 0) / 60:.0f} minutes"
+    )
+    return block(*parts, source("reliance_metaworld", d, note))
+
+
 # -- one renderer per results file --------------------------------------------------------------
 
 _COMMON = ("lost", "duplicated", "unexpected", "unreadable_files", "temp_files_left")
@@ -1128,6 +1176,7 @@ RENDERERS: dict[str, Callable[[Data], str]] = {
         zoo_smolvla_vision,
         zoo_metaworld_vision,
         paper_observations,
+        reliance_metaworld,
         isa_spread,
         gpu_supply,
     )

@@ -89,8 +89,16 @@ def run(
         raise ValueError(
             f"--strategies {strategies_member!r}: not a member; the members are {sorted(members)}"
         )
+    import time
+    from datetime import date
+
+    from workers.hardware import machine_record
+
+    t0 = time.perf_counter()
     tables = []
     result: dict[str, Any] = {
+        "machine": machine_record(),
+        "date": date.today().isoformat(),
         "frames": {"source": frameset.source, "n": frameset.n, "episodes": _episodes(frameset)},
         "intervention": _iv_record(intervention),
         "members": {},
@@ -111,6 +119,7 @@ def run(
                 rows = measure(members[strategies_member], frameset, iv, batch_size, seed)
                 tables.append(rows.assign(member=strategies_member, strategy=strategy))
             result["strategies"]["by_strategy"][strategy] = _interval(rows)
+    result["wall_seconds"] = round(time.perf_counter() - t0, 1)
     write(out, result, pd.concat(tables, ignore_index=True))
     return result
 
