@@ -7,6 +7,7 @@ made the same way:
     python -m training.zoo export act         # checkpoints/zoo/act: the last checkpoint + card data
     python -m training.zoo list               # members, their flags and their state
     python -m training.zoo train smolvla --init-from checkpoints/zoo/tabletop_pos/smolvla --steps 5000
+    python -m training.zoo train act --eval-every 1000  # + evaluation during training
 
 ``--init-from`` continues training from an exported checkpoint's weights (lerobot-train's own
 ``--policy.path``: the weights and config are loaded, the optimizer and its schedule start
@@ -20,7 +21,8 @@ loses at most ``save_freq`` steps. The member's small widths are plain ``--polic
 dataset's features are checked against the member before any work. ``export`` copies the
 ``pretrained_model`` folder of the last checkpoint (config, safetensors, processors: what
 lerobot's factory loads) and writes ``train_meta.json`` beside it (steps, seed, wall time, the
-machine's CPU, the dataset's summary).
+machine's CPU, the dataset's summary). ``--eval-every`` evaluates the checkpoints as they are
+saved, in a process of its own (``training/zoo_evaluator.py``).
 """
 
 from __future__ import annotations
@@ -397,24 +399,41 @@ def device_name(device: str) -> str:
 
 
 def cmd_train(args: argparse.Namespace) -> None:
+    from training.zoo_eval_launch import (
+        EvaluatorProcess,
+        check_train_flags,
+        children_cpu_s,
+        wait_training,
+    )
+
     member = _member(args.name)
     check_features(args.name, args.benchmark, args.dataset)
     if args.init_from is not None:
         check_init_from(args.name, member, args.init_from)
+    if args.eval_every is not None:
+        check_train_flags(args, args.save_freq or member.save_freq)
     out = run_dir(args.name, args.seed, args.runs, args.init_from)
     install()  # the sub-model files the member names by hub id (no-op when present)
     cmd = train_command(args.name, member, args)
     print(" ".join(cmd), flush=True)
     from workers.hardware import cpu_model
 
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), children_cpu_s()
     child = subprocess.Popen(cmd, cwd=ROOT, env=offline_env(args.threads))
-    # a stop (SIGTERM / SIGINT) goes to lerobot-train, and the session is still logged: its last
-    # checkpoint is where the next `train` resumes
+    # evaluates the checkpoints as they are saved, in a process of its own (training never waits)
+    evaluator = EvaluatorProcess.for_training(args, out) if args.eval_every else None
+
+    # a stop (SIGTERM / SIGINT) goes to lerobot-train (and the evaluator), and the session is
+    # still logged: its last checkpoint is where the next `train` resumes
+    def stop(signum: int, _frame: object) -> None:
+        child.send_signal(signum)
+        if evaluator is not None:
+            evaluator.stop(signum)
+
     for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda signum, _frame: child.send_signal(signum))
+        signal.signal(sig, stop)
     try:
-        rc = child.wait(timeout=args.time_limit_s)
+        rc = wait_training(child, args.time_limit_s, evaluator)
     except subprocess.TimeoutExpired:
         # the session's time is up: the last saved checkpoint stays, and is where `train` resumes
         # (TERM, not INT: lerobot-train went on for a minute after an INT on a CUDA machine)
@@ -425,6 +444,11 @@ def cmd_train(args: argparse.Namespace) -> None:
         except subprocess.TimeoutExpired:
             child.kill()
             rc = child.wait()
+    seconds = round(time.perf_counter() - t0, 1)
+    # lerobot-train's own CPU (an evaluator reaped meanwhile is not training's)
+    train_cpu_s = children_cpu_s() - cpu0 - (evaluator.reaped_cpu_s if evaluator else 0.0)
+    if evaluator is not None:
+        evaluator.finish(args.eval_final_wait_s)
     # wall time accumulates over resumed sessions (the model card states the total)
     log = out / "zoo_sessions.jsonl"
     if out.exists():
@@ -432,8 +456,9 @@ def cmd_train(args: argparse.Namespace) -> None:
             f.write(
                 json.dumps(
                     {
-                        "seconds": round(time.perf_counter() - t0, 1),
+                        "seconds": seconds,
                         "rc": rc,
+                        "train_cpu_s": round(train_cpu_s, 1),
                         "cpu": cpu_model(),
                         "device": device_name(args.device),
                         "threads": args.threads,
@@ -578,6 +603,9 @@ def main(argv: list[str] | None = None) -> None:
         help="stop lerobot-train after this many seconds (its last checkpoint is kept; "
         "`train` again resumes from it)",
     )
+    from training.zoo_eval_launch import add_train_flags
+
+    add_train_flags(t)
     t.set_defaults(func=cmd_train)
     e = sub.add_parser("export", help="copy the last checkpoint to checkpoints/zoo/[BENCH/]NAME")
     e.add_argument("name")
