@@ -148,9 +148,10 @@ def reliance_metaworld(d: Data) -> str:
             ),
         ]
     frames = d["frames"]
+    wall = f", {d['wall_seconds'] / 60:.0f} minutes" if "wall_seconds" in d else ""
     note = (
         f"{frames['n']} frames of {frames['episodes']} held-out episodes (`{frames['source']}`), "
-        f"do(S) {d['intervention']['state_space']}, {d.get('wall_seconds', 0) / 60:.0f} minutes"
+        f"do(S) {d['intervention']['state_space']}{wall}"
     )
     return block(*parts, source("reliance_metaworld", d, note))
 
