@@ -28,7 +28,8 @@ def _members(items: list[str]) -> dict[str, str]:
 
 def _cmd_reliance(args: argparse.Namespace) -> int:
     from pipeline.api.frames import dataset_frames
-    from pipeline.reporting.reliance import RELIANCE_MD, run
+    from pipeline.api.reliance import run
+    from pipeline.reporting.reliance import RELIANCE_MD
     from workers.interventions import InterventionConfig
 
     members = _members(args.member)  # every check before the frames are read

@@ -68,7 +68,7 @@ PIPELINE_LAYERS = (
     ("pipeline.tracking",),  # MLflow: logs the same views
     ("pipeline.execution",),  # runner, scheduler, writer, executors, cluster
     ("pipeline.api",),  # evaluate / diagnose from Python: what the CLI's run calls
-    ("pipeline.cli",),
+    ("pipeline.cli", "pipeline.cli_reliance"),  # the commands
 )
 
 

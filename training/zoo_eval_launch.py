@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from training.zoo import ROOT, offline_env
+from training.zoo_benchmarks import ROOT, offline_env
 from training.zoo_eval_layout import ENDED, EVALS, EXIT_LOCKED, HELDOUT, LOG, MAX_RESTARTS
 from training.zoo_eval_measures import check_eval_settings
 

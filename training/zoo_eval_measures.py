@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from training.zoo import BENCHMARKS, ROOT
+from training.zoo_benchmarks import BENCHMARKS, ROOT
 from training.zoo_eval_layout import CLOSED_LOOP_CONFIG, CONTROL, HELDOUT, log
 
 if TYPE_CHECKING:
@@ -34,7 +34,8 @@ def cpu_seconds() -> float:
 
 def openloop_metrics(checkpoint: Path, frameset: FrameSet) -> dict[str, float]:
     """Open-loop reliance of the checkpoint on the frames, with the default interventions."""
-    from pipeline.reporting.reliance import measure, summarize
+    from pipeline.api.reliance import measure
+    from pipeline.reporting.reliance import summarize
     from workers.interventions import InterventionConfig
 
     fig = summarize(measure(checkpoint, frameset, InterventionConfig()))

@@ -39,7 +39,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from training.zoo import BENCHMARKS
+from training.zoo_benchmarks import BENCHMARKS
 from training.zoo_eval_layout import (
     ENDED,
     EVALS,

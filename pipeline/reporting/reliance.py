@@ -1,5 +1,6 @@
-"""Open-loop reliance: every member of a benchmark measured on one shared set of held-out
-demonstration frames (``pipeline.api.frames``), so observations 2 and 3 are read without
+"""Open-loop reliance, its figures and report: every member of a benchmark measured on one shared
+set of held-out demonstration frames (``pipeline.api.reliance`` measures, ``pipeline.api.frames``
+reads the frames), so observations 2 and 3 are read without
 closed-loop success as a confound (each member sees the same frames, none of its own making).
 
 Per member: E_img, E_prop and R_img (the ratio of mean effects, as everywhere) over all frames,
@@ -15,45 +16,24 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from pipeline.api.frames import FIFTHS, PHASES, FrameSet
 from pipeline.reporting.observations import rimg_interval
-from workers.interventions import STRATEGIES, InterventionConfig
+from workers.interventions import InterventionConfig
 
 RELIANCE_JSON = "reliance.json"
 RELIANCE_MD = "reliance.md"
 FRAMES_TABLE = "reliance_frames.parquet"
+FIFTHS = 5  # progress through an episode, in fifths (pipeline.api.frames labels each frame)
+PHASES = ("open", "closed", "released")  # gripper phases (pipeline.api.frames)
 MIN_FRAMES = 2000  # what a finding needs; fewer are reported with a warning line
 
 
-def measure(
-    checkpoint: str | Path,
-    frameset: FrameSet,
-    intervention: InterventionConfig,
-    batch_size: int = 32,
-    seed: int = 0,
-) -> pd.DataFrame:
-    """E_img and E_prop of the checkpoint on every frame, beside the frames' meta."""
-    from pipeline.api.diagnose import diagnose
-
-    d = diagnose(
-        checkpoint,
-        frameset.frames,
-        intervention=intervention,
-        batch_size=batch_size,
-        seed=seed,
-        n_boot=10,
-    )
-    return frameset.meta.assign(e_img=d.e_img, e_prop=d.e_prop)
-
-
-def _interval(rows: pd.DataFrame) -> dict[str, Any]:
+def rimg_figure(rows: pd.DataFrame) -> dict[str, Any]:
     point, lo, hi = rimg_interval(rows)
     return {
         "r_img": point,
@@ -65,70 +45,16 @@ def _interval(rows: pd.DataFrame) -> dict[str, Any]:
 
 def summarize(rows: pd.DataFrame) -> dict[str, Any]:
     """One member's figures on the frames (``rows``: ``measure``'s table)."""
-    out = _interval(rows)
+    out = rimg_figure(rows)
     out["e_img"] = float(rows["e_img"].mean())
     out["e_prop"] = float(rows["e_prop"].mean())
-    out["by_fifth"] = [_interval(rows[rows["fifth"] == f]) for f in range(FIFTHS)]
-    out["by_phase"] = {p: _interval(rows[rows["phase"] == p]) for p in PHASES}
+    out["by_fifth"] = [rimg_figure(rows[rows["fifth"] == f]) for f in range(FIFTHS)]
+    out["by_phase"] = {p: rimg_figure(rows[rows["phase"] == p]) for p in PHASES}
     out["no_gripper_frames"] = int((rows["phase"] == "none").sum())
     return out
 
 
-def run(
-    members: dict[str, str | Path],
-    frameset: FrameSet,
-    out: Path,
-    *,
-    intervention: InterventionConfig,
-    strategies_member: str | None = None,
-    batch_size: int = 32,
-    seed: int = 0,
-) -> dict[str, Any]:
-    """Measure every member on the frames, and the strategies on one; write the report."""
-    if strategies_member is not None and strategies_member not in members:
-        raise ValueError(
-            f"--strategies {strategies_member!r}: not a member; the members are {sorted(members)}"
-        )
-    import time
-    from datetime import date
-
-    from workers.hardware import machine_record
-
-    t0 = time.perf_counter()
-    tables = []
-    result: dict[str, Any] = {
-        "machine": machine_record(),
-        "date": date.today().isoformat(),
-        "frames": {"source": frameset.source, "n": frameset.n, "episodes": _episodes(frameset)},
-        "intervention": _iv_record(intervention),
-        "members": {},
-    }
-    for name, ckpt in members.items():
-        rows = measure(ckpt, frameset, intervention, batch_size, seed)
-        tables.append(rows.assign(member=name, strategy=intervention.strategy))
-        result["members"][name] = {"checkpoint": str(ckpt), **summarize(rows)}
-    if strategies_member is not None:
-        result["strategies"] = {"member": strategies_member, "by_strategy": {}}
-        for strategy in STRATEGIES:
-            iv = replace(intervention, strategy=strategy)
-            if strategy == intervention.strategy:
-                rows = next(t for t in tables if t["member"].iloc[0] == strategies_member).drop(
-                    columns=["member", "strategy"]
-                )
-            else:
-                rows = measure(members[strategies_member], frameset, iv, batch_size, seed)
-                tables.append(rows.assign(member=strategies_member, strategy=strategy))
-            result["strategies"]["by_strategy"][strategy] = _interval(rows)
-    result["wall_seconds"] = round(time.perf_counter() - t0, 1)
-    write(out, result, pd.concat(tables, ignore_index=True))
-    return result
-
-
-def _episodes(frameset: FrameSet) -> int:
-    return int(frameset.meta.groupby(["task_id", "episode_index"]).ngroups)
-
-
-def _iv_record(iv: InterventionConfig) -> dict[str, Any]:
+def intervention_record(iv: InterventionConfig) -> dict[str, Any]:
     return {
         "strategy": iv.strategy,
         "image_space": iv.image_space,

@@ -249,9 +249,9 @@ def test_a_history_fed_sampling_base_under_idr_is_the_harness_cell_in_lerobot_ev
     ckpt = build_diffusion(
         tmp_path / "diffusion", image=size, state=2, action=2, n_obs_steps=2, cams=("image!",)
     )
-    folder = make_idr(ckpt, tmp_path / "idr", "--mode", "E", "--tau", "1e9", "--no-clip")
+    folder = make_idr(ckpt, tmp_path / "idr", "--mode", "E", "--tau", "1e9")
     env = {"observation_height": size, "observation_width": size, "episode_length": STEPS}
-    cell = {"mode": "E", "tau": 1e9, "intervention": {"state_space": "normalized"}}
+    cell = {"mode": "E", "tau": 1e9}  # both sides on their defaults (do(S) centered, clipped)
     ours, rows = _our_episodes(ckpt, tmp_path, {"type": "pusht", **env}, replan=4, cell=cell)
     seeds = _harness_seeds(rows, replan=4)
     theirs, info = _lerobot_eval_with_seeds(PushtEnv(**env), folder, seeds, noise=True)
