@@ -39,7 +39,7 @@ test: setup
 	$(VENV)/bin/ruff format --check pipeline workers training tests benchmarks lerobot_policy_idr scripts docs/hooks
 	@if [ -z "$${CALVIN_ENV:-}" ] && [ -n "$(CALVIN_CHECKOUT)" ]; then bash scripts/setup_calvin.sh; fi
 	@bash scripts/setup_liberopro.sh  # the LIBERO-PRO server tests' interpreter (seconds: uv's cache)
-	CALVIN_ENV=$${CALVIN_ENV:-$(CALVIN_CHECKOUT)} $(PYTEST) $(PYTEST_ARGS)
+	CALVIN_ENV=$${CALVIN_ENV:-$(CALVIN_CHECKOUT)} $(PYTEST) --durations=25 $(PYTEST_ARGS)
 
 # the development loop: the tests not marked slow or sim (no real simulator or model run)
 test-fast: setup
