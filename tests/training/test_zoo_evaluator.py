@@ -7,29 +7,19 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import pytest
 
+from tests.training.test_zoo import _zoo
 from training import zoo
 from training import zoo_eval_launch as launch
 from training import zoo_eval_layout as lay
 from training import zoo_eval_measures as meas
 from training import zoo_eval_record as rec
 from training import zoo_evaluator as ev
-
-
-def _zoo(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "training.zoo", *args],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        cwd=zoo.ROOT,
-    )
 
 
 def _checkpoint(run: Path, step: int, whole: bool = True, age_s: float = 10.0) -> Path:
