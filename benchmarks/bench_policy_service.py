@@ -197,11 +197,11 @@ def round_trip(calls: int) -> dict[str, float]:
     obs = to_policy_observation(first, first.status.instruction)
     times: dict[str, list[float]] = {"local": [], "remote": []}
     for policy, key in ((local, "local"), (remote, "remote")):
-        policy.set_config(RefinerConfig(mode="E"))
-        policy.infer(obs, 0)
+        cfg = RefinerConfig(mode="E")
+        policy.infer(obs, 0, cfg)
         for i in range(calls):
             t0 = time.perf_counter()
-            policy.infer(obs, i)
+            policy.infer(obs, i, cfg)
             times[key].append(time.perf_counter() - t0)
     served_ms = ray.get(actor.stats.remote())["served_ms_median"]  # inside the actor
     floor = []  # Ray's own round trip to an actor on this node, for scale

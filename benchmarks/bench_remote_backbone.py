@@ -38,12 +38,12 @@ def _port() -> int:
 def measure(policy: Any, obs: Any, calls: int) -> float:
     from workers.idr import RefinerConfig
 
-    policy.set_config(RefinerConfig(mode="E"))
-    policy.infer(obs, 0)
+    cfg = RefinerConfig(mode="E")
+    policy.infer(obs, 0, cfg)
     times = []
     for i in range(calls):
         t0 = time.perf_counter()
-        policy.infer(obs, i)
+        policy.infer(obs, i, cfg)
         times.append(time.perf_counter() - t0)
     return statistics.median(times) * 1e3
 

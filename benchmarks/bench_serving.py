@@ -222,15 +222,18 @@ def _run_job(job: dict[str, Any], state: _ClientState, ready: Any) -> dict[str, 
         if model not in state.models:
             state.models[model] = IDRWrapper(make_backbone(m["kind"], m["params"]))
         policy = state.models[model]
-        policy.set_config(RefinerConfig(mode="E"))
-        return _timed(lambda raw, seed: policy.infer(policy_obs(raw), seed), raws, n, warmup, ready)
+        cfg = RefinerConfig(mode="E")
+        return _timed(
+            lambda raw, seed: policy.infer(policy_obs(raw), seed, cfg), raws, n, warmup, ready
+        )
     if path in SERVICE:
         import ray
 
         from workers.policy_actor import PolicyServiceClient
 
-        client = PolicyServiceClient(ray.get_actor(ep["actor"]), ep["info"])
-        client.set_config(RefinerConfig(mode="E"))
+        client = PolicyServiceClient(
+            ray.get_actor(ep["actor"]), ep["info"], RefinerConfig(mode="E")
+        )
         return _timed(lambda raw, seed: client.infer(policy_obs(raw), seed), raws, n, warmup, ready)
     if path == "ray_floor":
         import ray
@@ -245,8 +248,7 @@ def _run_job(job: dict[str, Any], state: _ClientState, ready: Any) -> dict[str, 
 
         backbone = WebsocketBackbone(port=ep["port"], key_map=KEY_MAP)
         try:
-            policy = IDRWrapper(backbone)
-            policy.set_config(RefinerConfig(mode="E"))
+            policy = IDRWrapper(backbone, RefinerConfig(mode="E"))
             return _timed(
                 lambda raw, seed: policy.infer(policy_obs(raw), seed), raws, n, warmup, ready
             )
@@ -594,8 +596,7 @@ def breakdown(
         m["kind"], m["params"], None, args.max_batch, args.wait_ms, None, None, 1,
         transport=transport,
     )  # fmt: skip
-    client = PolicyServiceClient(actor, ray.get(actor.describe.remote()))
-    client.set_config(RefinerConfig(mode="E"))
+    client = PolicyServiceClient(actor, ray.get(actor.describe.remote()), RefinerConfig(mode="E"))
     obs = [to_policy_observation(r, INSTRUCTION, m["cameras"]) for r in raws]
     for i in range(10):
         client.infer(obs[i % len(obs)], i)

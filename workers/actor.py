@@ -194,7 +194,6 @@ class EpisodeWorker:
         try:
             if spec.task_id not in self.tasks:
                 raise ValueError(f"task_id={spec.task_id!r} not in suite {self.spec.env_suite!r}")
-            policy.set_config(spec.idr, spec.intervention)
             policy.reset()
             ep = _Rollout(obs=env.reset(spec.task_id, spec.episode_index, spec.seed))
             ep.status = episode_status(env, ep.obs)
@@ -272,7 +271,8 @@ class EpisodeWorker:
             hidden = env.object_hidden_images()
             obs.extras[NO_OBJECTS_KEY] = {cam: image_to_tensor(hidden[cam]) for cam in obs.images}
             render_ms = (time.perf_counter() - t0) * 1e3
-        out = policy.infer(obs, step_seed(spec.seed, spec.task_id, spec.episode_index, k))
+        seed = step_seed(spec.seed, spec.task_id, spec.episode_index, k)
+        out = policy.infer(obs, seed, spec.idr, spec.intervention)  # the cell's, per request
         ep.crn = out.crn
         chunk = _to_numpy(out.action)[0]
         if method.every_step:  # lerobot's temporal ensembler, then the base's finishing steps

@@ -65,7 +65,12 @@ def check_intervention_spaces(backbone: Any, name: str, intervention: Interventi
 
 
 class IDRWrapper:
-    """A backbone wrapped by the IDR refiner; ``infer`` returns an :class:`IDRStep`."""
+    """A backbone wrapped by the IDR refiner; ``infer`` returns an :class:`IDRStep`.
+
+    Each inference carries its own settings (``infer(obs, seed, cfg, intervention)``), as a
+    request to the shared policy service does: one wrapper serves every cell of a run and no
+    cell's settings are set on it. ``cfg`` and ``intervention`` given here are only what an
+    inference without its own uses (benchmarks, tests)."""
 
     def __init__(
         self,
@@ -85,15 +90,6 @@ class IDRWrapper:
 
     def _check_spaces(self, intervention: InterventionConfig) -> None:
         check_intervention_spaces(self.backbone, self.backbone.name, intervention)
-
-    def set_config(
-        self, cfg: RefinerConfig, intervention: InterventionConfig | None = None
-    ) -> None:
-        """Switch the IDR cell without reloading the backbone."""
-        if intervention is not None:
-            self._check_spaces(intervention)
-            self.intervention = intervention
-        self.cfg = cfg
 
     def reset(self) -> None:
         self.backbone.reset()

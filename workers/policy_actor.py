@@ -14,7 +14,7 @@ actor that dies (``max_restarts``) and retries the calls it held (``max_task_ret
 request is a pure function of its content, so a retry gives the same answer.
 
 :class:`PolicyServiceClient` is what an episode worker holds instead of an ``IDRWrapper`` in shared
-mode: the same ``set_config`` / ``reset`` / ``infer``, one request per inference (never per env
+mode: the same ``reset`` / ``infer`` (each inference with its cell), one request per inference (never per env
 step), the observation sent once as numpy: over a connection of its own to the actor's socket
 (``workers.policy_socket``, ``executor.policy_transport=socket``) or as a Ray call (``ray``).
 """
@@ -255,23 +255,23 @@ def _image_bytes(image: Any) -> Any:
 class PolicyServiceClient:
     """The IDRWrapper interface over a policy actor (see the module docstring)."""
 
-    def __init__(self, handle: Any, info: dict[str, Any]) -> None:
+    def __init__(
+        self,
+        handle: Any,
+        info: dict[str, Any],
+        cfg: RefinerConfig | None = None,
+        intervention: InterventionConfig | None = None,
+    ) -> None:
         import uuid
 
         self.handle = handle
         self.info = info
         self._id = uuid.uuid4().hex[:12]
-        self.cfg = RefinerConfig()
-        self.intervention = InterventionConfig()
+        # what a request without settings of its own carries (benchmarks, tests)
+        self.cfg = cfg or RefinerConfig()
+        self.intervention = intervention or InterventionConfig()
         self.batched = bool(info.get("batched"))
         self._local = threading.local()  # each thread (closed loop) its own connection
-
-    def set_config(
-        self, cfg: RefinerConfig, intervention: InterventionConfig | None = None
-    ) -> None:
-        self.cfg = cfg
-        if intervention is not None:
-            self.intervention = intervention
 
     def reset(self) -> None:
         """Nothing to forget: the service calls the backbone on whole chunks, without state."""
@@ -287,8 +287,14 @@ class PolicyServiceClient:
             )
         return action
 
-    def infer(self, obs: Observation, step_seed: int = 0) -> IDRStep:
-        request = self.request(obs, step_seed)
+    def infer(
+        self,
+        obs: Observation,
+        step_seed: int = 0,
+        cfg: RefinerConfig | None = None,
+        intervention: InterventionConfig | None = None,
+    ) -> IDRStep:
+        request = self.request(obs, step_seed, cfg, intervention)
         if self.info.get("socket"):
             return self._infer_on_socket(request)
         import ray
@@ -344,9 +350,16 @@ class PolicyServiceClient:
         run several episodes, each in a thread of its own, through one client)."""
         return f"{self._id}:{threading.get_ident()}"
 
-    def request(self, obs: Observation, step_seed: int = 0) -> InferRequest:
+    def request(
+        self,
+        obs: Observation,
+        step_seed: int = 0,
+        cfg: RefinerConfig | None = None,
+        intervention: InterventionConfig | None = None,
+    ) -> InferRequest:
         """What ``infer`` sends: the observation as plain numpy (images as the uint8 they were
-        made from), the step seed and this client's IDR cell."""
+        made from), the step seed and the inference's cell (``cfg``, ``intervention``; None:
+        the client's defaults)."""
         extras = dict(obs.extras)
         if "privileged" in extras:  # lazy views of the live simulator: sent as plain dicts
             extras["privileged"] = [None if p is None else dict(p) for p in extras["privileged"]]
@@ -358,4 +371,6 @@ class PolicyServiceClient:
             do_state=obs.do_state,
             extras=extras,
         )
-        return InferRequest(plain, int(step_seed), self.cfg, self.intervention)
+        return InferRequest(
+            plain, int(step_seed), cfg or self.cfg, intervention or self.intervention
+        )

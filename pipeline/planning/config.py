@@ -16,12 +16,20 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    Field,
+    ValidationError,
+    field_serializer,
+    field_validator,
+    model_validator,
+)
 
 from pipeline.errors import ConfigError
 from pipeline.planning.config_model import StrictModel
 from pipeline.planning.executor_config import ExecutorConfig
 from pipeline.planning.grid import INTERVENTION_KEYS, Cell, expand_grid
+from pipeline.planning.refiner_settings import RefinerSettings
 from workers.idr import GUIDANCES, MODES
 from workers.interventions import SPACES, STRATEGIES
 
@@ -183,8 +191,10 @@ class RunConfig(StrictModel):
     env: EnvConfig
     episodes_per_task: int = Field(default=1, ge=1)
     seed: int = Field(default=0, ge=0, le=2**63 - 1)  # stored as int64
-    idr: dict[str, Any] = Field(
-        default_factory=dict, description="IDR parameters shared by all cells (alpha, beta, ...)"
+    idr: RefinerSettings = Field(
+        default_factory=RefinerSettings,
+        description="IDR parameters shared by all cells (alpha, beta, ...); a grid axis "
+        "overrides one per cell",
     )
     intervention: InterventionSettings = InterventionSettings()
     grid: list[dict[str, Any]] = Field(
@@ -222,31 +232,10 @@ class RunConfig(StrictModel):
             )
         return v
 
-    @field_validator("idr")
-    @classmethod
-    def _idr_keys(cls, v: dict[str, Any]) -> dict[str, Any]:
-        from pipeline.planning.grid import IDR_KEYS
-
-        for key in v:
-            if key in INTERVENTION_KEYS:
-                # idr: holds the refiner's settings only; an intervention key here used to be
-                # overridden by the intervention: defaults without a word
-                raise ValueError(
-                    f"{key!r} is an intervention setting, not a refiner one: write it under "
-                    f"intervention: {{{key}: {v[key]!r}}} (or as a grid axis, e.g. "
-                    f"grid=[{{mode: [diagnose, E]}}, {{{key}: [...]}}])"
-                )
-            if key not in IDR_KEYS:
-                close = difflib.get_close_matches(key, IDR_KEYS, n=1)
-                hint = f"did you mean {close[0]!r}? " if close else ""
-                raise ValueError(
-                    f"unknown IDR parameter {key!r}; {hint}allowed: {sorted(IDR_KEYS)}"
-                )
-        if "tau" in v:
-            from idr_core.calibration import parse_tau
-
-            parse_tau(v["tau"])  # a clear error for a misspelt calibrated form
-        return v
+    @field_serializer("idr")
+    def _idr_as_given(self, v: RefinerSettings) -> dict[str, Any]:
+        # what the config gives, as run.json and the fingerprint have always held it
+        return v.given()
 
     @model_validator(mode="after")
     def _cells_valid(self) -> RunConfig:
@@ -273,7 +262,7 @@ class RunConfig(StrictModel):
         return self
 
     def cells(self) -> list[Cell]:
-        return expand_grid(self.grid, base={**self.idr, **self.intervention.model_dump()})
+        return expand_grid(self.grid, base={**self.idr.given(), **self.intervention.model_dump()})
 
     def fingerprint(self) -> str:
         """Hash of what determines results; a run dir may be resumed only with the same one."""

@@ -68,11 +68,16 @@ def binned(
 
 
 def pick_cell(
-    cells: pd.DataFrame, mode: str, strategy: str | None, tau_labels: dict[str, str]
+    cells: pd.DataFrame,
+    mode: str,
+    strategy: str | None,
+    tau_labels: dict[str, str],
+    alpha: float,
 ) -> str | None:
     """The cell that stands for ``mode`` (``cells``: cell_id, mode, strategy, alpha per cell):
-    the one named after it, else the best match to the reference's intervention, the paper's
-    alpha (0.08) and the paper's tau rule (``calibrated``), in that order of weight."""
+    the one named after it, else the best match to the reference's intervention, the config's
+    declared ``alpha`` (``RunData.reference_alpha``) and the paper's tau rule (``calibrated``),
+    in that order of weight."""
     of_mode = cells[cells["mode"] == mode].sort_values("cell_id")
     if of_mode.empty:
         return None
@@ -80,7 +85,7 @@ def pick_cell(
         return mode
     score = (
         4 * (of_mode["strategy"] == strategy).astype(int)
-        + 2 * np.isclose(of_mode["alpha"].astype(float), 0.08).astype(int)
+        + 2 * np.isclose(of_mode["alpha"].astype(float), alpha).astype(int)
         + of_mode["cell_id"].map(lambda c: tau_labels.get(c) == "calibrated").astype(int)
     )
     return str(of_mode.loc[score.idxmax(), "cell_id"])
@@ -308,7 +313,7 @@ def build_figures(data: RunData, bins: int = 10) -> Figures:
         lines = [(ref, f"baseline ({ref}: executes a_base)")]
         strategy = str(per_cell.set_index("cell_id").loc[ref, "strategy"])
         for mode in ("E", "F"):
-            cell = pick_cell(per_cell, mode, strategy, data.tau_labels)
+            cell = pick_cell(per_cell, mode, strategy, data.tau_labels, data.reference_alpha)
             if cell is not None:
                 lines.append((cell, f"mode {mode} ({cell})" if cell != mode else f"mode {mode}"))
         built["rimg_progress"] = rimg_progress(prog, lines, gripper_events(ref_steps), bins)

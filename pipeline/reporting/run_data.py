@@ -4,13 +4,14 @@ effects across runs. No drawing here (pipeline.reporting.figures draws)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pyarrow as pa
 import pyarrow.compute as pc
+from idr_core.refiner import RefinerConfig
 
 from pipeline.results import aggregate as agg
 from pipeline.results.calibration import read_calibration
@@ -29,6 +30,9 @@ class RunData:
     # its episode mode, strategy, alpha, suite, backbone, length, progress
     steps: pd.DataFrame
     tau_labels: dict[str, str]  # cell_id -> spelling of a calibrated tau ("calibrated*2")
+    # the alpha the config declares for its cells (idr.alpha; else the refiner's default, the
+    # paper's): a figure that shows one cell per mode picks the cell at it
+    reference_alpha: float = field(default_factory=lambda: RefinerConfig().alpha)
 
 
 EPISODE_COLUMNS = ["mode", "strategy", "alpha", "suite", "backbone"]  # joined onto each step
@@ -67,6 +71,16 @@ def _last_elements(lists: pa.ChunkedArray) -> np.ndarray:
         out[ok] = values[ends[ok] - 1]
         parts.append(out)
     return np.concatenate(parts)
+
+
+def declared_alpha(run_dir: str | Path) -> float:
+    """``idr.alpha`` of RUN_DIR/config.yaml, else the refiner's default (the paper's)."""
+    import yaml
+
+    path = Path(run_dir) / CONFIG_YAML
+    idr = (yaml.safe_load(path.read_text()) or {}).get("idr") if path.is_file() else None
+    alpha = (idr or {}).get("alpha")
+    return float(alpha) if alpha is not None else RefinerConfig().alpha
 
 
 def backbone_label(run_dir: str | Path) -> str | None:
@@ -126,7 +140,7 @@ def load_run(run_dir: str | Path) -> RunData:
     label = backbone_label(run_dir)
     if label is not None:
         prog["backbone"] = label
-    return RunData(episodes, prog, labels)
+    return RunData(episodes, prog, labels, declared_alpha(run_dir))
 
 
 def reference_diagnose(frame: pd.DataFrame) -> str | None:

@@ -69,7 +69,7 @@ def test_rollout_executes_replan_steps_of_each_chunk(task_id, episode) -> None:
     w = _worker(replan_steps=3)
     chunks, sent = [], []
     infer, step = w.policy.infer, w.env.step
-    w.policy.infer = lambda obs, seed: chunks.append(out := infer(obs, seed)) or out
+    w.policy.infer = lambda obs, seed, *cell: chunks.append(out := infer(obs, seed, *cell)) or out
     w.env.step = lambda a: sent.append(np.array(a)) or step(a)
     try:
         res = w.run_episode(_spec(task_id, episode))

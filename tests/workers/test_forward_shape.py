@@ -120,14 +120,13 @@ def test_the_service_answers_a_request_the_same_in_any_batch_and_as_in_actor(rea
     assert worker.refusal is None and worker.numerics == "rows=12 threads=1"
     policy = IDRWrapper(make_backbone(*real))
     assert fix_forward_shape(policy, 12, 1) == "rows=12 threads=1"
-    policy.set_config(e, InterventionConfig(state_space="normalized"))
     req = reqs[0]
     obs = Observation(
         {k: torch.from_numpy(v) for k, v in req.obs.images.items()},
         torch.from_numpy(req.obs.state),
         req.obs.instruction,
     )
-    in_actor = policy.infer(obs, req.step_seed)
+    in_actor = policy.infer(obs, req.step_seed, e, InterventionConfig(state_space="normalized"))
     assert np.array_equal(in_actor.action.numpy(), first[0].action)
     assert np.array_equal(in_actor.diag.e_img.numpy(), first[0].diag.e_img)
 

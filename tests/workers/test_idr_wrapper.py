@@ -116,13 +116,15 @@ def test_baseline_mode_runs_no_counterfactual_pass() -> None:
     torch.testing.assert_close(step.action, step.a_base)
 
 
-def test_set_config_switches_cell_without_new_backbone() -> None:
-    bb = FakeMarkerBackbone()
-    pol = IDRWrapper(bb, RefinerConfig(mode="baseline"))
-    pol.set_config(RefinerConfig(mode="E", tau=1e9))
-    step = pol.infer(_batch(1))
-    assert pol.backbone is bb and step.diag is not None
-    assert not torch.equal(step.action, step.a_base)
+def test_each_inference_runs_its_own_cell_on_one_wrapper() -> None:
+    """One wrapper serves every cell of a run: the settings travel with each inference, and
+    one inference's settings leave the next one's untouched."""
+    pol = IDRWrapper(FakeMarkerBackbone(), RefinerConfig(mode="baseline"))
+    e = pol.infer(_batch(1), 0, RefinerConfig(mode="E", tau=1e9))
+    assert e.diag is not None and not torch.equal(e.action, e.a_base)
+    after = pol.infer(_batch(1), 0)  # the wrapper's own default: baseline, unchanged
+    assert after.diag is None and torch.equal(after.action, after.a_base)
+    assert not hasattr(pol, "set_config")
 
 
 def test_normalized_space_refused_for_raw_only_backbone() -> None:

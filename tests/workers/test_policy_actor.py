@@ -37,18 +37,18 @@ def test_images_cross_as_their_bytes_and_come_back_the_same_floats():
 def test_concurrent_requests_share_forwards_and_get_their_own_answers(ray_local):
     params = {"chunk_len": 4, "gain": 5.0, "noise_std": 0.2, "delay_s": 0.05}
     actor = policy_actor_class(0.5, 0).remote("fake_marker", params, None, 16, 20.0)
-    remote = PolicyServiceClient(actor, ray_local.get(actor.describe.remote()))
+    remote = PolicyServiceClient(
+        actor, ray_local.get(actor.describe.remote()), RefinerConfig(mode="E")
+    )
     env = FakeMarkerEnv()
     resets = [env.reset("reach", e, 0) for e in range(12)]
     observations = [to_policy_observation(o, o.status.instruction) for o in resets]
-    remote.set_config(RefinerConfig(mode="E"))
     # sent at once, each as the proxy sends it
     refs = [actor.infer.remote(remote.request(o, 100 + i)) for i, o in enumerate(observations)]
     answers = ray_local.get(refs)
     stats = ray_local.get(actor.stats.remote())
     assert stats["requests"] == 12 and stats["forwards"] < 12  # batched while the first computed
-    local = IDRWrapper(FakeMarkerBackbone(**params))
-    local.set_config(RefinerConfig(mode="E"))
+    local = IDRWrapper(FakeMarkerBackbone(**params), RefinerConfig(mode="E"))
     for i, (o, got) in enumerate(zip(observations, answers, strict=True)):
         want = local.infer(o, 100 + i)
         assert np.array_equal(got.action, want.action.numpy())
@@ -58,8 +58,7 @@ def test_concurrent_requests_share_forwards_and_get_their_own_answers(ray_local)
     again = remote.infer(observations[3], 103)
     assert np.array_equal(again.action, answers[3].action)
     # and as one Ray call per inference (executor.policy_transport=ray)
-    by_ray = PolicyServiceClient(actor, {**remote.info, "socket": None})
-    by_ray.set_config(RefinerConfig(mode="E"))
+    by_ray = PolicyServiceClient(actor, {**remote.info, "socket": None}, RefinerConfig(mode="E"))
     assert np.array_equal(by_ray.infer(observations[3], 103).action, answers[3].action)
     remote.close()
     ray_local.kill(actor)
@@ -67,8 +66,7 @@ def test_concurrent_requests_share_forwards_and_get_their_own_answers(ray_local)
 
 def _requests(n: int) -> tuple[PolicyServiceClient, list]:
     env = FakeMarkerEnv()
-    client = PolicyServiceClient(None, {})
-    client.set_config(RefinerConfig(mode="E"))
+    client = PolicyServiceClient(None, {}, RefinerConfig(mode="E"))
     resets = [env.reset("reach", e, 0) for e in range(n)]
     obs = [to_policy_observation(o, o.status.instruction) for o in resets]
     return client, [client.request(o, i) for i, o in enumerate(obs)]
@@ -160,8 +158,7 @@ def test_a_client_closed_at_a_full_connection_cap_gets_in_once_a_slot_frees(ray_
     info = ray_local.get(actor.describe.remote())
     o = FakeMarkerEnv().reset("reach", 0, 0)
     obs = to_policy_observation(o, o.status.instruction)
-    remote = PolicyServiceClient(actor, info)
-    remote.set_config(RefinerConfig(mode="E"))
+    remote = PolicyServiceClient(actor, info, RefinerConfig(mode="E"))
     holders = [PolicySocketConnection(tuple(info["socket"]), token) for _ in range(2)]
     alone = [h.infer(remote.request(obs, 7), f"h:{i}") for i, h in enumerate(holders)]
     release = threading.Timer(0.3, lambda: [h.close() for h in holders])

@@ -54,8 +54,7 @@ def test_one_forward_for_many_episodes_gives_each_its_own_answer(noise_std):
     assert backbone.calls == [3 * 9 + 3]  # one forward: 9 IDR cells x 3 rows + 3 baselines
     for req, got in zip(requests, batched, strict=True):
         alone = IDRWrapper(FakeMarkerBackbone(chunk_len=4, gain=5.0, noise_std=noise_std))
-        alone.set_config(req.idr, req.intervention)
-        assert _same(got, alone.infer(req.obs, req.step_seed))
+        assert _same(got, alone.infer(req.obs, req.step_seed, req.idr, req.intervention))
         assert got.crn == (noise_std > 0)
 
 

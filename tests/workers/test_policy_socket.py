@@ -33,9 +33,8 @@ PARAMS = {"chunk_len": 4, "gain": 5.0, "noise_std": 0.2}
 
 def _request(episode: int = 0, **idr) -> InferRequest:
     o = FakeMarkerEnv().reset("reach", episode, 0)
-    client = PolicyServiceClient(None, {})
-    client.set_config(
-        RefinerConfig(mode="E", tau=math.inf, **idr), InterventionConfig(strategy="mean")
+    client = PolicyServiceClient(
+        None, {}, RefinerConfig(mode="E", tau=math.inf, **idr), InterventionConfig(strategy="mean")
     )
     return client.request(to_policy_observation(o, o.status.instruction), 100 + episode)
 
@@ -113,10 +112,9 @@ def test_a_client_whose_actor_is_gone_is_told_so_after_its_tries():
     server = PolicySocketServer(lambda r, c: None, "127.0.0.1", token)
     address = list(server.address)
     server.close()
-    client = PolicyServiceClient(
-        None, {"socket": address, "token": token}
-    )  # no Ray handle to ask again
-    client.set_config(RefinerConfig(mode="E"))
+    client = PolicyServiceClient(  # no Ray handle to ask again
+        None, {"socket": address, "token": token}, RefinerConfig(mode="E")
+    )
     o = FakeMarkerEnv().reset("reach", 0, 0)
     with pytest.raises(PolicyServiceError, match=r"cannot be reached .*ConnectionRefused"):
         client.infer(to_policy_observation(o, o.status.instruction), 0)

@@ -47,8 +47,7 @@ def _requests():
     out = []
     for e in range(EPISODES):
         o = FakeMarkerEnv().reset("reach", e, 0)
-        client = PolicyServiceClient(None, {})
-        client.set_config(RefinerConfig(mode="E"))
+        client = PolicyServiceClient(None, {}, RefinerConfig(mode="E"))
         out.append(client.request(to_policy_observation(o, o.status.instruction), 100 + e))
     return out
 

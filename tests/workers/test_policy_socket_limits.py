@@ -42,8 +42,7 @@ FAKE_IO = EnvIO(cameras=("agentview",), image_size=32, state_dim=2, action_dim=2
 
 def _request(episode: int = 0):
     o = FakeMarkerEnv().reset("reach", episode, 0)
-    client = PolicyServiceClient(None, {})
-    client.set_config(RefinerConfig(mode="E"))
+    client = PolicyServiceClient(None, {}, RefinerConfig(mode="E"))
     return client.request(to_policy_observation(o, o.status.instruction), 100 + episode)
 
 
@@ -166,8 +165,9 @@ def test_connections_over_the_cap_are_refused_and_counted(served):
 
 def test_an_idle_connection_is_closed_and_its_client_sends_again_on_a_new_one(served):
     server, token = served
-    client = PolicyServiceClient(None, {"socket": list(server.address), "token": token})
-    client.set_config(RefinerConfig(mode="E"))
+    client = PolicyServiceClient(
+        None, {"socket": list(server.address), "token": token}, RefinerConfig(mode="E")
+    )
     o = FakeMarkerEnv().reset("reach", 0, 0)
     obs = to_policy_observation(o, o.status.instruction)
     first = client.infer(obs, 7)

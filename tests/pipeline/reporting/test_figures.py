@@ -8,6 +8,7 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 import pytest
+from idr_core.refiner import RefinerConfig
 from matplotlib.image import imread
 
 from pipeline.execution.runner import execute, plan_run
@@ -275,3 +276,20 @@ def _progress(steps: pd.DataFrame, episodes: pd.DataFrame) -> pd.DataFrame:
     return D.progress_table(
         as_table(steps, preserve_index=False), as_table(episodes, preserve_index=False)
     ).to_pandas()
+
+
+def test_the_cell_standing_for_a_mode_is_at_the_configs_declared_alpha(tmp_path) -> None:
+    cells = pd.DataFrame(
+        {
+            "cell_id": ["diagnose", "E_a0.08", "E_a0.2"],
+            "mode": ["diagnose", "E", "E"],
+            "strategy": ["zero"] * 3,
+            "alpha": [0.08, 0.08, 0.2],
+        }
+    )
+    assert F.pick_cell(cells, "E", "zero", {}, alpha=0.2) == "E_a0.2"
+    assert F.pick_cell(cells, "E", "zero", {}, alpha=0.08) == "E_a0.08"
+    (tmp_path / "config.yaml").write_text("idr: {alpha: 0.2, tau: calibrated}\n")
+    assert D.declared_alpha(tmp_path) == 0.2
+    (tmp_path / "config.yaml").write_text("idr: {tau: calibrated}\n")
+    assert D.declared_alpha(tmp_path) == RefinerConfig().alpha  # the refiner's (paper's) default

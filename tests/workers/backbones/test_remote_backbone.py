@@ -130,8 +130,7 @@ def test_idr_through_the_real_openpi_server_package(flags):
     server = Server(*flags, real=True)
     try:
         backbone = WebsocketBackbone(port=server.port, key_map=KEYS)
-        policy = IDRWrapper(backbone)
-        policy.set_config(RefinerConfig(mode="E"))
+        policy = IDRWrapper(backbone, RefinerConfig(mode="E"))
         raw, obs = _obs(2)
         out = policy.infer(obs, 5)
         m = raw.images["agentview"].astype(np.float64).mean() / 255
@@ -153,8 +152,7 @@ def _obs(e: int = 0):
 @pytest.mark.parametrize("server", [(), ("--batch",)], indirect=True, ids=["per-row", "batched"])
 def test_idr_effects_through_the_server_equal_the_closed_form(server):
     backbone = WebsocketBackbone(port=server.port, key_map=KEYS)
-    policy = IDRWrapper(backbone)
-    policy.set_config(RefinerConfig(mode="E"))
+    policy = IDRWrapper(backbone, RefinerConfig(mode="E"))
     raw, obs = _obs()
     out = policy.infer(obs, 7)
     m = raw.images["agentview"].astype(np.float64).mean() / 255
@@ -169,8 +167,7 @@ def test_idr_effects_through_the_server_equal_the_closed_form(server):
 @pytest.mark.parametrize("server", [("--noise",), ("--noise", "--batch")], indirect=True)
 def test_shared_noise_leaves_the_effects_exact_and_is_reproducible(server):
     backbone = WebsocketBackbone(port=server.port, key_map=KEYS)
-    policy = IDRWrapper(backbone)
-    policy.set_config(RefinerConfig(mode="E"))
+    policy = IDRWrapper(backbone, RefinerConfig(mode="E"))
     raw, obs = _obs(1)
     a, b = policy.infer(obs, 3), policy.infer(obs, 3)
     m = raw.images["agentview"].astype(np.float64).mean() / 255
