@@ -6,7 +6,7 @@ PYTEST_ARGS ?=
 # both cores: the tests are spread over 2 processes (pytest-xdist), each test file on one
 # process (the module-scoped fixtures, a local Ray among them, are built once per file)
 PYTEST_WORKERS ?= 2
-PYTEST := $(VENV)/bin/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile
+PYTEST := $(VENV)/bin/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder
 # the calvin_env checkout the CALVIN simulator tests use where none is given (CALVIN_ENV): the
 # one beside the project in ../shared/third_party (skipped, with the reason, where neither is)
 CALVIN_CHECKOUT := $(firstword $(wildcard $(CURDIR)/../shared/third_party/calvin/calvin_env))
