@@ -156,6 +156,97 @@ def reliance_metaworld(d: Data) -> str:
     return block(*parts, source("reliance_metaworld", d, note))
 
 
+def _r_img(part: Mapping[str, Any] | None, ci: str = "ci95") -> str:
+    if not part or part.get("r_img") is None:
+        return "–"
+    lo, hi = part[ci] if part.get(ci) else (None, None)
+    return num(part["r_img"]) + (f" [{num(lo)}, {num(hi)}]" if lo is not None else "")
+
+
+def _success(part: Mapping[str, Any] | None) -> str:
+    if not part:
+        return "–"
+    lo, hi = part["wilson95"]
+    return (
+        f"{part['successes']}/{part['n']}: {100 * part['success']:.0f}% "
+        f"[{100 * lo:.0f}, {100 * hi:.0f}]"
+    )
+
+
+def _training_run(r: Mapping[str, Any]) -> list[str]:
+    """One member@seed of zoo_training_*.json: what ran, then a row per evaluated step; a part
+    that ran without figures reads ``error`` (its message under the table)."""
+    s, t = r["settings"], r["train"]
+    head = f"**{r['member']}, seed {r['seed']}** (`{r['run_dir']}`): "
+    if t.get("steps"):
+        head += f"{t['steps']:,} steps planned at batch {t.get('batch_size')}, "
+    head += f"checkpoints saved through step {num(t.get('last_saved_step'))}"
+    head += "" if t.get("ended") else " (training under way)"
+    if t.get("wall_s") is not None:
+        head += (
+            f"; training {t['wall_s'] / 60:.0f} min wall, {num(t['cpu_s'])} CPU s on "
+            f"{', '.join(t['machines'])} ({'/'.join(map(str, t['threads']))} threads)"
+        )
+    if s:
+        closed = (s.get("eval_every") or 0) * (s.get("closed_loop_every") or 0)
+        head += (
+            f". Evaluated every {s.get('eval_every')} steps: open loop on "
+            f"{num(s.get('frames_count'))} frames of {num(s.get('frames_episodes'))} held-out "
+            f"episodes (`{s.get('frames')}`), the closed-loop diagnose cell every {closed} steps "
+            f"with {s.get('closed_loop_episodes')} episodes per task"
+        )
+    head += f"; closed loop at {r['closed_loop_steps']} of {len(r['steps'])} evaluated steps."
+
+    def cell(step: Mapping[str, Any], part: str, text: str) -> str:
+        return "error" if text == "–" and part in step["ran"] else text
+
+    rows = [
+        [
+            f"{st['step']:,}",
+            cell(st, "openloop", _r_img(st["openloop"])),
+            cell(st, "closedloop", _success(st["closedloop"])),
+            cell(st, "closedloop", _r_img(st["closedloop"], "r_img_ci95")),
+            num(st["eval_cpu_s"]),
+        ]
+        for st in r["steps"]
+    ]
+    body = table(
+        ["step", "open-loop R_img [95% CI]", "closed-loop success k/n [Wilson 95%]",
+         "closed-loop R_img [95% CI]", "evaluator CPU s"],
+        rows,
+    )  # fmt: skip
+    errors = [f"- step {st['step']:,} ({st['status']}): {st['error']}" for st in r["steps"]
+              if st.get("error")]  # fmt: skip
+    return [head, body, "\n".join(errors)]
+
+
+def zoo_training_metaworld(d: Data) -> str:
+    """zoo_training_metaworld.json (benchmarks/zoo_training.py): per member@seed, every
+    evaluated checkpoint's open-loop R_img and, where the closed loop ran, its success and R_img;
+    the shipped final checkpoints measured on the same frames beside them."""
+    parts = [p for r in d["runs"].values() for p in _training_run(r)]
+    if d.get("finals"):
+        rows = [
+            [key, f"{f['step']:,}", _r_img(f["openloop"]), _success(f["closedloop"]),
+             _r_img(f["closedloop"], "r_img_ci95"),
+             f"{f['openloop']['frames']['n']:,} frames of `{f['openloop']['frames']['source']}`; "
+             f"{f['closedloop']['episodes_per_task']} "
+             f"episodes per task ({', '.join(f'`{s}`' for s in f['sources'])})"]
+            for key, f in d["finals"].items()
+        ]  # fmt: skip
+        parts += [
+            "The shipped checkpoints' final figures (the closed loop from their card's diagnose "
+            "cell):",
+            table(["member@seed", "step", "open-loop R_img [95% CI]", "closed-loop success",
+                   "closed-loop R_img [95% CI]", "measured on"], rows),
+        ]  # fmt: skip
+    note = (
+        "the evaluator ran beside training on the machine named here; its CPU seconds are its own "
+        f"and its children's; command: `{d['command']}`"
+    )
+    return block(*parts, source("zoo_training_metaworld", d, note))
+
+
 # -- one renderer per results file --------------------------------------------------------------
 
 _COMMON = ("lost", "duplicated", "unexpected", "unreadable_files", "temp_files_left")
@@ -1178,6 +1269,7 @@ RENDERERS: dict[str, Callable[[Data], str]] = {
         zoo_metaworld_vision,
         paper_observations,
         reliance_metaworld,
+        zoo_training_metaworld,
         isa_spread,
         gpu_supply,
     )
