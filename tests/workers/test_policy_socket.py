@@ -18,6 +18,8 @@ from workers.observation import to_policy_observation
 from workers.policy_actor import PolicyServiceClient
 from workers.policy_service import InferRequest, PolicyWorker
 from workers.policy_socket import (
+    RAY_CALLS,
+    PolicyEndpoint,
     PolicyServiceError,
     PolicySocketConnection,
     PolicySocketServer,
@@ -33,7 +35,7 @@ PARAMS = {"chunk_len": 4, "gain": 5.0, "noise_std": 0.2}
 
 def _request(episode: int = 0, **idr) -> InferRequest:
     o = FakeMarkerEnv().reset("reach", episode, 0)
-    client = PolicyServiceClient(None, {})
+    client = PolicyServiceClient(None, RAY_CALLS)
     client.set_config(
         RefinerConfig(mode="E", tau=math.inf, **idr), InterventionConfig(strategy="mean")
     )
@@ -111,10 +113,10 @@ def test_a_server_answers_each_request_as_its_worker_does_and_returns_errors():
 def test_a_client_whose_actor_is_gone_is_told_so_after_its_tries():
     token = SocketToken.new()
     server = PolicySocketServer(lambda r, c: None, "127.0.0.1", token)
-    address = list(server.address)
+    address = server.address
     server.close()
     client = PolicyServiceClient(
-        None, {"socket": address, "token": token}
+        None, PolicyEndpoint("socket", address, token)
     )  # no Ray handle to ask again
     client.set_config(RefinerConfig(mode="E"))
     o = FakeMarkerEnv().reset("reach", 0, 0)
