@@ -185,12 +185,12 @@ def round_trip(calls: int) -> dict[str, float]:
     from workers.idr import RefinerConfig
     from workers.idr_wrapper import IDRWrapper
     from workers.observation import to_policy_observation
-    from workers.policy_actor import PolicyServiceClient, policy_actor_class
+    from workers.policy_actor import connect, policy_actor_class
 
     if not ray.is_initialized():
         ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     actor = policy_actor_class(1, 0).remote("fake_marker", {"chunk_len": 4}, None, 32, 0.0)
-    remote = PolicyServiceClient(actor, ray.get(actor.describe.remote()))
+    remote = connect(actor)
     local = IDRWrapper(FakeMarkerBackbone(chunk_len=4))
     env = FakeMarkerEnv()
     first = env.reset("reach", 0, 0)

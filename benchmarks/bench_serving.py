@@ -229,11 +229,9 @@ def _run_job(job: dict[str, Any], state: _ClientState, ready: Any) -> dict[str, 
     if path in SERVICE:
         import ray
 
-        from workers.policy_actor import PolicyServiceClient
+        from workers.policy_actor import connect
 
-        client = PolicyServiceClient(
-            ray.get_actor(ep["actor"]), ep["info"], RefinerConfig(mode="E")
-        )
+        client = connect(ray.get_actor(ep["actor"]), RefinerConfig(mode="E"))
         return _timed(lambda raw, seed: client.infer(policy_obs(raw), seed), raws, n, warmup, ready)
     if path == "ray_floor":
         import ray
@@ -401,8 +399,8 @@ class Server:
                 m["kind"], m["params"], None, args.max_batch, args.wait_ms, None, None, 1,
                 transport=SERVICE[path],
             )  # fmt: skip
-            info = ray.get(self.actor.describe.remote())
-            self.endpoint = {"ray_address": ray_address, "actor": name, "info": info}
+            ray.get(self.actor.describe.remote())  # loaded
+            self.endpoint = {"ray_address": ray_address, "actor": name}
         elif path == "ray_floor":
             import ray
 
@@ -588,7 +586,7 @@ def breakdown(
 
     from workers.idr import RefinerConfig
     from workers.observation import to_policy_observation
-    from workers.policy_actor import PolicyServiceClient, policy_actor_class
+    from workers.policy_actor import connect, policy_actor_class
 
     m = MODELS[model]
     raws = raw_observations(model, 0)
@@ -596,7 +594,7 @@ def breakdown(
         m["kind"], m["params"], None, args.max_batch, args.wait_ms, None, None, 1,
         transport=transport,
     )  # fmt: skip
-    client = PolicyServiceClient(actor, ray.get(actor.describe.remote()), RefinerConfig(mode="E"))
+    client = connect(actor, RefinerConfig(mode="E"))
     obs = [to_policy_observation(r, INSTRUCTION, m["cameras"]) for r in raws]
     for i in range(10):
         client.infer(obs[i % len(obs)], i)

@@ -94,13 +94,11 @@ class EpisodeWorker:
         from workers.idr_wrapper import IDRWrapper
 
         if spec.policy_actor is not None:  # shared: the model lives in a policy actor
-            import ray
+            from workers.policy_actor import connect
 
-            from workers.policy_actor import PolicyServiceClient
-
-            info = ray.get(spec.policy_actor.describe.remote())
             self.backbone = None
-            self.policy: Any = PolicyServiceClient(spec.policy_actor, info)
+            self.policy: Any = connect(spec.policy_actor)
+            info = self.policy.info
             self.cameras = info["cameras"]
             self.history_steps = int(info.get("history_steps") or 1)
             self.numerics = info["numerics"]
@@ -190,7 +188,9 @@ class EpisodeWorker:
         if self.spec.policy_actor is not None:  # one proxy per episode: threads share the actor
             from workers.policy_actor import PolicyServiceClient
 
-            policy = PolicyServiceClient(self.spec.policy_actor, self.policy.info)
+            policy = PolicyServiceClient(
+                self.spec.policy_actor, self.policy.endpoint, self.policy.info
+            )
         try:
             if spec.task_id not in self.tasks:
                 raise ValueError(f"task_id={spec.task_id!r} not in suite {self.spec.env_suite!r}")

@@ -24,7 +24,7 @@ from __future__ import annotations
 import queue
 import threading
 import time
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -34,7 +34,8 @@ from workers.idr_wrapper import IDRStep
 from workers.interventions import InterventionConfig
 from workers.policy_service import InferRequest, PolicyWorker
 from workers.policy_socket import (
-    DEFAULT_MAX_FRAME,
+    RAY_CALLS,
+    PolicyEndpoint,
     PolicyServiceError,
     PolicySocketConnection,
     PolicySocketServer,
@@ -59,7 +60,7 @@ class BatchingPolicyActor:
         rows: int | str | None = None,
         threads: int | None = None,
         env: dict[str, str] | None = None,
-        transport: str = "socket",
+        transport: Literal["socket", "ray"] = "socket",
         socket_settings: SocketSettings | None = None,
     ) -> None:
         from workers.hardware import apply_numerics_env
@@ -87,18 +88,21 @@ class BatchingPolicyActor:
             )
 
     def describe(self) -> dict[str, Any]:
+        """What the actor serves (the backbone's description) and where it runs."""
         import os
         import socket
 
-        return {
-            **self.worker.describe(),
-            "worker": f"{socket.gethostname()}:{os.getpid()}",
-            # where episode workers send requests (workers.policy_socket); None: Ray calls.
-            # The token reaches them over Ray's own (authenticated) calls, never a log line
-            "socket": list(self._socket.address) if self._socket is not None else None,
-            "token": self._token if self._socket is not None else None,
-            "max_frame": self._socket.limits.max_frame if self._socket is not None else None,
-        }
+        return {**self.worker.describe(), "worker": f"{socket.gethostname()}:{os.getpid()}"}
+
+    def endpoint(self) -> PolicyEndpoint:
+        """Where episode workers send requests (workers.policy_socket): the socket's address
+        now (a restarted actor listens on another port), or Ray calls. The token reaches them
+        over Ray's own (authenticated) calls, never a log line."""
+        if self._socket is None:
+            return RAY_CALLS
+        return PolicyEndpoint(
+            "socket", self._socket.address, self._token, self._socket.limits.max_frame
+        )
 
     def stats(self) -> dict[str, Any]:
         sizes = list(self._batch_sizes)
@@ -253,24 +257,28 @@ def _image_bytes(image: Any) -> Any:
 
 
 class PolicyServiceClient:
-    """The IDRWrapper interface over a policy actor (see the module docstring)."""
+    """The IDRWrapper interface over a policy actor (see the module docstring): ``handle`` (a
+    Ray handle; None outside Ray), ``endpoint`` (where requests go), ``info`` (the actor's
+    ``describe``: what it serves)."""
 
     def __init__(
         self,
         handle: Any,
-        info: dict[str, Any],
+        endpoint: PolicyEndpoint,
+        info: dict[str, Any] | None = None,
         cfg: RefinerConfig | None = None,
         intervention: InterventionConfig | None = None,
     ) -> None:
         import uuid
 
         self.handle = handle
-        self.info = info
+        self.endpoint = endpoint
+        self.info = dict(info or {})
         self._id = uuid.uuid4().hex[:12]
         # what a request without settings of its own carries (benchmarks, tests)
         self.cfg = cfg or RefinerConfig()
         self.intervention = intervention or InterventionConfig()
-        self.batched = bool(info.get("batched"))
+        self.batched = bool(self.info.get("batched"))
         self._local = threading.local()  # each thread (closed loop) its own connection
 
     def reset(self) -> None:
@@ -295,7 +303,7 @@ class PolicyServiceClient:
         intervention: InterventionConfig | None = None,
     ) -> IDRStep:
         request = self.request(obs, step_seed, cfg, intervention)
-        if self.info.get("socket"):
+        if self.endpoint.transport == "socket":
             return self._infer_on_socket(request)
         import ray
 
@@ -315,22 +323,22 @@ class PolicyServiceClient:
                 self._drop_connection()
                 if attempt == RECONNECTS or self.handle is None:
                     raise PolicyServiceError(
-                        f"the policy actor at {self.info['socket']} cannot be reached "
+                        f"the policy actor at {self.endpoint.address} cannot be reached "
                         f"({type(exc).__name__}: {exc}) after {attempt + 1} tries"
                     ) from exc
                 import ray
 
                 time.sleep(min(RECONNECT_WAIT_MAX_S, RECONNECT_WAIT_S * 2**attempt))
-                self.info = {**self.info, **ray.get(self.handle.describe.remote())}
+                self.endpoint = ray.get(self.handle.endpoint.remote())
         raise AssertionError("unreachable")
 
     def _connection(self) -> PolicySocketConnection:
         conn = getattr(self._local, "conn", None)
         if conn is None:
+            endpoint = self.endpoint
+            assert endpoint.address is not None and endpoint.token is not None  # a socket's
             conn = self._local.conn = PolicySocketConnection(
-                tuple(self.info["socket"]),
-                self.info["token"],
-                self.info.get("max_frame") or DEFAULT_MAX_FRAME,
+                endpoint.address, endpoint.token, endpoint.max_frame
             )
         return conn
 
@@ -374,3 +382,13 @@ class PolicyServiceClient:
         return InferRequest(
             plain, int(step_seed), cfg or self.cfg, intervention or self.intervention
         )
+
+
+def connect(handle: Any, cfg: RefinerConfig | None = None) -> PolicyServiceClient:
+    """A client of the policy actor ``handle``: what it serves and where it listens, asked
+    over Ray (a restarting actor is waited for); ``cfg``: what a request without settings of
+    its own carries."""
+    import ray
+
+    info, endpoint = ray.get([handle.describe.remote(), handle.endpoint.remote()])
+    return PolicyServiceClient(handle, endpoint, info, cfg)

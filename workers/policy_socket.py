@@ -48,7 +48,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
@@ -294,6 +294,31 @@ class SocketSettings:
 
     def bind_host(self) -> str:
         return self.host if self.host is not None else node_address()
+
+
+@dataclasses.dataclass(frozen=True)
+class PolicyEndpoint:
+    """How an episode's requests reach its policy actor (``executor.policy_transport``), as the
+    actor says over Ray (``BatchingPolicyActor.endpoint``). ``socket``: a connection to
+    ``address`` opened with ``token``, frames up to ``max_frame`` bytes; ``ray``: a Ray call on
+    the actor's handle (no address, no token). The token never shows in a repr."""
+
+    transport: Literal["socket", "ray"]
+    address: tuple[str, int] | None = None
+    token: SocketToken | None = dataclasses.field(default=None, repr=False)
+    max_frame: int = DEFAULT_MAX_FRAME
+
+    def __post_init__(self) -> None:
+        if self.transport not in ("socket", "ray"):
+            raise ValueError(f"transport: 'socket' or 'ray', not {self.transport!r}")
+        if self.transport == "socket" and (self.address is None or self.token is None):
+            raise ValueError("a socket endpoint needs its address and the run's token")
+        if self.transport == "ray" and (self.address is not None or self.token is not None):
+            raise ValueError("a ray endpoint is the actor's handle: no address, no token")
+
+
+#: requests as Ray calls on the actor's handle (``executor.policy_transport=ray``)
+RAY_CALLS = PolicyEndpoint("ray")
 
 
 # -- the server -------------------------------------------------------------------------------

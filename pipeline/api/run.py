@@ -84,10 +84,10 @@ class RunResult:
     @cached_property
     def config(self) -> RunConfig:
         """The resolved config the run ran (RUN_DIR/config.yaml)."""
-        from pipeline.planning.config import load_config
+        from pipeline.planning.config import load_run_record
         from pipeline.rundir import CONFIG_YAML
 
-        return load_config(self.run_dir / CONFIG_YAML)
+        return load_run_record(self.run_dir / CONFIG_YAML)
 
     @cached_property
     def episodes(self) -> pa.Table:
@@ -179,7 +179,7 @@ def load(
         if isinstance(config, str | Path):
             return load_config(config, texts)
         if isinstance(config, RunConfig):
-            return config_from_dict(apply_overrides(config.model_dump(mode="json"), texts))
+            return config_from_dict(apply_overrides(_given_keys(config), texts))
         if isinstance(config, Mapping):
             return config_from_dict(apply_overrides(dict(config), texts))
         raise ConfigError(
@@ -190,6 +190,16 @@ def load(
         if note is None:
             raise
         raise ConfigError(f"{e}\n  {note}") from None
+
+
+def _given_keys(config: RunConfig) -> dict[str, Any]:
+    """``config`` as the keys it was given (a default is validated again to itself), so that an
+    override switching ``executor.policy`` meets only the keys its run set, not the defaults of
+    the other placement; the executor's ``policy`` always, since it picks the variant."""
+    data = config.model_dump(mode="json", exclude_unset=True)
+    if isinstance(data.get("executor"), dict):
+        data["executor"]["policy"] = config.executor.policy
+    return data
 
 
 def check_in_process_rendering(cfg: RunConfig) -> None:

@@ -74,7 +74,7 @@ def resume_or_claim(cfg: RunConfig, run_dir: Path, adopt: bool = False) -> str:
 
 def _adopt(cfg: RunConfig, run_dir: Path, stored: RunStore) -> str:
     """The run id of a run dir without run.json, once its config.yaml is this config."""
-    from pipeline.planning.config import config_from_dict, safe_load_yaml
+    from pipeline.planning.config import load_run_record
 
     saved = run_dir / CONFIG_YAML
     if not saved.is_file():
@@ -82,7 +82,7 @@ def _adopt(cfg: RunConfig, run_dir: Path, stored: RunStore) -> str:
             f"--adopt: {run_dir} has no config.yaml, so its episodes cannot be checked against "
             "this config; choose another --out"
         )
-    theirs = config_from_dict(safe_load_yaml(saved.read_text()) or {}, source=str(saved))
+    theirs = load_run_record(saved)
     if theirs.fingerprint() != cfg.fingerprint():
         raise ConfigError(
             f"--adopt: {saved} is a different config (fingerprint {theirs.fingerprint()} vs "

@@ -24,6 +24,7 @@ from typing import Any
 from pipeline.errors import RunError
 from pipeline.execution import signals
 from pipeline.planning.config import ConfigError, ExecutorConfig
+from pipeline.planning.executor_config import SharedExecutor
 
 log = logging.getLogger("idr_eval.cluster")
 PROBE_TIMEOUT_S = 5.0
@@ -181,13 +182,10 @@ def describe(nodes: Iterable[dict[str, Any]], keys: Iterable[str] = ("CPU", "GPU
 def check_capacity(ex: ExecutorConfig, nodes: list[dict[str, Any]]) -> None:
     """Refuse a run whose actors cannot all be placed on ``nodes``: with a shared policy, the
     policy actors first (on what they need: GPUs), then the episode actors on what is left."""
-    if ex.policy == "shared":
-        left = [dict(n) for n in nodes]
-        for what, count, demand in ex.actor_groups():
-            _check_group(ex, left, what, count, demand)
-            _take(left, count, {k: v for k, v in demand.items() if v > 0})
-        return
-    _check_group(ex, nodes, "executor.workers", ex.workers, ex.actor_demand())
+    left = [dict(n) for n in nodes]
+    for what, count, demand in ex.actor_groups():
+        _check_group(ex, left, what, count, demand)
+        _take(left, count, {k: v for k, v in demand.items() if v > 0})
 
 
 def _take(nodes: list[dict[str, Any]], count: int, demand: dict[str, float]) -> None:
@@ -225,7 +223,7 @@ def _check_group(
         k = "GPU" if "GPU" in short else short[0]
         after = (
             " (after the policy actors)"
-            if what == "executor.workers" and ex.policy == "shared"
+            if what == "executor.workers" and isinstance(ex, SharedExecutor)
             else ""
         )
         raise ConfigError(

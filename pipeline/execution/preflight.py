@@ -10,6 +10,7 @@ from pathlib import Path
 
 from pipeline.planning.catalog import suite_task_specs
 from pipeline.planning.config import ConfigError, RunConfig
+from pipeline.planning.executor_config import SharedExecutor
 from workers.backbones.factory import check_backbone
 from workers.envs.base import TaskSpec, suite_hooks, suite_info
 from workers.envs.factory import check_suite, env_class
@@ -128,7 +129,7 @@ def check_numerics_mode(cfg: RunConfig) -> None:
 def check_executor(cfg: RunConfig) -> None:
     check_numerics_mode(cfg)
     ex = cfg.executor
-    if ex.policy == "shared" and ex.kind != "ray":
+    if isinstance(ex, SharedExecutor) and ex.kind != "ray":
         raise ConfigError(
             "executor.policy=shared runs policy actors on Ray: set executor.kind=ray (inline "
             "holds the backbone in this process: executor.policy=in_actor)"
@@ -140,7 +141,7 @@ def check_executor(cfg: RunConfig) -> None:
             policy = (
                 f" + executor.policy_actors={ex.policy_actors} x executor.policy_cpus="
                 f"{ex.policy_cpus}"
-                if ex.policy == "shared"
+                if isinstance(ex, SharedExecutor)
                 else ""
             )
             raise ConfigError(

@@ -43,6 +43,7 @@ from pipeline.planning.calibration_block import fit_sources
 from pipeline.planning.checkpoint_fit import fit_config
 from pipeline.planning.config import ConfigError, RunConfig
 from pipeline.planning.env_runtime import check_env_runtime
+from pipeline.planning.executor_config import SharedExecutor
 from pipeline.planning.plan import CellPlan, RunPlan, SpecGrid, planned_numerics
 from pipeline.planning.provenance import check_hardware, check_numerics, check_resume
 from pipeline.reporting.run_data import load_run
@@ -189,7 +190,7 @@ def _worker_spec(
         None if fit.replan_steps == "chunk" else int(fit.replan_steps),
         cfg.backbone.batched,
         server,
-        envs_per_worker=cfg.executor.envs_per_worker,
+        envs_per_worker=cfg.executor.episodes_per_actor(),
         log_dir=str((run_dir / LOGS_DIR).resolve()),
         perturbations=perturbations_of(tasks),
         forward_rows=cfg.executor.forward_shape(),
@@ -209,7 +210,7 @@ def _policy_socket(cfg: RunConfig, run_dir: Path) -> SocketSettings | None:
     renders and takes, connections by the episodes in flight. The run's token is added when the
     run starts (:func:`_with_policy_token`: planning writes nothing). None: no socket."""
     ex = cfg.executor
-    if ex.policy != "shared" or ex.policy_transport != "socket":
+    if not isinstance(ex, SharedExecutor) or ex.policy_transport != "socket":
         return None
     from pipeline.planning.checkpoint_fit import describe_env
     from workers.policy_socket import (
@@ -468,7 +469,7 @@ def run_episodes(
             n = len(grid.cells) * grid.episodes_per_task
             per_task[task.task_id] = per_task.get(task.task_id, 0) + n
     total = len(plan.all_specs()) + plan.held_out_count()
-    progress = Progress(total, per_task, ex.workers * ex.envs_per_worker)
+    progress = Progress(total, per_task, ex.workers * ex.episodes_per_actor())
     # what the run dir holds now must still be there at each flush
     markers = tuple(n for n in MARKERS if (plan.run_dir / n).exists())
     stored = store.stored_keys()

@@ -12,6 +12,7 @@ import difflib
 import hashlib
 import json
 import re
+import typing
 from pathlib import Path
 from typing import Any, Literal
 
@@ -27,7 +28,11 @@ from pydantic import (
 
 from pipeline.errors import ConfigError
 from pipeline.planning.config_model import StrictModel
-from pipeline.planning.executor_config import ExecutorConfig
+from pipeline.planning.executor_config import (
+    ExecutorConfig,
+    InActorExecutor,
+    without_ignored_keys,
+)
 from pipeline.planning.grid import INTERVENTION_KEYS, Cell, expand_grid
 from pipeline.planning.refiner_settings import RefinerSettings
 from workers.idr import GUIDANCES, MODES
@@ -201,7 +206,7 @@ class RunConfig(StrictModel):
         default_factory=lambda: [{"mode": ["baseline", "E"]}],
         description="groups of parameter lists: zipped within a group, crossed across groups",
     )
-    executor: ExecutorConfig = ExecutorConfig()
+    executor: ExecutorConfig = InActorExecutor()
     tracking: TrackingConfig = TrackingConfig()
     videos: VideoConfig = VideoConfig()
     calibration: CalibrationConfig | None = Field(
@@ -291,17 +296,41 @@ class RunConfig(StrictModel):
 ALLOWED_VALUES = {"mode": MODES, "guidance": GUIDANCES, "strategy": STRATEGIES, "space": SPACES}
 
 
+def _model_at(loc: tuple[Any, ...]) -> tuple[list[str], type[BaseModel] | None]:
+    """``loc`` as the user writes the key, and the model whose fields its last part names (None:
+    not a model). Pydantic puts a discriminated union's tag in ``loc`` (``executor.shared.
+    max_batch``): dropped, its variant taken."""
+    parts: list[str] = []
+    model: type[BaseModel] | None = RunConfig
+    variants: dict[str, type[BaseModel]] = {}
+    for part in loc:
+        if str(part) in variants:
+            model, variants = variants[str(part)], {}
+            continue
+        parts.append(str(part))
+        field = model.model_fields.get(str(part)) if model is not None else None
+        model, variants = None, {}
+        ann = getattr(field, "annotation", None)
+        if isinstance(ann, type) and issubclass(ann, BaseModel):
+            model = ann
+        elif field is not None and isinstance(field.discriminator, str):
+            for cls in typing.get_args(ann):
+                tags = typing.get_args(cls.model_fields[field.discriminator].annotation)
+                variants.update(dict.fromkeys(tags, cls))
+    return parts, model
+
+
+QUOTE = "'"
+
+
 def _format_errors(err: ValidationError, source: str) -> str:
     lines = []
     for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"]) or "<root>"
+        parts, _ = _model_at(e["loc"])
+        loc = ".".join(parts) or "<root>"
         msg = e["msg"].removeprefix("Value error, ")
         if e["type"] == "extra_forbidden":
-            parent = RunConfig
-            for part in e["loc"][:-1]:
-                field = parent.model_fields.get(str(part)) if isinstance(parent, type) else None
-                ann = getattr(field, "annotation", None)
-                parent = ann if isinstance(ann, type) and issubclass(ann, BaseModel) else None
+            _, parent = _model_at(e["loc"][:-1])
             known = list(parent.model_fields) if parent else []
             close = difflib.get_close_matches(str(e["loc"][-1]), known, n=1)
             hint = (
@@ -312,9 +341,14 @@ def _format_errors(err: ValidationError, source: str) -> str:
             msg = f"unknown key{hint}"
         elif e["type"] == "missing":
             msg = "required field is missing"
+        elif e["type"] == "union_tag_invalid":  # e.g. executor.policy=sharded
+            ctx = e["ctx"]
+            loc = f"{loc}.{ctx['discriminator'].strip(QUOTE)}"
+            msg = f"Input should be one of {ctx['expected_tags']} (got {ctx['tag']!r})"
         elif "input" in e and e["type"] not in ("value_error",):
             msg = f"{msg} (got {e['input']!r})"
-        lines.append(f"  {loc}: {msg}")
+        # a message naming its own key (executor.max_batch applies to ...) stands alone
+        lines.append(f"  {msg}" if msg.startswith(f"{loc}.") else f"  {loc}: {msg}")
     return f"invalid config {source}:\n" + "\n".join(lines)
 
 
@@ -404,6 +438,21 @@ def config_from_dict(data: dict[str, Any], source: str = "<dict>") -> RunConfig:
         return RunConfig.model_validate(data)
     except ValidationError as e:
         raise ConfigError(_format_errors(e, source)) from None
+
+
+def load_run_record(path: str | Path) -> RunConfig:
+    """A run dir's ``config.yaml`` read as the record of what its run ran: keys that had no
+    effect on the run (``executor_config.without_ignored_keys``) are dropped before it is
+    validated. A config given to run is checked whole (:func:`load_config`). Raises
+    ConfigError."""
+    path = Path(path)
+    try:
+        data = safe_load_yaml(path.read_text()) or {}
+    except (OSError, yaml.YAMLError) as e:
+        raise ConfigError(f"run record {path} cannot be read: {e}") from None
+    if isinstance(data, dict) and isinstance(data.get("executor"), dict):
+        data = {**data, "executor": without_ignored_keys(data["executor"])}
+    return config_from_dict(data, source=str(path))
 
 
 class _NoAliasDumper(yaml.SafeDumper):

@@ -14,8 +14,10 @@ from workers.envs.fakes import FakeMarkerEnv
 from workers.idr import RefinerConfig
 from workers.idr_wrapper import IDRWrapper
 from workers.observation import image_to_tensor, to_policy_observation
-from workers.policy_actor import PolicyServiceClient, _image_bytes, policy_actor_class
+from workers.policy_actor import PolicyServiceClient, _image_bytes, connect, policy_actor_class
 from workers.policy_socket import (
+    RAY_CALLS,
+    PolicyEndpoint,
     PolicySocketConnection,
     SocketLimits,
     SocketSettings,
@@ -37,9 +39,7 @@ def test_images_cross_as_their_bytes_and_come_back_the_same_floats():
 def test_concurrent_requests_share_forwards_and_get_their_own_answers(ray_local):
     params = {"chunk_len": 4, "gain": 5.0, "noise_std": 0.2, "delay_s": 0.05}
     actor = policy_actor_class(0.5, 0).remote("fake_marker", params, None, 16, 20.0)
-    remote = PolicyServiceClient(
-        actor, ray_local.get(actor.describe.remote()), RefinerConfig(mode="E")
-    )
+    remote = connect(actor, RefinerConfig(mode="E"))
     env = FakeMarkerEnv()
     resets = [env.reset("reach", e, 0) for e in range(12)]
     observations = [to_policy_observation(o, o.status.instruction) for o in resets]
@@ -54,11 +54,11 @@ def test_concurrent_requests_share_forwards_and_get_their_own_answers(ray_local)
         assert np.array_equal(got.action, want.action.numpy())
         assert np.array_equal(got.diag.e_img, want.diag.e_img.numpy())
     # the proxy's own path, over the actor's socket: the same answer
-    assert remote.info["socket"] is not None
+    assert remote.endpoint.transport == "socket"
     again = remote.infer(observations[3], 103)
     assert np.array_equal(again.action, answers[3].action)
     # and as one Ray call per inference (executor.policy_transport=ray)
-    by_ray = PolicyServiceClient(actor, {**remote.info, "socket": None}, RefinerConfig(mode="E"))
+    by_ray = PolicyServiceClient(actor, RAY_CALLS, remote.info, RefinerConfig(mode="E"))
     assert np.array_equal(by_ray.infer(observations[3], 103).action, answers[3].action)
     remote.close()
     ray_local.kill(actor)
@@ -66,7 +66,7 @@ def test_concurrent_requests_share_forwards_and_get_their_own_answers(ray_local)
 
 def _requests(n: int) -> tuple[PolicyServiceClient, list]:
     env = FakeMarkerEnv()
-    client = PolicyServiceClient(None, {}, RefinerConfig(mode="E"))
+    client = PolicyServiceClient(None, RAY_CALLS, cfg=RefinerConfig(mode="E"))
     resets = [env.reset("reach", e, 0) for e in range(n)]
     obs = [to_policy_observation(o, o.status.instruction) for o in resets]
     return client, [client.request(o, i) for i, o in enumerate(obs)]
@@ -155,11 +155,10 @@ def test_a_client_closed_at_a_full_connection_cap_gets_in_once_a_slot_frees(ray_
     actor = policy_actor_class(0.5, 0).remote(
         "fake_marker", params, None, 4, 1.0, socket_settings=settings
     )
-    info = ray_local.get(actor.describe.remote())
     o = FakeMarkerEnv().reset("reach", 0, 0)
     obs = to_policy_observation(o, o.status.instruction)
-    remote = PolicyServiceClient(actor, info, RefinerConfig(mode="E"))
-    holders = [PolicySocketConnection(tuple(info["socket"]), token) for _ in range(2)]
+    remote = connect(actor, RefinerConfig(mode="E"))
+    holders = [PolicySocketConnection(remote.endpoint.address, token) for _ in range(2)]
     alone = [h.infer(remote.request(obs, 7), f"h:{i}") for i, h in enumerate(holders)]
     release = threading.Timer(0.3, lambda: [h.close() for h in holders])
     release.start()
@@ -168,3 +167,35 @@ def test_a_client_closed_at_a_full_connection_cap_gets_in_once_a_slot_frees(ray_
     assert np.array_equal(got.action, alone[0].action)
     remote.close()
     ray_local.kill(actor)
+
+
+def test_the_client_gets_the_actors_transport_as_a_typed_endpoint():
+    """The actor says where its requests go as a PolicyEndpoint (socket: its address and the
+    run's token; ray: neither); a client given the socket one is answered over it as the actor
+    answers the same request, and the token never shows in a repr."""
+    from workers.policy_actor import BatchingPolicyActor
+
+    token = SocketToken.new()
+    settings = SocketSettings("127.0.0.1", token)
+    actor = BatchingPolicyActor(
+        "fake_marker", {"chunk_len": 4}, None, 4, 1.0, socket_settings=settings
+    )
+    endpoint = actor.endpoint()
+    assert isinstance(endpoint, PolicyEndpoint) and endpoint.transport == "socket"
+    host, port = endpoint.address
+    assert host == "127.0.0.1" and isinstance(port, int) and endpoint.token == token
+    assert token.hex() not in repr(endpoint) and "socket" not in actor.describe()
+    _, reqs = _requests(1)  # the same observation, seed and cell as below
+    over_socket = PolicyServiceClient(None, endpoint, actor.describe(), RefinerConfig(mode="E"))
+    env = FakeMarkerEnv()
+    o = env.reset("reach", 0, 0)
+    got = over_socket.infer(to_policy_observation(o, o.status.instruction), 0)
+    assert np.array_equal(got.action, actor.infer(reqs[0], "c").action)
+    over_socket.close()
+    actor._socket.close()
+    ray_calls = BatchingPolicyActor("fake_marker", {"chunk_len": 4}, None, 4, 1.0, transport="ray")
+    assert ray_calls.endpoint() == RAY_CALLS and RAY_CALLS.address is None
+    with pytest.raises(ValueError, match="needs its address and the run's token"):
+        PolicyEndpoint("socket")
+    with pytest.raises(ValueError, match="no address"):
+        PolicyEndpoint("ray", ("127.0.0.1", 1))

@@ -18,6 +18,8 @@ from workers.observation import to_policy_observation
 from workers.policy_actor import PolicyServiceClient
 from workers.policy_service import InferRequest, PolicyWorker
 from workers.policy_socket import (
+    RAY_CALLS,
+    PolicyEndpoint,
     PolicyServiceError,
     PolicySocketConnection,
     PolicySocketServer,
@@ -34,7 +36,10 @@ PARAMS = {"chunk_len": 4, "gain": 5.0, "noise_std": 0.2}
 def _request(episode: int = 0, **idr) -> InferRequest:
     o = FakeMarkerEnv().reset("reach", episode, 0)
     client = PolicyServiceClient(
-        None, {}, RefinerConfig(mode="E", tau=math.inf, **idr), InterventionConfig(strategy="mean")
+        None,
+        RAY_CALLS,
+        cfg=RefinerConfig(mode="E", tau=math.inf, **idr),
+        intervention=InterventionConfig(strategy="mean"),
     )
     return client.request(to_policy_observation(o, o.status.instruction), 100 + episode)
 
@@ -110,10 +115,10 @@ def test_a_server_answers_each_request_as_its_worker_does_and_returns_errors():
 def test_a_client_whose_actor_is_gone_is_told_so_after_its_tries():
     token = SocketToken.new()
     server = PolicySocketServer(lambda r, c: None, "127.0.0.1", token)
-    address = list(server.address)
+    address = server.address
     server.close()
     client = PolicyServiceClient(  # no Ray handle to ask again
-        None, {"socket": address, "token": token}, RefinerConfig(mode="E")
+        None, PolicyEndpoint("socket", address, token), cfg=RefinerConfig(mode="E")
     )
     o = FakeMarkerEnv().reset("reach", 0, 0)
     with pytest.raises(PolicyServiceError, match=r"cannot be reached .*ConnectionRefused"):

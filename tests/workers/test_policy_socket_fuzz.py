@@ -29,6 +29,7 @@ from workers.observation import to_policy_observation
 from workers.policy_actor import BatchingPolicyActor, PolicyServiceClient
 from workers.policy_socket import (
     AUTH_FRAME_BYTES,
+    RAY_CALLS,
     PolicySocketConnection,
     SocketLimits,
     SocketSettings,
@@ -47,7 +48,7 @@ def _requests():
     out = []
     for e in range(EPISODES):
         o = FakeMarkerEnv().reset("reach", e, 0)
-        client = PolicyServiceClient(None, {}, RefinerConfig(mode="E"))
+        client = PolicyServiceClient(None, RAY_CALLS, cfg=RefinerConfig(mode="E"))
         out.append(client.request(to_policy_observation(o, o.status.instruction), 100 + e))
     return out
 
@@ -75,7 +76,7 @@ def serve_in_child(pipe: Any, limits: SocketLimits) -> None:
         "fake_marker", PARAMS, None, 4, 1.0, rows=12, threads=1,
         socket_settings=SocketSettings("127.0.0.1", token, limits),
     )  # fmt: skip
-    pipe.send((tuple(actor.describe()["socket"]), token.hex()))
+    pipe.send((actor.endpoint().address, token.hex()))
     while (cmd := pipe.recv()) != "stop":
         assert cmd == "report"
         socket_stats = actor._socket.stats()

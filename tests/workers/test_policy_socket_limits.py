@@ -16,7 +16,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from pipeline.planning.executor_config import ExecutorConfig
+from pipeline.planning.executor_config import SharedExecutor
 from pipeline.rundir import POLICY_TOKEN_FILE, policy_token
 from workers.envs.fakes import FakeMarkerEnv
 from workers.envs.server import wire
@@ -27,6 +27,8 @@ from workers.policy_actor import PolicyServiceClient
 from workers.policy_service import PolicyWorker
 from workers.policy_socket import (
     AUTH_FRAME_BYTES,
+    RAY_CALLS,
+    PolicyEndpoint,
     PolicySocketConnection,
     PolicySocketServer,
     SocketLimits,
@@ -42,7 +44,7 @@ FAKE_IO = EnvIO(cameras=("agentview",), image_size=32, state_dim=2, action_dim=2
 
 def _request(episode: int = 0):
     o = FakeMarkerEnv().reset("reach", episode, 0)
-    client = PolicyServiceClient(None, {}, RefinerConfig(mode="E"))
+    client = PolicyServiceClient(None, RAY_CALLS, cfg=RefinerConfig(mode="E"))
     return client.request(to_policy_observation(o, o.status.instruction), 100 + episode)
 
 
@@ -166,7 +168,7 @@ def test_connections_over_the_cap_are_refused_and_counted(served):
 def test_an_idle_connection_is_closed_and_its_client_sends_again_on_a_new_one(served):
     server, token = served
     client = PolicyServiceClient(
-        None, {"socket": list(server.address), "token": token}, RefinerConfig(mode="E")
+        None, PolicyEndpoint("socket", server.address, token), cfg=RefinerConfig(mode="E")
     )
     o = FakeMarkerEnv().reset("reach", 0, 0)
     obs = to_policy_observation(o, o.status.instruction)
@@ -233,12 +235,10 @@ def test_the_frame_bound_holds_the_env_s_requests_with_headroom():
 
 
 def test_the_default_connection_cap_follows_the_episodes_in_flight():
-    ex = ExecutorConfig(policy="shared", workers=3, envs_per_worker=4, policy_actors=2)
+    ex = SharedExecutor(workers=3, envs_per_worker=4, policy_actors=2)
     assert ex.episodes_per_policy_actor() == 8  # 2 of the 3 actors x 4 envs
     assert connection_cap(ex.episodes_per_policy_actor()) == 24
-    assert (
-        ExecutorConfig(policy="shared", workers=4, max_in_flight=2).episodes_per_policy_actor() == 2
-    )
+    assert SharedExecutor(workers=4, max_in_flight=2).episodes_per_policy_actor() == 2
 
 
 def test_the_run_token_is_kept_0600_reused_and_never_shown(tmp_path):

@@ -22,6 +22,7 @@ from pipeline.errors import RunError
 from pipeline.execution.executors.base import ExecutorStats, Outcome
 from pipeline.execution.timeouts import timeout_reason
 from pipeline.planning.config import ExecutorConfig
+from pipeline.planning.executor_config import SharedExecutor
 from workers.episode import EpisodeSpec, WorkerSpec
 
 log = logging.getLogger("idr_eval.executors.ray")
@@ -87,7 +88,7 @@ class RayActorPool:
             ex = self.ex
             demand = ex.actor_demand()
             self._cls = remote_worker_class(
-                demand["CPU"], demand["GPU"], ex.resources, ex.placement, ex.envs_per_worker
+                demand["CPU"], demand["GPU"], ex.resources, ex.placement, ex.episodes_per_actor()
             )
         self._next_id += 1
         aid = self._next_id
@@ -127,8 +128,8 @@ class RayActorPool:
         if self.actors or n_pending == 0:
             return
         t0 = time.monotonic()
-        if self.ex.policy == "shared":
-            self._start_policy_actors()
+        if isinstance(self.ex, SharedExecutor):
+            self._start_policy_actors(self.ex)
         load_errors: set[str] = set()
         for _ in range(min(self.ex.workers, n_pending)):
             self._spawn()
@@ -166,14 +167,14 @@ class RayActorPool:
                     self.stats.replaced += 1
         self.stats.startup_seconds = time.monotonic() - t0
 
-    def _start_policy_actors(self) -> None:
+    def _start_policy_actors(self, ex: SharedExecutor) -> None:
         """The backbone's actors of a shared policy, loaded before any episode actor."""
         import ray
         from ray.exceptions import RayActorError
 
         from workers.policy_actor import policy_actor_class
 
-        ex, spec = self.ex, self.worker_spec
+        spec = self.worker_spec
         cls = policy_actor_class(ex.policy_cpus, ex.gpu_share)
         self.policy_actors = [
             cls.remote(
@@ -250,7 +251,7 @@ class RayActorPool:
         loading gets work only while no started actor is left: after a node is lost, its
         replacement may wait for capacity that never comes back."""
         any_started = any(a not in self._starting for a in self._busy)
-        per_actor = self.ex.envs_per_worker
+        per_actor = self.ex.episodes_per_actor()
         return [
             a
             for a in sorted(self._busy, key=self._busy.get)
@@ -258,7 +259,7 @@ class RayActorPool:
         ]
 
     def free_slots(self) -> int:
-        per_actor = self.ex.envs_per_worker
+        per_actor = self.ex.episodes_per_actor()
         cap = self.ex.max_in_flight or len(self._busy) * per_actor
         free = sum(per_actor - self._busy[a] for a in self._idle())
         return max(0, min(free, cap - len(self._calls)))

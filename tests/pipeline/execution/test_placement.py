@@ -11,7 +11,8 @@ import pytest
 
 from pipeline import cli
 from pipeline.execution.cluster import check_capacity, probe_address
-from pipeline.planning.config import ConfigError, ExecutorConfig, load_config
+from pipeline.planning.config import ConfigError, load_config
+from pipeline.planning.executor_config import InActorExecutor
 from workers.actor import EpisodeWorker, current_node, remote_worker_class
 
 CONF = Path(__file__).resolve().parents[3] / "conf"
@@ -45,7 +46,7 @@ def test_gpu_share_and_custom_resources_from_config() -> None:
     assert options["num_gpus"] == 0.25 and options["num_cpus"] == 2
     assert options["resources"] == {"node_type_gpu": 0.01}
     assert options["scheduling_strategy"] == "SPREAD"
-    assert ExecutorConfig(gpus_per_worker=0.5).gpu_share == 0.5
+    assert InActorExecutor(gpus_per_worker=0.5).gpu_share == 0.5
 
 
 @pytest.mark.parametrize(
@@ -71,19 +72,19 @@ def test_capacity_is_checked_against_the_nodes() -> None:
     gpu_node = [_node(8, gpu=1)]
     # GPUs asked of a CPU-only cluster: says what the cluster has
     with pytest.raises(ConfigError, match=r"GPU 1 but no node has.*2 node\(s\) with CPU 8, GPU 0"):
-        check_capacity(ExecutorConfig(workers=2, gpus_per_worker=1), cpu_nodes)
+        check_capacity(InActorExecutor(workers=2, gpus_per_worker=1), cpu_nodes)
     # 4 actors x 0.5 GPU on one GPU: too many; 4 per GPU fit
     with pytest.raises(ConfigError, match=r"need GPU 2, but the cluster has 1 node\(s\).*GPU 1"):
-        check_capacity(ExecutorConfig(workers=4, gpus_per_worker=0.5), gpu_node)
-    check_capacity(ExecutorConfig(workers=4, actors_per_gpu=4), gpu_node)
+        check_capacity(InActorExecutor(workers=4, gpus_per_worker=0.5), gpu_node)
+    check_capacity(InActorExecutor(workers=4, actors_per_gpu=4), gpu_node)
     # an actor cannot span nodes: 3 actors of 2 CPUs do not fit on 2 nodes of 3 CPUs
     with pytest.raises(ConfigError, match="at most 2 such actor"):
-        check_capacity(ExecutorConfig(workers=3, cpus_per_worker=2), [_node(3), _node(3)])
+        check_capacity(InActorExecutor(workers=3, cpus_per_worker=2), [_node(3), _node(3)])
     # a custom resource no node has, and one a node has
     with pytest.raises(ConfigError, match="'tpu_slice'"):
-        check_capacity(ExecutorConfig(workers=1, resources={"tpu_slice": 1}), cpu_nodes)
+        check_capacity(InActorExecutor(workers=1, resources={"tpu_slice": 1}), cpu_nodes)
     check_capacity(
-        ExecutorConfig(workers=2, resources={"wide": 1}), [_node(4, wide=1), _node(4, wide=1)]
+        InActorExecutor(workers=2, resources={"wide": 1}), [_node(4, wide=1), _node(4, wide=1)]
     )
 
 
@@ -134,7 +135,7 @@ def test_ray_address_without_executor_address_is_explained(monkeypatch) -> None:
 
     monkeypatch.setenv("RAY_ADDRESS", "10.0.0.1:6379")
     with pytest.raises(ConfigError, match=r"add executor\.address=auto"):
-        connect(ExecutorConfig())
+        connect(InActorExecutor())
 
 
 def test_replacement_waiting_for_a_lost_node_hands_its_episode_on(tmp_path, monkeypatch) -> None:

@@ -71,8 +71,8 @@ def test_a_policy_actor_that_dies_is_restarted_and_its_requests_retried(tmp_path
         (["executor.policy=shared", "executor.max_batch=0"], "max_batch"),
         (["executor.policy=sharded"], "executor.policy"),
         (["executor.policy=shared", "executor.policy_actors=4"], "needs 6 CPUs"),
-        (["executor.envs_per_worker=2"], "envs_per_worker=2 needs policy=shared"),
-        (["executor.batching=dynamic"], "batching=dynamic needs policy=shared"),
+        (["executor.envs_per_worker=2"], "executor.envs_per_worker applies to policy=shared"),
+        (["executor.batching=dynamic"], "executor.batching applies to policy=shared only"),
         (
             ["executor.policy=shared", "executor.batching=dynamic", "executor.forward_rows=12"],
             "batching=dynamic and forward_rows=12 disagree",

@@ -21,7 +21,6 @@ REAL = [  # the tiny VLA on two tabletop tasks, diagnose and E with tau calibrat
     "env.params.max_steps={pick_color: 60, stack_color: 60}",
     "episodes_per_task=2",
     "grid=[{mode: [diagnose, E]}]",
-    "executor.max_batch=4",
 ]
 
 
