@@ -16,14 +16,14 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
+from idr_core.interventions import SPACES, STRATEGIES
+from idr_core.refiner import GUIDANCES, MODES
 from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
 from pipeline.errors import ConfigError
 from pipeline.planning.config_model import StrictModel
 from pipeline.planning.executor_config import ExecutorConfig
 from pipeline.planning.grid import INTERVENTION_KEYS, Cell, expand_grid
-from workers.idr import GUIDANCES, MODES
-from workers.interventions import SPACES, STRATEGIES
 
 DEFAULT_REPLAN_STEPS = 4  # actions per inference where neither the config nor the env says
 
