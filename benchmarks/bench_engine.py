@@ -20,6 +20,8 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
+from idr_core.interventions import InterventionConfig
+from idr_core.refiner import RefinerConfig
 from results_path import results_path
 
 from pipeline.execution.cluster import init_ray
@@ -30,8 +32,6 @@ from pipeline.results.store import RunStore
 from workers.envs.base import TaskSpec
 from workers.episode import EpisodeResult, EpisodeRow, EpisodeSpec, StepRow
 from workers.hardware import machine_record
-from workers.idr import RefinerConfig
-from workers.interventions import InterventionConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).parent / "results" / "engine.json"

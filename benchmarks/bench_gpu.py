@@ -44,6 +44,13 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import torch
+from idr_core.features import (
+    ACTION,
+    IMAGE_PREFIX,
+    OBS_LANGUAGE_ATTENTION_MASK,
+    OBS_LANGUAGE_TOKENS,
+    OBS_STATE,
+)
 from results_path import results_path
 
 from workers.hardware import machine_record
@@ -74,12 +81,12 @@ class ACTGpuBackbone:
 
         cfg = ACTConfig(
             input_features={
-                "observation.images.agentview": PolicyFeature(
+                f"{IMAGE_PREFIX}agentview": PolicyFeature(
                     type=FeatureType.VISUAL, shape=(3, image_size, image_size)
                 ),
-                "observation.state": PolicyFeature(type=FeatureType.STATE, shape=(state_dim,)),
+                OBS_STATE: PolicyFeature(type=FeatureType.STATE, shape=(state_dim,)),
             },
-            output_features={"action": PolicyFeature(type=FeatureType.ACTION, shape=(7,))},
+            output_features={ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(7,))},
             pretrained_backbone_weights=None,
             device=str(device),
         )
@@ -100,8 +107,8 @@ class ACTGpuBackbone:
     @torch.inference_mode()
     def predict_chunk(self, obs: Any, noise: Any = None, intervention: Any = None) -> torch.Tensor:
         batch = {
-            "observation.images.agentview": _to(obs.images["agentview"], self.device),
-            "observation.state": _to(obs.state, self.device),
+            f"{IMAGE_PREFIX}agentview": _to(obs.images["agentview"], self.device),
+            OBS_STATE: _to(obs.state, self.device),
         }
         return self.policy.predict_action_chunk(batch)
 
@@ -151,14 +158,14 @@ class PiGpuBackbone:
         cfg = Config(
             input_features={
                 **{
-                    f"observation.images.{c}": PolicyFeature(
+                    f"{IMAGE_PREFIX}{c}": PolicyFeature(
                         type=FeatureType.VISUAL, shape=(3, image_size, image_size)
                     )
                     for c in cameras
                 },
-                "observation.state": PolicyFeature(type=FeatureType.STATE, shape=(state_dim,)),
+                OBS_STATE: PolicyFeature(type=FeatureType.STATE, shape=(state_dim,)),
             },
-            output_features={"action": PolicyFeature(type=FeatureType.ACTION, shape=(action_dim,))},
+            output_features={ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(action_dim,))},
             dtype=dtype,
             device=str(device),
             image_resolution=(image_size, image_size),
@@ -208,11 +215,11 @@ class PiGpuBackbone:
         state = torch.as_tensor(obs.state).float()
         tokens, mask = self._tokens(list(obs.instruction), state)
         batch: dict[str, Any] = {
-            f"observation.images.{c}": _to(obs.images[c], self.device) for c in self.cameras
+            f"{IMAGE_PREFIX}{c}": _to(obs.images[c], self.device) for c in self.cameras
         }
-        batch["observation.language.tokens"] = _to(tokens, self.device)
-        batch["observation.language.attention_mask"] = _to(mask, self.device)
-        batch["observation.state"] = _to(state, self.device)
+        batch[OBS_LANGUAGE_TOKENS] = _to(tokens, self.device)
+        batch[OBS_LANGUAGE_ATTENTION_MASK] = _to(mask, self.device)
+        batch[OBS_STATE] = _to(state, self.device)
         kwargs = {} if noise is None else {"noise": noise}
         return self.policy.predict_action_chunk(batch, **kwargs)
 
@@ -241,9 +248,10 @@ def measure(
     warmup: int,
     autocast: torch.dtype | None = None,
 ) -> dict[str, Any]:
-    from workers.idr import RefinerConfig
+    from idr_core.interventions import InterventionConfig
+    from idr_core.refiner import RefinerConfig
+
     from workers.idr_wrapper import IDRWrapper
-    from workers.interventions import InterventionConfig
 
     state_space = "normalized" if "normalized" in backbone.native_intervention_spaces else "raw"
     iv = InterventionConfig(state_space=state_space)

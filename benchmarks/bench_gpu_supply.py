@@ -89,7 +89,8 @@ def supply(
     backbone: Any, device: torch.device, batches: list[int], rounds: int, warmup: int
 ) -> dict[str, Any]:
     """μ(B) without and with IDR's triple for one built model (eager or compiled)."""
-    from workers.idr import RefinerConfig
+    from idr_core.refiner import RefinerConfig
+
     from workers.idr_wrapper import IDRWrapper
 
     single = IDRWrapper(backbone, RefinerConfig(mode="baseline"))

@@ -20,11 +20,12 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import torch
+from idr_core.features import ACTION, IMAGE_PREFIX, OBS_STATE
+from idr_core.refiner import RefinerConfig
 
 from workers.backbones.base import Observation
 from workers.backbones.fakes import FakeMarkerBackbone
 from workers.hardware import machine_record
-from workers.idr import RefinerConfig
 from workers.idr_wrapper import IDRWrapper
 
 RESULTS = Path(__file__).parent / "results" / "idr_passes.json"
@@ -47,12 +48,12 @@ class ACTBenchBackbone:
 
         cfg = ACTConfig(
             input_features={
-                "observation.images.agentview": PolicyFeature(
+                f"{IMAGE_PREFIX}agentview": PolicyFeature(
                     type=FeatureType.VISUAL, shape=(3, image_size, image_size)
                 ),
-                "observation.state": PolicyFeature(type=FeatureType.STATE, shape=(state_dim,)),
+                OBS_STATE: PolicyFeature(type=FeatureType.STATE, shape=(state_dim,)),
             },
-            output_features={"action": PolicyFeature(type=FeatureType.ACTION, shape=(action_dim,))},
+            output_features={ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(action_dim,))},
             pretrained_backbone_weights=None,
             device="cpu",
         )
@@ -73,8 +74,8 @@ class ACTBenchBackbone:
         self, obs: Observation, noise: Any = None, intervention: Any = None
     ) -> torch.Tensor:
         batch = {
-            "observation.images.agentview": obs.images["agentview"],
-            "observation.state": obs.state,
+            f"{IMAGE_PREFIX}agentview": obs.images["agentview"],
+            OBS_STATE: obs.state,
         }
         return self.policy.predict_action_chunk(batch)
 

@@ -38,9 +38,10 @@ NS = (1, 2, 4, 8, 16, 32)
 
 
 def _requests(n: int, cameras: dict[str, int], state_dim: int) -> list[Any]:
+    from idr_core.interventions import InterventionConfig
+    from idr_core.refiner import RefinerConfig
+
     from workers.backbones.base import Observation
-    from workers.idr import RefinerConfig
-    from workers.interventions import InterventionConfig
     from workers.policy_service import InferRequest
 
     g = torch.Generator().manual_seed(0)
@@ -179,10 +180,10 @@ def overlap(episodes: int) -> dict[str, Any]:
 
 def round_trip(calls: int) -> dict[str, float]:
     import ray
+    from idr_core.refiner import RefinerConfig
 
     from workers.backbones.fakes import FakeMarkerBackbone
     from workers.envs.fakes import FakeMarkerEnv
-    from workers.idr import RefinerConfig
     from workers.idr_wrapper import IDRWrapper
     from workers.observation import to_policy_observation
     from workers.policy_actor import connect, policy_actor_class

@@ -36,7 +36,7 @@ def _port() -> int:
 
 
 def measure(policy: Any, obs: Any, calls: int) -> float:
-    from workers.idr import RefinerConfig
+    from idr_core.refiner import RefinerConfig
 
     cfg = RefinerConfig(mode="E")
     policy.infer(obs, 0, cfg)

@@ -100,9 +100,10 @@ def raw_observations(model: str, client: int) -> list[Any]:
 def wire_request(raw: Any, seed: int) -> Any:
     """The request a server builds from one raw observation (uint8 (1, 3, H, W) images, as our
     client sends them), for mode E."""
+    from idr_core.interventions import InterventionConfig
+    from idr_core.refiner import RefinerConfig
+
     from workers.backbones.base import Observation
-    from workers.idr import RefinerConfig
-    from workers.interventions import InterventionConfig
     from workers.policy_service import InferRequest
 
     images = {k: np.ascontiguousarray(v.transpose(2, 0, 1))[None] for k, v in raw.images.items()}
@@ -199,7 +200,8 @@ def _timed(call: Any, raws: list[Any], n: int, warmup: int, ready: Any) -> dict[
 def _run_job(job: dict[str, Any], state: _ClientState, ready: Any) -> dict[str, Any]:
     """One path's timed requests; ``ready()`` says this client is warm and returns the
     wall-clock time every client starts at."""
-    from workers.idr import RefinerConfig
+    from idr_core.refiner import RefinerConfig
+
     from workers.observation import to_policy_observation
 
     path, model, ep = job["path"], job["model"], job["endpoint"]
@@ -583,8 +585,8 @@ def breakdown(
     thread), the forward itself, and the rest: the transport (``socket``: encoding, the
     connection and decoding; ``ray``: Ray's serialization, transport and scheduling)."""
     import ray
+    from idr_core.refiner import RefinerConfig
 
-    from workers.idr import RefinerConfig
     from workers.observation import to_policy_observation
     from workers.policy_actor import connect, policy_actor_class
 

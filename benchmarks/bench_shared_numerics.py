@@ -45,9 +45,10 @@ PATHS: dict[str, int | str | None] = {
 
 
 def _requests(n: int, backbone: Any) -> list[Any]:
+    from idr_core.interventions import InterventionConfig
+    from idr_core.refiner import RefinerConfig
+
     from workers.backbones.base import Observation
-    from workers.idr import RefinerConfig
-    from workers.interventions import InterventionConfig
     from workers.policy_service import InferRequest
 
     g = torch.Generator().manual_seed(0)

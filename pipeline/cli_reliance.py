@@ -27,10 +27,11 @@ def _members(items: list[str]) -> dict[str, str]:
 
 
 def _cmd_reliance(args: argparse.Namespace) -> int:
+    from idr_core.interventions import InterventionConfig
+
     from pipeline.api.frames import dataset_frames
     from pipeline.api.reliance import run
     from pipeline.reporting.reliance import RELIANCE_MD
-    from workers.interventions import InterventionConfig
 
     members = _members(args.member)  # every check before the frames are read
     if args.strategies is not None and args.strategies not in members:

@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from idr_core.features import ACTION, OBS_IMAGE, OBS_STATE
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "conf" / "zoo" / "metaworld.yaml"
@@ -54,13 +55,13 @@ def features(env) -> dict:
     (cam,) = env.cameras
     h, w = env.image_sizes[cam]
     return {
-        "observation.image": {
+        OBS_IMAGE: {
             "dtype": "image",
             "shape": (h, w, 3),
             "names": ["height", "width", "channels"],
         },
-        "observation.state": {"dtype": "float32", "shape": (env.state_dim,), "names": None},
-        "action": {"dtype": "float32", "shape": (env.action_dim,), "names": None},
+        OBS_STATE: {"dtype": "float32", "shape": (env.state_dim,), "names": None},
+        ACTION: {"dtype": "float32", "shape": (env.action_dim,), "names": None},
     }
 
 
@@ -111,9 +112,9 @@ def record(
                     action = action.astype(np.float32)
                     buffer.append(
                         {
-                            "observation.image": obs.images[cam],
-                            "observation.state": obs.state.astype(np.float32),
-                            "action": action,
+                            OBS_IMAGE: obs.images[cam],
+                            OBS_STATE: obs.state.astype(np.float32),
+                            ACTION: action,
                             "task": obs.status.instruction,
                         }
                     )

@@ -30,8 +30,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+from idr_core.features import ACTION, IMAGE_PREFIX, OBS_STATE
 
-CAMERA_KEYS = {"agentview": "observation.images.agentview", "wrist": "observation.images.wrist"}
+CAMERA_KEYS = {"agentview": f"{IMAGE_PREFIX}agentview", "wrist": f"{IMAGE_PREFIX}wrist"}
 
 
 def defer_stop_signals() -> tuple[list[int], dict]:
@@ -56,8 +57,8 @@ def features(image_size: int, cameras: tuple[str, ...]) -> dict:
         }
         for c in cameras
     }
-    feats["observation.state"] = {"dtype": "float32", "shape": (8,), "names": None}
-    feats["action"] = {"dtype": "float32", "shape": (7,), "names": None}
+    feats[OBS_STATE] = {"dtype": "float32", "shape": (8,), "names": None}
+    feats[ACTION] = {"dtype": "float32", "shape": (7,), "names": None}
     return feats
 
 
@@ -124,8 +125,8 @@ def record(
                     frame = {CAMERA_KEYS[c]: obs.images[c] for c in cameras}
                     frame.update(
                         {
-                            "observation.state": obs.state,
-                            "action": action,
+                            OBS_STATE: obs.state,
+                            ACTION: action,
                             "task": obs.status.instruction,
                         }
                     )

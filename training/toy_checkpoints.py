@@ -9,12 +9,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import torch
+from idr_core.features import ACTION, IMAGE_PREFIX, OBS_IMAGE, OBS_STATE
 
 
 def _image_key(cam: str) -> str:
     """``image!``: lerobot's one-camera key ``observation.image`` (PushT), else
     ``observation.images.<cam>``."""
-    return "observation.image" if cam == "image!" else f"observation.images.{cam}"
+    return OBS_IMAGE if cam == "image!" else f"{IMAGE_PREFIX}{cam}"
 
 
 def _features(image: int | tuple[int, int], state: int, action: int, cams: tuple[str, ...]):
@@ -23,20 +24,20 @@ def _features(image: int | tuple[int, int], state: int, action: int, cams: tuple
 
     hw = (image, image) if isinstance(image, int) else tuple(image)
     inputs = {_image_key(c): PolicyFeature(FeatureType.VISUAL, (3, *hw)) for c in cams}
-    inputs["observation.state"] = PolicyFeature(FeatureType.STATE, (state,))
-    return inputs, {"action": PolicyFeature(FeatureType.ACTION, (action,))}
+    inputs[OBS_STATE] = PolicyFeature(FeatureType.STATE, (state,))
+    return inputs, {ACTION: PolicyFeature(FeatureType.ACTION, (action,))}
 
 
 def _stats(image: int | tuple[int, int], state: int, action: int, cams: tuple[str, ...]) -> dict:
     g = torch.Generator().manual_seed(0)
     stats = {
-        "observation.state": {
+        OBS_STATE: {
             "mean": torch.rand(state, generator=g),
             "std": 0.5 + torch.rand(state, generator=g),
             "min": -torch.ones(state),
             "max": torch.ones(state),
         },
-        "action": {
+        ACTION: {
             "mean": torch.rand(action, generator=g),
             "std": 0.5 + torch.rand(action, generator=g),
             "min": -torch.ones(action),
@@ -318,7 +319,7 @@ def _pi_stats(image: int, state: int, action: int, cams: tuple[str, ...]) -> dic
     """``_stats`` plus the q01 / q99 quantiles pi0.5's QUANTILES normalizer reads."""
     stats = _stats(image, state, action, cams)
     g = torch.Generator().manual_seed(1)
-    for key, dim in (("observation.state", state), ("action", action)):
+    for key, dim in ((OBS_STATE, state), (ACTION, action)):
         stats[key]["q01"] = -0.5 - torch.rand(dim, generator=g)
         stats[key]["q99"] = 1.0 + torch.rand(dim, generator=g)
     return stats

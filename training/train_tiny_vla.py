@@ -26,8 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-
-IMAGE_PREFIX = "observation.images."
+from idr_core.features import ACTION, IMAGE_PREFIX, OBS_STATE
 
 
 @dataclass
@@ -71,8 +70,8 @@ def load_demos(roots: list[Path], chunk: int) -> DemoTensors:
             images.setdefault(k, []).extend(
                 _decode(v["bytes"]) for v in table.column(k).to_pylist()
             )
-        state.append(np.asarray(table.column("observation.state").to_pylist(), dtype=np.float32))
-        action.append(np.asarray(table.column("action").to_pylist(), dtype=np.float32))
+        state.append(np.asarray(table.column(OBS_STATE).to_pylist(), dtype=np.float32))
+        action.append(np.asarray(table.column(ACTION).to_pylist(), dtype=np.float32))
         tasks.extend(by_index[int(t)] for t in table.column("task_index").to_pylist())
         episode.append(
             np.asarray(table.column("episode_index").to_pylist(), dtype=np.int64) + offset
@@ -201,14 +200,14 @@ def train(
                 "min": values.min(0).values,
                 "max": values.max(0).values,
             }
-            for key, values in (("observation.state", demos.state), ("action", demos.action))
+            for key, values in ((OBS_STATE, demos.state), (ACTION, demos.action))
         }
         inputs = {
             k: PolicyFeature(FeatureType.VISUAL, tuple(v.shape[1:]))
             for k, v in demos.images.items()
         }
-        inputs["observation.state"] = PolicyFeature(FeatureType.STATE, (demos.state.shape[1],))
-        outputs = {"action": PolicyFeature(FeatureType.ACTION, (demos.action.shape[1],))}
+        inputs[OBS_STATE] = PolicyFeature(FeatureType.STATE, (demos.state.shape[1],))
+        outputs = {ACTION: PolicyFeature(FeatureType.ACTION, (demos.action.shape[1],))}
         cfg = TinyVLAConfig(
             input_features=inputs,
             output_features=outputs,
@@ -221,8 +220,8 @@ def train(
         )
         cfg.validate_features()  # e.g. one stride per conv layer, before any training
         policy = TinyVLAPolicy(cfg)
-    s_mean, s_std = stats["observation.state"]["mean"], stats["observation.state"]["std"]
-    a_mean, a_std = stats["action"]["mean"], stats["action"]["std"]
+    s_mean, s_std = stats[OBS_STATE]["mean"], stats[OBS_STATE]["std"]
+    a_mean, a_std = stats[ACTION]["mean"], stats[ACTION]["std"]
     policy = policy.to(device)
     policy.train()
     opt = torch.optim.AdamW(policy.parameters(), lr=lr, weight_decay=cfg.optimizer_weight_decay)
@@ -258,8 +257,8 @@ def train(
             # state learns to copy its previous action from that tilt (the "copycat" shortcut)
             # and drifts off in closed loop; noise drowns that signal, keeps positions usable
             state = state + state_noise * torch.randn(state.shape, generator=gen).to(device)
-        batch["observation.state"] = state
-        batch["action"] = action_n[chunk_index[didx]]
+        batch[OBS_STATE] = state
+        batch[ACTION] = action_n[chunk_index[didx]]
         batch["action_is_pad"] = chunk_pad[didx]
         batch["task"] = list(tasks[idx.numpy()])
         loss, _ = policy(batch)

@@ -8,6 +8,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from idr_core.features import ACTION, IMAGE_PREFIX, OBS_IMAGE, OBS_STATE
+
 ROOT = Path(__file__).resolve().parents[1]
 DATASET = Path("data/zoo/tabletop")
 RUNS = Path("data/zoo/runs")
@@ -16,21 +18,21 @@ SHIPPED = Path("checkpoints/zoo")
 # the features every member is trained on: the tabletop suite's two cameras at 96 px, its 8-d
 # state and 7-d end-effector action (training/tabletop_demos.py writes them)
 TABLETOP_FEATURES = {
-    "observation.images.agentview": [96, 96, 3],
-    "observation.images.wrist": [96, 96, 3],
-    "observation.state": [8],
-    "action": [7],
+    f"{IMAGE_PREFIX}agentview": [96, 96, 3],
+    f"{IMAGE_PREFIX}wrist": [96, 96, 3],
+    OBS_STATE: [8],
+    ACTION: [7],
 }
 # the same demonstrations with the state's orientation left out (training/zoo_state.py: the dims a
 # policy can copy the last action from, which the tiny VLA masks with a flag and lerobot's
 # architectures cannot); evaluated with the tabletop suite's env.params.state_dims=[0,1,2,6,7]
-TABLETOP_POS_FEATURES = {**TABLETOP_FEATURES, "observation.state": [5]}
+TABLETOP_POS_FEATURES = {**TABLETOP_FEATURES, OBS_STATE: [5]}
 # MetaWorld at 96 px (conf/zoo/metaworld.yaml; training/metaworld_demos.py): one camera, the
 # hand's position and gripper, a 4-d action
 METAWORLD_FEATURES = {
-    "observation.image": [96, 96, 3],
-    "observation.state": [4],
-    "action": [4],
+    OBS_IMAGE: [96, 96, 3],
+    OBS_STATE: [4],
+    ACTION: [4],
 }
 
 

@@ -34,9 +34,10 @@ def cpu_seconds() -> float:
 
 def openloop_metrics(checkpoint: Path, frameset: FrameSet) -> dict[str, float]:
     """Open-loop reliance of the checkpoint on the frames, with the default interventions."""
+    from idr_core.interventions import InterventionConfig
+
     from pipeline.api.reliance import measure
     from pipeline.reporting.reliance import summarize
-    from workers.interventions import InterventionConfig
 
     fig = summarize(measure(checkpoint, frameset, InterventionConfig()))
     return {

@@ -19,6 +19,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from idr_core.features import ACTION, OBS_PREFIX
 
 
 def open_loop_error(
@@ -34,20 +35,20 @@ def open_loop_error(
     policy = get_policy_class(cfg.type).from_pretrained(checkpoint).eval()
     pre, post = load_base_processors(checkpoint, str(policy.config.device))
     ds = LeRobotDataset("local/openloop", root=dataset)
-    stats = ds.meta.stats["action"]
+    stats = ds.meta.stats[ACTION]
     mean, std = np.asarray(stats["mean"]), np.asarray(stats["std"])
     varies = std > 1e-6
     rng = np.random.default_rng(seed)
     errors, baseline, actions = [], [], []
     for n, i in enumerate(rng.choice(len(ds), size=min(frames, len(ds)), replace=False)):
         frame = ds[int(i)]
-        obs = {k: v.unsqueeze(0) for k, v in frame.items() if k.startswith("observation.")}
+        obs = {k: v.unsqueeze(0) for k, v in frame.items() if k.startswith(OBS_PREFIX)}
         obs["task"] = [frame["task"]]
         policy.reset()
         torch.manual_seed(seed + n)  # a sampling head draws the same noise for every checkpoint
         with torch.no_grad():
             action = post(policy.select_action(pre(obs))).squeeze(0).numpy()
-        truth = frame["action"].numpy()
+        truth = frame[ACTION].numpy()
         errors.append(np.abs(action - truth)[varies] / std[varies])
         actions.append(action[varies] / std[varies])
         baseline.append(np.abs(mean - truth)[varies] / std[varies])

@@ -24,8 +24,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
-
-STATE = "observation.state"
+from idr_core.features import OBS_STATE
 
 
 def _cut_column(table: pa.Table, name: str, keep: list[int]) -> pa.Table:
@@ -38,14 +37,14 @@ def _cut_hf_metadata(schema: pa.Schema, n: int) -> dict[bytes, bytes]:
     meta = dict(schema.metadata or {})
     if b"huggingface" in meta:
         hf = json.loads(meta[b"huggingface"])
-        hf["info"]["features"][STATE]["length"] = n
+        hf["info"]["features"][OBS_STATE]["length"] = n
         meta[b"huggingface"] = json.dumps(hf).encode()
     return meta
 
 
 def derive(src: Path, dst: Path, keep: list[int]) -> Path:
     info = json.loads((src / "meta" / "info.json").read_text())
-    n_src = info["features"][STATE]["shape"][0]
+    n_src = info["features"][OBS_STATE]["shape"][0]
     if not keep or any(not 0 <= k < n_src for k in keep) or len(set(keep)) != len(keep):
         raise SystemExit(f"--keep {keep}: distinct dims of the {n_src}-d state of {src}")
     if dst.exists():
@@ -55,23 +54,23 @@ def derive(src: Path, dst: Path, keep: list[int]) -> Path:
         out = dst / f.relative_to(src)
         out.parent.mkdir(parents=True, exist_ok=True)
         table = pq.read_table(f)
-        if STATE in table.column_names:
-            table = _cut_column(table, STATE, keep)
-        for col in [c for c in table.column_names if c.startswith(f"stats/{STATE}/")]:
+        if OBS_STATE in table.column_names:
+            table = _cut_column(table, OBS_STATE, keep)
+        for col in [c for c in table.column_names if c.startswith(f"stats/{OBS_STATE}/")]:
             if col.endswith("/count"):
                 continue
             table = _cut_column(table, col, keep)
         table = table.replace_schema_metadata(_cut_hf_metadata(table.schema, len(keep)))
         pq.write_table(table, out)
-    feat = info["features"][STATE]
+    feat = info["features"][OBS_STATE]
     feat["shape"] = [len(keep)]
     if feat.get("names"):
         feat["names"] = [feat["names"][k] for k in keep]
     (dst / "meta" / "info.json").write_text(json.dumps(info, indent=4))
     stats = json.loads((src / "meta" / "stats.json").read_text())
-    for key, value in stats[STATE].items():
+    for key, value in stats[OBS_STATE].items():
         if key != "count" and isinstance(value, list) and len(value) == n_src:
-            stats[STATE][key] = [value[k] for k in keep]
+            stats[OBS_STATE][key] = [value[k] for k in keep]
     (dst / "meta" / "stats.json").write_text(json.dumps(stats, indent=4))
     (dst / "meta" / "zoo_state.json").write_text(
         json.dumps({"source": str(src), "kept_state_dims": keep}, indent=2) + "\n"

@@ -23,6 +23,8 @@ import json
 import shutil
 from pathlib import Path
 
+from idr_core.features import OBS_IMAGE
+
 GOP = 40  # frames between keyframes: a sample decodes at most this many frames per camera
 PRESET = 8  # SVT-AV1's speed preset (lerobot's default 12 is the fastest and largest)
 CRF = 30  # lerobot's default quality
@@ -43,7 +45,7 @@ def convert(src: Path, dst: Path, workers: int = 1) -> Path:
     stats_in = json.loads((src / "meta" / "stats.json").read_text())
     stats_path = dst / "meta" / "stats.json"
     stats = json.loads(stats_path.read_text())
-    stats.update({k: v for k, v in stats_in.items() if k.startswith("observation.image")})
+    stats.update({k: v for k, v in stats_in.items() if k.startswith(OBS_IMAGE)})
     stats_path.write_text(json.dumps(stats, indent=4))
     parts = src / "meta" / "zoo_parts.json"
     if parts.is_file():

@@ -22,6 +22,7 @@ from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
+from idr_core.tensors import is_torch
 
 from workers.backbones.base import backbone_member
 from workers.envs.base import EpisodeStatus, episode_status, suite_info
@@ -55,7 +56,7 @@ def _now() -> str:
 
 
 def _to_numpy(x: Any) -> np.ndarray:
-    if type(x).__module__.startswith("torch"):
+    if is_torch(x):
         return x.detach().float().cpu().numpy()
     return np.asarray(x, dtype=np.float32)
 

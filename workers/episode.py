@@ -15,10 +15,11 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Annotated, Any
 
+from idr_core.interventions import InterventionConfig
+from idr_core.refiner import RefinerConfig
+
 from workers.envs.base import TaskSpec
 from workers.envs.server.spec import ServerSpec
-from workers.idr import RefinerConfig
-from workers.interventions import InterventionConfig
 
 F32 = Annotated[float, "float32"]  # a float stored as float32 (step tables are large)
 

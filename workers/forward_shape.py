@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
+from idr_core.tensors import is_torch
 
 from workers.backbones.base import Observation, concat_observations
 
@@ -68,7 +69,7 @@ def set_torch_threads(threads: int | None) -> None:
 
 
 def _rows(x: Any, idx: np.ndarray) -> Any:
-    if type(x).__module__.startswith("torch"):
+    if is_torch(x):
         import torch
 
         return x[torch.as_tensor(idx, device=x.device)]
@@ -90,7 +91,7 @@ def take_rows(obs: Observation, idx: np.ndarray) -> Observation:
 
 def cat_rows(xs: list[Any]) -> Any:
     """Arrays (torch or numpy, as given) stacked along the batch dim."""
-    if type(xs[0]).__module__.startswith("torch"):
+    if is_torch(xs[0]):
         import torch
 
         return torch.cat(xs, dim=0)

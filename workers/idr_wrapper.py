@@ -14,8 +14,9 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
+from idr_core.interventions import InterventionConfig, intervene, intervene_about
 from idr_core.methods import passes, sample_seeds
-from idr_core.refiner import clip_into
+from idr_core.refiner import Diagnostics, RefinerConfig, clip_into
 from idr_core.three_pass import PassRequest, PassResult, infer_requests
 
 from workers.backbones.base import (
@@ -27,8 +28,6 @@ from workers.backbones.base import (
     concat_observations,
 )
 from workers.forward_shape import cat_rows
-from workers.idr import Diagnostics, RefinerConfig
-from workers.interventions import InterventionConfig, intervene, intervene_about
 
 
 @dataclass

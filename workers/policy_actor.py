@@ -27,11 +27,12 @@ import time
 from typing import Any, Literal
 
 import numpy as np
+from idr_core.interventions import InterventionConfig
+from idr_core.refiner import RefinerConfig
+from idr_core.tensors import is_torch
 
 from workers.backbones.base import Observation
-from workers.idr import RefinerConfig
 from workers.idr_wrapper import IDRStep
-from workers.interventions import InterventionConfig
 from workers.policy_service import InferRequest, PolicyWorker
 from workers.policy_socket import (
     RAY_CALLS,
@@ -239,7 +240,7 @@ def policy_actor_class(
 
 
 def _plain(value: Any) -> Any:
-    if type(value).__module__.startswith("torch"):
+    if is_torch(value):
         return value.detach().cpu().numpy()
     return value
 

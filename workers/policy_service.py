@@ -22,6 +22,8 @@ from itertools import groupby
 from typing import Any
 
 import numpy as np
+from idr_core.interventions import InterventionConfig
+from idr_core.refiner import Diagnostics, RefinerConfig
 
 from workers.backbones.base import Observation, backbone_member
 from workers.forward_shape import (
@@ -32,9 +34,7 @@ from workers.forward_shape import (
     set_torch_threads,
 )
 from workers.hardware import hardware_class, hardware_record
-from workers.idr import Diagnostics, RefinerConfig
 from workers.idr_wrapper import IDRStep, IDRWrapper, step_of
-from workers.interventions import InterventionConfig
 
 
 @dataclass(frozen=True)

@@ -51,12 +51,12 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
+from idr_core.interventions import InterventionConfig
+from idr_core.refiner import Diagnostics, RefinerConfig
 
 from workers.backbones.base import Observation
 from workers.envs.server import wire
-from workers.idr import Diagnostics, RefinerConfig
 from workers.idr_wrapper import IDRStep
-from workers.interventions import InterventionConfig
 from workers.policy_service import InferRequest
 
 if TYPE_CHECKING:

@@ -3,18 +3,44 @@ by an entry point "package.module:Class" given in the config itself.
 
 Heavy modules (simulators, model code) are imported when their entry is picked, not when the
 registry is read (lerobot's factory does the same); a wrong name gets a did-you-mean error
-naming the config field.
+naming the config field, and an entry point written for the old flat layout of workers/ gets an
+error naming the one to write.
 """
 
 from __future__ import annotations
 
 import difflib
 import importlib
+import importlib.util
 import inspect
-import warnings
 from typing import Any
 
-from workers import moved
+# Where modules went when workers/ was laid out by concern: only the data of the refusal of an
+# entry point copied from the old layout (configs name suites and backbones by registry name).
+MOVED_MODULES: dict[str, str] = {
+    "workers.backbones.remote": "workers.backbones.websocket",
+    "workers.envs.calvin": "workers.envs.suites.calvin.env",
+    "workers.envs.libero": "workers.envs.suites.libero.env",
+    "workers.envs.libero_assets": "workers.envs.suites.libero.assets",
+    "workers.envs.libero_protocol": "workers.envs.suites.libero.protocol",
+    "workers.envs.perturbations": "workers.envs.wrappers.perturbations",
+    "workers.envs.remote": "workers.envs.server.client",
+    "workers.envs.server": "workers.envs.server.serve",
+    "workers.envs.simpler": "workers.envs.suites.simpler.env",
+    "workers.envs.simpler_protocol": "workers.envs.suites.simpler.protocol",
+    "workers.envs.stability": "workers.envs.mujoco.stability",
+    "workers.envs.tabletop": "workers.envs.suites.tabletop.env",
+    "workers.envs.tabletop_layout": "workers.envs.suites.tabletop.layout",
+    "workers.envs.tabletop_sim": "workers.envs.suites.tabletop.sim",
+    "workers.envs.vulkan_cpu": "workers.envs.suites.simpler.vulkan_cpu",
+    "workers.envs.wire": "workers.envs.server.wire",
+}
+# classes renamed in the move (old name -> new name)
+RENAMED_CLASSES: dict[str, str] = {
+    "RemoteEnv": "EnvServerClient",
+    "RemoteBackbone": "WebsocketBackbone",
+    "RemotePolicy": "PolicyServiceClient",
+}
 
 
 def load_class(registry: dict[str, str], name: str, field: str) -> Any:
@@ -31,32 +57,48 @@ def load_class(registry: dict[str, str], name: str, field: str) -> Any:
     return _entry_point(registry[name], field)
 
 
-def _moved(module: str, attr: str, field: str) -> tuple[str, str]:
-    """An entry point of the flat layout (``workers.envs.tabletop:TabletopEnv``) mapped to where
-    its class lives now, with a warning naming the new spelling."""
-    for old in sorted(moved.MODULES, key=len, reverse=True):
-        if module == old or module.startswith(old + "."):
-            new_module = moved.MODULES[old] + module[len(old) :]
-            head, _, rest = attr.partition(".")
-            new_attr = moved.CLASSES.get(head, head) + (f".{rest}" if rest else "")
-            warnings.warn(
-                f"{field}: {module}:{attr} moved to {new_module}:{new_attr}; "
-                "write the new name (docs/architecture.md#migration)",
-                FutureWarning,
-                stacklevel=3,
-            )
-            return new_module, new_attr
-    return module, attr
+def _retired(module: str, attr: str, *, importable: bool) -> str | None:
+    """Where an entry point of the flat layout (``workers.envs.tabletop:TabletopEnv``) lives now,
+    or None when it names nothing that moved. Asked only once the entry point has failed, so a
+    path of the present layout is never refused. A module that still imports (the package
+    ``workers.envs.server``) is mapped only when named exactly, not its submodules."""
+    if module != "workers" and not module.startswith("workers."):
+        return None  # a class of one's own: its names are not ours to map
+    new_module = module
+    for old in sorted(MOVED_MODULES, key=len, reverse=True):
+        if module == old or (not importable and module.startswith(old + ".")):
+            new_module = MOVED_MODULES[old] + module[len(old) :]
+            break
+    head, _, rest = attr.partition(".")
+    new_attr = RENAMED_CLASSES.get(head, head) + (f".{rest}" if rest else "")
+    if (new_module, new_attr) == (module, attr):
+        return None
+    try:
+        if importlib.util.find_spec(new_module) is None:
+            return None
+    except ImportError:
+        return None
+    return f"{new_module}:{new_attr}"
+
+
+def _refuse_retired(spec: str, field: str, *, importable: bool) -> None:
+    module, _, attr = spec.partition(":")
+    new = _retired(module, attr, importable=importable)
+    if new is not None:
+        raise ValueError(
+            f"{field}={spec!r} names the old layout of workers/; write {field}: {new} "
+            "(docs/architecture.md#migration)"
+        )
 
 
 def _entry_point(spec: str, field: str) -> Any:
     module, _, attr = spec.partition(":")
     if not module or not attr or ":" in attr:
         raise ValueError(f"{field}={spec!r}: an entry point is written 'package.module:Class'")
-    module, attr = _moved(module, attr, field)
     try:
         mod = importlib.import_module(module)
     except Exception as e:  # ImportError, or a name Python cannot import (ValueError, ...)
+        _refuse_retired(spec, field, importable=False)
         raise ValueError(
             f"{field}={spec!r}: cannot import module {module!r} ({e}); is it installed or on "
             "PYTHONPATH?"
@@ -64,6 +106,7 @@ def _entry_point(spec: str, field: str) -> Any:
     obj = mod
     for part in attr.split("."):
         if not hasattr(obj, part):
+            _refuse_retired(spec, field, importable=True)
             raise ValueError(f"{field}={spec!r}: module {module!r} has no {attr!r}")
         obj = getattr(obj, part)
     if not inspect.isclass(obj):

@@ -21,10 +21,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from idr_core.interventions import InterventionConfig
 
 from pipeline.errors import ConfigError
 from workers.backbones.base import Observation
-from workers.interventions import InterventionConfig
 
 if TYPE_CHECKING:
     from workers.idr_wrapper import IDRWrapper
@@ -256,7 +256,8 @@ def diagnose_wrapper(
     backbone: Any, intervention: InterventionConfig = DEFAULT_INTERVENTION
 ) -> IDRWrapper:
     """The harness's IDR wrapper of ``backbone`` in mode ``diagnose``."""
-    from workers.idr import RefinerConfig
+    from idr_core.refiner import RefinerConfig
+
     from workers.idr_wrapper import IDRWrapper
 
     try:

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+from idr_core.features import ACTION, OBS_STATE, camera_of
 
 from pipeline.errors import ConfigError
 from pipeline.reporting.reliance import FIFTHS, PHASES  # noqa: F401  (PHASES: the labels)
@@ -94,9 +95,7 @@ def dataset_frames(
 
         ds = LeRobotDataset(f"local/{root.name}", root=root)
     cams = {
-        k: ("image" if k == "observation.image" else k.removeprefix("observation.images."))
-        for k, f in ds.features.items()
-        if f.get("dtype") in ("image", "video")
+        k: camera_of(k) or k for k, f in ds.features.items() if f.get("dtype") in ("image", "video")
     }
     table = ds.hf_dataset.with_format(None)
     episodes = np.asarray(table["episode_index"])
@@ -105,7 +104,7 @@ def dataset_frames(
         if max_episodes is not None and n_ep >= max_episodes:
             break
         idx = np.flatnonzero(episodes == ep)
-        actions = np.asarray([np.asarray(table[int(i)]["action"]) for i in idx], dtype=np.float32)
+        actions = np.asarray([np.asarray(table[int(i)][ACTION]) for i in idx], dtype=np.float32)
         task = str(ds[int(idx[0])]["task"])
         meta = episode_meta(task, int(ep), actions, gripper_dim)
         keep = sorted({*range(0, len(idx), every), len(idx) - 1})
@@ -119,7 +118,7 @@ def dataset_frames(
         item = ds[i]
         for key, cam in cams.items():
             images[cam].append(np.asarray(item[key], dtype=np.float32))
-        states.append(np.asarray(item["observation.state"], dtype=np.float32))
+        states.append(np.asarray(item[OBS_STATE], dtype=np.float32))
         texts.append(str(item["task"]))
     frames = {
         "images": {c: np.stack(v) for c, v in images.items()},

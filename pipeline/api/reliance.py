@@ -9,10 +9,10 @@ from pathlib import Path
 from typing import Any
 
 import pandas as pd
+from idr_core.interventions import STRATEGIES, InterventionConfig
 
 from pipeline.api.frames import FrameSet
 from pipeline.reporting.reliance import intervention_record, rimg_figure, summarize, write
-from workers.interventions import STRATEGIES, InterventionConfig
 
 
 def measure(

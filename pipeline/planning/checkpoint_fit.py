@@ -14,10 +14,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+from idr_core.features import IMAGE_PREFIX, OBS_STATE
+
 from pipeline.planning.config import DEFAULT_REPLAN_STEPS, ConfigError, RunConfig
 from workers.io_spec import EnvIO, PolicyIO, Replan
-
-IMAGE_PREFIX = "observation.images."
 
 
 @dataclass(frozen=True)
@@ -166,7 +166,7 @@ def fit_backbone_to_env(
     if policy.state_dim is not None and policy.state_dim != env.state_dim:
         raise ConfigError(
             f"state: the env gives a {env.state_dim}-d state, but {policy.source} declares "
-            f"observation.state ({policy.state_dim},); use a checkpoint trained on this env's "
+            f"{OBS_STATE} ({policy.state_dim},); use a checkpoint trained on this env's "
             "state layout (docs/suites/index.md: what each suite gives a policy)"
         )
     if policy.action_dim != env.action_dim:

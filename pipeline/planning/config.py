@@ -17,6 +17,8 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
+from idr_core.interventions import SPACES, STRATEGIES
+from idr_core.refiner import GUIDANCES, MODES
 from pydantic import (
     BaseModel,
     Field,
@@ -35,8 +37,6 @@ from pipeline.planning.executor_config import (
 )
 from pipeline.planning.grid import INTERVENTION_KEYS, Cell, expand_grid
 from pipeline.planning.refiner_settings import RefinerSettings
-from workers.idr import GUIDANCES, MODES
-from workers.interventions import SPACES, STRATEGIES
 
 DEFAULT_REPLAN_STEPS = 4  # actions per inference where neither the config nor the env says
 

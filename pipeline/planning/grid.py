@@ -22,10 +22,9 @@ from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 from idr_core.calibration import TauSpec, parse_tau
+from idr_core.interventions import InterventionConfig
 from idr_core.methods import SETTINGS, method_of, unread_settings
-
-from workers.idr import RefinerConfig
-from workers.interventions import InterventionConfig
+from idr_core.refiner import RefinerConfig
 
 IDR_KEYS = tuple(f.name for f in fields(RefinerConfig))
 INTERVENTION_KEYS = tuple(f.name for f in fields(InterventionConfig) if f.name != "seed")

@@ -14,10 +14,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, overload
 
+from idr_core.interventions import InterventionConfig
+from idr_core.refiner import RefinerConfig
+
 from workers.envs.base import TaskSpec
 from workers.episode import EpisodeSpec, WorkerSpec
-from workers.idr import RefinerConfig
-from workers.interventions import InterventionConfig
 
 if TYPE_CHECKING:
     from pipeline.planning.checkpoint_fit import Fit

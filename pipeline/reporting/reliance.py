@@ -21,9 +21,9 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+from idr_core.interventions import InterventionConfig
 
 from pipeline.reporting.observations import rimg_interval
-from workers.interventions import InterventionConfig
 
 RELIANCE_JSON = "reliance.json"
 RELIANCE_MD = "reliance.md"

@@ -29,8 +29,9 @@ def _base(path):
 def _harness(base, tau: float, mode: str = "E"):
     """idr-eval's IDRWrapper around its lerobot backbone of ``base``, mode ``mode``, on the
     runtime's defaults, which are the plugin's (do(S) centered, refined actions clipped)."""
+    from idr_core.refiner import RefinerConfig
+
     from workers.backbones.lerobot import LerobotBackbone
-    from workers.idr import RefinerConfig
     from workers.idr_wrapper import IDRWrapper
 
     backbone = LerobotBackbone(str(base))

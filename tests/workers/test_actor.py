@@ -49,10 +49,11 @@ def _worker(replan_steps: int = 3, **backbone: object):
 
 
 def _spec(task_id: str, episode: int, mode: str = "E"):
+    from idr_core.interventions import InterventionConfig
+    from idr_core.refiner import RefinerConfig
+
     from workers.envs.factory import suite_tasks
     from workers.episode import EpisodeSpec
-    from workers.idr import RefinerConfig
-    from workers.interventions import InterventionConfig
 
     (task,) = [t for t in suite_tasks("fake_marker", {}) if t.task_id == task_id]
     return EpisodeSpec(

@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from idr_core.interventions import InterventionConfig
+from idr_core.refiner import RefinerConfig
 
 from training.toy_checkpoints import build_act
 from workers.backbones.base import Observation, concat_observations
@@ -23,9 +25,7 @@ from workers.forward_shape import (
     set_torch_threads,
     take_rows,
 )
-from workers.idr import RefinerConfig
 from workers.idr_wrapper import IDRWrapper
-from workers.interventions import InterventionConfig
 from workers.policy_service import InferRequest, PolicyWorker
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -10,9 +10,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
-from idr_core.refiner import REFINER_MODES, derangement
-
-from workers.idr import RefinerConfig, refine
+from idr_core.refiner import REFINER_MODES, RefinerConfig, derangement, refine
 
 
 def test_hand_computed_case_full_method() -> None:
@@ -305,14 +303,6 @@ def test_config_defaults_are_the_papers() -> None:
         RefinerConfig(mode="diagnose").needs_counterfactuals
         and not RefinerConfig(mode="diagnose").refines
     )
-
-
-def test_the_old_name_of_the_refiner_settings_still_imports_with_a_warning() -> None:
-    import workers.idr as idr
-
-    with pytest.warns(FutureWarning, match=r"now workers.idr.RefinerConfig"):
-        old = idr.IDRConfig
-    assert old is RefinerConfig
 
 
 @pytest.mark.parametrize("lib", ["numpy", "torch"])

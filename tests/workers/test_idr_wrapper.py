@@ -5,14 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from idr_core.interventions import InterventionConfig
+from idr_core.refiner import RefinerConfig, refine
 
 from tests.doubles.backbones import CountingMarkerBackbone
 from workers.backbones.base import Observation
 from workers.backbones.fakes import FakeMarkerBackbone
 from workers.envs.fakes import FakeMarkerEnv
-from workers.idr import RefinerConfig, refine
 from workers.idr_wrapper import IDRWrapper
-from workers.interventions import InterventionConfig
 from workers.observation import to_policy_observation
 
 

@@ -5,8 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-
-from workers.interventions import STRATEGIES, InterventionConfig, intervene, intervene_about
+from idr_core.interventions import STRATEGIES, InterventionConfig, intervene, intervene_about
 
 
 @pytest.mark.parametrize("lib", ["numpy", "torch"])

@@ -8,10 +8,10 @@ import threading
 import numpy as np
 import pytest
 import torch
+from idr_core.refiner import RefinerConfig
 
 from workers.backbones.fakes import FakeMarkerBackbone
 from workers.envs.fakes import FakeMarkerEnv
-from workers.idr import RefinerConfig
 from workers.idr_wrapper import IDRWrapper
 from workers.observation import image_to_tensor, to_policy_observation
 from workers.policy_actor import PolicyServiceClient, _image_bytes, connect, policy_actor_class

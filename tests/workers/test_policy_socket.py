@@ -8,12 +8,12 @@ import math
 
 import numpy as np
 import pytest
+from idr_core.interventions import InterventionConfig
+from idr_core.refiner import RefinerConfig
 
 from workers.envs.fakes import FakeMarkerEnv
 from workers.envs.server import wire
-from workers.idr import RefinerConfig
 from workers.idr_wrapper import IDRStep
-from workers.interventions import InterventionConfig
 from workers.observation import to_policy_observation
 from workers.policy_actor import PolicyServiceClient
 from workers.policy_service import InferRequest, PolicyWorker

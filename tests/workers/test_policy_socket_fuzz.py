@@ -20,10 +20,10 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from idr_core.refiner import RefinerConfig
 
 from workers.envs.fakes import FakeMarkerEnv
 from workers.envs.server import wire
-from workers.idr import RefinerConfig
 from workers.io_spec import EnvIO
 from workers.observation import to_policy_observation
 from workers.policy_actor import BatchingPolicyActor, PolicyServiceClient

@@ -15,12 +15,12 @@ import tracemalloc
 
 import numpy as np
 import pytest
+from idr_core.refiner import RefinerConfig
 
 from pipeline.planning.executor_config import SharedExecutor
 from pipeline.rundir import POLICY_TOKEN_FILE, policy_token
 from workers.envs.fakes import FakeMarkerEnv
 from workers.envs.server import wire
-from workers.idr import RefinerConfig
 from workers.io_spec import EnvIO
 from workers.observation import to_policy_observation
 from workers.policy_actor import PolicyServiceClient

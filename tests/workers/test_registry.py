@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib.util
+
 import pytest
 
 from workers.backbones.factory import BACKBONES
@@ -47,13 +49,41 @@ def test_the_expert_is_registered_outside_backbones_and_envs() -> None:
     assert BACKBONES["tabletop_expert"].startswith("workers.experts.")
 
 
-def test_an_entry_point_of_the_flat_layout_loads_the_moved_class_with_a_warning():
-    """``module:Class`` strings copied from the flat layout keep working (workers.moved)."""
-    from workers.envs.suites.tabletop.env import TabletopEnv
+@pytest.mark.parametrize(
+    ("old", "new"),
+    [
+        # an old module path
+        ("workers.envs.tabletop:TabletopEnv", "workers.envs.suites.tabletop.env:TabletopEnv"),
+        # an old module path and an old class name
+        (
+            "workers.backbones.remote.client:RemoteBackbone",
+            "workers.backbones.websocket.client:WebsocketBackbone",
+        ),
+        # an old class name in its present module
+        ("workers.envs.server.client:RemoteEnv", "workers.envs.server.client:EnvServerClient"),
+        # the old module, a package now that does not hold the class
+        ("workers.envs.server:EnvServer", "workers.envs.server.serve:EnvServer"),
+    ],
+)
+def test_an_entry_point_of_the_flat_layout_is_refused_naming_the_new_one(old, new) -> None:
+    """One error naming the field and the name to write; no warning, no remap."""
+    import warnings
 
-    with pytest.warns(FutureWarning, match="workers.envs.suites.tabletop.env:TabletopEnv"):
-        cls = load_class({}, "workers.envs.tabletop:TabletopEnv", "env.suite")
-    assert cls is TabletopEnv
-    with pytest.warns(FutureWarning, match="WebsocketBackbone"):
-        cls = load_class({}, "workers.backbones.remote.client:RemoteBackbone", "backbone.kind")
-    assert cls.__name__ == "WebsocketBackbone"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match=rf"env\.suite={old!r} .*write env\.suite: {new}"):
+            load_class({}, old, "env.suite")
+
+
+def test_the_refusal_never_touches_a_present_path_and_names_modules_that_exist() -> None:
+    """Each old module is gone (the package ``workers.envs.server`` aside) and each new one is
+    there, so the refusal's name is one to write."""
+    from workers.envs.server.client import EnvServerClient
+    from workers.registry import MOVED_MODULES
+
+    assert load_class({}, "workers.envs.server.client:EnvServerClient", "x") is EnvServerClient
+    with pytest.raises(ValueError, match=r"module 'tests.doubles.envs' has no 'RemoteEnv'$"):
+        load_class({}, "tests.doubles.envs:RemoteEnv", "env.suite")  # not ours to rename
+    for old, new in MOVED_MODULES.items():
+        assert importlib.util.find_spec(new) is not None, new
+        assert (importlib.util.find_spec(old) is None) == (old != "workers.envs.server"), old

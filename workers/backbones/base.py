@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import numpy as np
+from idr_core.tensors import is_torch
 
 
 @dataclass
@@ -60,7 +61,7 @@ def concat_observations(parts: list[Observation]) -> Observation:
     first = parts[0]
 
     def cat(xs: list[Any]) -> Any:
-        if type(xs[0]).__module__.startswith("torch"):
+        if is_torch(xs[0]):
             import torch
 
             return torch.cat(xs, dim=0)

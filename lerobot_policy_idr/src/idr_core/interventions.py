@@ -31,6 +31,8 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 
+from idr_core.tensors import is_torch
+
 Strategy = Literal["zero", "mean", "gaussian"]
 Space = Literal["raw", "centered", "normalized"]
 
@@ -68,10 +70,6 @@ class InterventionConfig:
             raise ValueError(f"intervention.noise_scale={self.noise_scale!r} must be >= 0")
 
 
-def _is_torch(x: Any) -> bool:
-    return type(x).__module__.startswith("torch")
-
-
 def intervene(x: Any, strategy: str, *, noise_scale: float = 0.5, seed: int = 0) -> Any:
     """Return the counterfactual value of ``x`` (batch first), same type, shape, dtype, device.
 
@@ -83,10 +81,10 @@ def intervene(x: Any, strategy: str, *, noise_scale: float = 0.5, seed: int = 0)
     if x.ndim < 1:
         raise ValueError(f"intervene needs a batch-first tensor, got shape {tuple(x.shape)}")
     if strategy == "zero":
-        return x * 0 if _is_torch(x) else np.zeros_like(x)
+        return x * 0 if is_torch(x) else np.zeros_like(x)
     return (
         _intervene_torch(x, strategy, noise_scale, seed)
-        if _is_torch(x)
+        if is_torch(x)
         else _intervene_numpy(x, strategy, noise_scale, seed)
     )
 
@@ -98,7 +96,7 @@ def intervene_about(
     trailing dim, numpy or a list; None: about zero). ``zero`` gives ``center`` exactly."""
     if center is None:
         return intervene(x, strategy, noise_scale=noise_scale, seed=seed)
-    if _is_torch(x):
+    if is_torch(x):
         import torch
 
         c = torch.as_tensor(np.asarray(center), dtype=x.dtype, device=x.device)
@@ -110,7 +108,7 @@ def intervene_about(
             "checkpoint's dataset statistics are not of this state"
         )
     if strategy == "zero":
-        return c.expand_as(x).clone() if _is_torch(x) else np.broadcast_to(c, x.shape).copy()
+        return c.expand_as(x).clone() if is_torch(x) else np.broadcast_to(c, x.shape).copy()
     return c + intervene(x - c, strategy, noise_scale=noise_scale, seed=seed)
 
 

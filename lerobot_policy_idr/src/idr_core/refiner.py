@@ -39,6 +39,8 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 
+from idr_core.tensors import is_torch
+
 Mode = Literal[
     "baseline",
     "diagnose",
@@ -87,9 +89,9 @@ REFINER_MODES: tuple[str, ...] = ("A", "B", "C", "D", "E", "F", "random", "shuff
 class RefinerConfig:
     """Refiner parameters. Defaults are the paper's (pi0.5 on LIBERO).
 
-    The harness knows this class as ``workers.idr.IDRConfig``; in this package that name is the
-    lerobot policy config (``configuration_idr.IDRConfig``), whose fields of the same names
-    build one of these (lerobot derives a policy class from its config class's name)."""
+    The harness and the plugin both import it from here. ``IDRConfig`` is the lerobot policy
+    config (``configuration_idr.IDRConfig``), whose fields of the same names build one of these
+    (lerobot derives a policy class from its config class's name)."""
 
     alpha: float = 0.08  # strength of the main (visual) correction
     beta: float = 0.05  # strength of the bounded stabilizer (proprioceptive) term
@@ -190,12 +192,8 @@ class Diagnostics:
         }
 
 
-def _is_torch(x: Any) -> bool:
-    return type(x).__module__.startswith("torch")
-
-
 def _to_numpy(x: Any) -> np.ndarray:
-    if _is_torch(x):
+    if is_torch(x):
         return x.detach().cpu().numpy()
     return np.asarray(x)
 
@@ -249,7 +247,7 @@ class _Ops:
 
 def _validate(a_base: Any, a_no_img: Any, a_no_prop: Any) -> _Ops:
     named = {"a_base": a_base, "a_no_img": a_no_img, "a_no_prop": a_no_prop}
-    kinds = {name: _is_torch(x) for name, x in named.items()}
+    kinds = {name: is_torch(x) for name, x in named.items()}
     if len(set(kinds.values())) != 1:
         raise ValueError(
             f"actions must all be numpy arrays or all torch tensors, got {kinds} (True = torch)"
@@ -342,7 +340,7 @@ def clip_into(final: Any, a_base: Any, lo: Any, hi: Any) -> tuple[Any, list[int]
     bounds widen to the base action itself, so a base that leaves its data's range is never
     pulled back: only what a refinement added beyond it is cut."""
     b = final.shape[0]
-    if _is_torch(final):
+    if is_torch(final):
         import torch
 
         lo_t = torch.as_tensor(np.asarray(lo), dtype=final.dtype, device=final.device)

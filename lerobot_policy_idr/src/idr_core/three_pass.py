@@ -20,16 +20,13 @@ import numpy as np
 
 from idr_core.methods import combine, passes
 from idr_core.refiner import Diagnostics, RefinerConfig
-
-
-def _is_torch(x: Any) -> bool:
-    return type(x).__module__.startswith("torch")
+from idr_core.tensors import is_torch
 
 
 def repeat3(x: Any) -> Any:
     """``x`` stacked three times along the batch dim (torch or numpy): one noise draw shared
     by the factual and the two counterfactual thirds."""
-    if _is_torch(x):
+    if is_torch(x):
         import torch
 
         return torch.cat([x, x, x], dim=0)

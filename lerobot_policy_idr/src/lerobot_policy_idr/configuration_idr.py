@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from idr_core.checkpoint import WEIGHTS, check_checkpoint_dir, sha256_file
+from idr_core.features import ACTION, OBS_STATE, is_image_key
 from idr_core.interventions import SPACES, STRATEGIES, InterventionConfig
 from idr_core.plugins import describe_failures, plugin_import_errors
 from idr_core.refiner import RefinerConfig
@@ -261,12 +262,10 @@ class IDRConfig(PreTrainedConfig):
     def _check_inputs(self, base: Path) -> None:
         """The counterfactual passes need an image (do(V)) and a state (do(S)) in the base's
         inputs."""
-        from lerobot_policy_idr.processor_idr import STATE_KEY, is_image_key
-
         keys = list(read_base_config(base).get("input_features") or {})
         for missing, what in (
             (not any(is_image_key(k) for k in keys), "no image"),
-            (STATE_KEY not in keys, f"no {STATE_KEY}"),
+            (OBS_STATE not in keys, f"no {OBS_STATE}"),
         ):
             if missing:
                 raise IDRConfigError(
@@ -298,7 +297,7 @@ class IDRConfig(PreTrainedConfig):
         return None
 
     def validate_features(self) -> None:
-        if not self.output_features or "action" not in self.output_features:
+        if not self.output_features or ACTION not in self.output_features:
             raise IDRConfigError(
                 "the idr policy has no action output feature: its base config.json was not read "
                 "(set policy.base_policy_path to a lerobot checkpoint folder)"

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from idr_core.features import OBS_STATE, is_image_key
 from idr_core.methods import combine, method_of
 from idr_core.refiner import clip_into, refine
 from idr_core.sampling import crn_mode, noise_shape
@@ -38,7 +39,7 @@ from lerobot_policy_idr.configuration_idr import (
     adopt_base_type,
     read_base_config,
 )
-from lerobot_policy_idr.processor_idr import BATCH_SIZE_KEY, STATE_KEY, is_image_key
+from lerobot_policy_idr.processor_idr import BATCH_SIZE_KEY
 from lerobot_policy_idr.runtime import (
     ACTION,
     action_bounds,
@@ -316,7 +317,7 @@ class IDRPolicy(PreTrainedPolicy):
 
 def _batch_rows(batch: dict[str, Any]) -> int:
     for key, value in batch.items():
-        if isinstance(value, torch.Tensor) and (key == STATE_KEY or is_image_key(key)):
+        if isinstance(value, torch.Tensor) and (key == OBS_STATE or is_image_key(key)):
             return int(value.shape[0])
     raise ValueError(f"the idr policy found no state or image tensor in the batch: {sorted(batch)}")
 

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from idr_core.features import OBS_PREFIX, OBS_STATE, is_image_key
 from idr_core.interventions import intervene, intervene_about
 from lerobot.configs.types import PipelineFeatureType, PolicyFeature
 from lerobot.lerobot_types import TransitionKey
@@ -35,26 +36,17 @@ from lerobot.processor import (
     ProcessorStepRegistry,
 )
 
-STATE_KEY = "observation.state"
-IMAGE_PREFIX = "observation.images."
-SINGLE_IMAGE_KEY = "observation.image"  # lerobot's one-camera key (PushT)
 BATCH_SIZE_KEY = "idr_batch_size"  # complementary data: B of the 3B rows
 # after these (the last of them before the normalizer) the counterfactual rows are made
 _BEFORE_COUNTERFACTUALS = ("AddBatchDimensionProcessorStep", "RelativeActionsProcessorStep")
 
 
-def is_image_key(key: str) -> bool:
-    """A camera's key: ``observation.images.<cam>``, or lerobot's one-camera
-    ``observation.image``."""
-    return key == SINGLE_IMAGE_KEY or key.startswith(IMAGE_PREFIX)
-
-
 def _rows(obs: dict[str, Any]) -> int:
     for key, value in obs.items():
-        if isinstance(value, torch.Tensor) and (key == STATE_KEY or is_image_key(key)):
+        if isinstance(value, torch.Tensor) and (key == OBS_STATE or is_image_key(key)):
             return int(value.shape[0])
     raise ValueError(
-        f"the idr policy needs {STATE_KEY!r} or an image tensor; observation has {sorted(obs)}"
+        f"the idr policy needs {OBS_STATE!r} or an image tensor; observation has {sorted(obs)}"
     )
 
 
@@ -80,15 +72,15 @@ class IDRCounterfactualBatchStep(ProcessorStep):
         for key, shape in (self.expects or {}).items():
             value = obs.get(key)
             if not isinstance(value, torch.Tensor):
-                have = sorted(k for k in obs if k.startswith("observation."))
+                have = sorted(k for k in obs if k.startswith(OBS_PREFIX))
                 raise ValueError(
                     f"the idr policy's base reads {key!r}, which the robot or env does not give "
                     f"(it gives {have}): map its names with --rename_map, or wrap a base trained "
                     "on this robot's features"
                 )
-            if key == STATE_KEY and int(value.shape[-1]) != shape[0]:
+            if key == OBS_STATE and int(value.shape[-1]) != shape[0]:
                 raise ValueError(
-                    f"{STATE_KEY}: the robot or env gives {int(value.shape[-1])} dims, the base "
+                    f"{OBS_STATE}: the robot or env gives {int(value.shape[-1])} dims, the base "
                     f"reads {shape[0]}: wrap a base trained on this robot's state"
                 )
             if is_image_key(key) and int(value.shape[-3]) != shape[0]:
@@ -116,7 +108,7 @@ class IDRCounterfactualBatchStep(ProcessorStep):
                     noise_scale=self.noise_scale,
                     seed=step_seed + images.index(key),
                 )
-            if key == STATE_KEY and self.state_space in ("raw", "centered"):
+            if key == OBS_STATE and self.state_space in ("raw", "centered"):
                 center = self.state_mean if self.state_space == "centered" else None
                 no_prop = intervene_about(
                     value,
@@ -175,9 +167,9 @@ class IDRStateInterventionStep(ProcessorStep):
             )
         obs = dict(transition[TransitionKey.OBSERVATION])
         b = int(comp[BATCH_SIZE_KEY])
-        state = obs[STATE_KEY]
+        state = obs[OBS_STATE]
         cf = intervene(state[2 * b :], self.strategy, noise_scale=self.noise_scale, seed=self.seed)
-        obs[STATE_KEY] = torch.cat([state[: 2 * b], cf], dim=0)
+        obs[OBS_STATE] = torch.cat([state[: 2 * b], cf], dim=0)
         out = dict(transition)
         out[TransitionKey.OBSERVATION] = obs
         return out
@@ -225,13 +217,13 @@ def insert_idr_steps(
         expects = {
             k: list(f.shape)
             for k, f in (config.input_features or {}).items()
-            if k == STATE_KEY or is_image_key(k)
+            if k == OBS_STATE or is_image_key(k)
         }
         mean = None
-        if iv.state_space == "centered" and STATE_KEY in expects:
+        if iv.state_space == "centered" and OBS_STATE in expects:
             from lerobot_policy_idr.runtime import state_mean
 
-            found = state_mean(steps, int(expects[STATE_KEY][0]))
+            found = state_mean(steps, int(expects[OBS_STATE][0]))
             if found is None:
                 raise ValueError(
                     "policy.state_space='centered' but the base's preprocessor holds no dataset "

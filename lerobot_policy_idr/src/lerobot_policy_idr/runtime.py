@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from idr_core.features import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 
 
 class TemporalEnsemble:
@@ -49,10 +50,6 @@ class TemporalEnsemble:
 QUEUE_FED_TYPES = ("vqbet", "multi_task_dit")
 #: Base types whose ``predict_action_chunk`` reads (rows, n_obs_steps, ...) observations
 STACKED_TYPES = ("diffusion",)
-OBS_IMAGES = "observation.images"  # the stacked cameras a queue-fed base's queues hold
-ACTION = "action"
-STATE_KEY = "observation.state"
-ENV_STATE_KEY = "observation.environment_state"
 
 
 def history_length(config: Any) -> int:
@@ -115,7 +112,7 @@ def base_input(
     keys = [
         k
         for k in frames[-1]
-        if k == STATE_KEY or k.startswith(ENV_STATE_KEY) or k in config.image_features
+        if k == OBS_STATE or k.startswith(OBS_ENV_STATE) or k in config.image_features
     ]
     return stack_frames(frames, history_length(config), keys), None
 
@@ -134,9 +131,9 @@ def state_mean(steps: list[Any], dim: int | None = None) -> np.ndarray | None:
         if type(step).__name__ != "NormalizerProcessorStep":
             continue
         tensors = getattr(step, "_tensor_stats", None) or {}
-        mean = (tensors.get(STATE_KEY) or {}).get("mean")
+        mean = (tensors.get(OBS_STATE) or {}).get("mean")
         if mean is None:
-            mean = ((getattr(step, "stats", None) or {}).get(STATE_KEY) or {}).get("mean")
+            mean = ((getattr(step, "stats", None) or {}).get(OBS_STATE) or {}).get("mean")
         if mean is None:
             return None
         if isinstance(mean, torch.Tensor):

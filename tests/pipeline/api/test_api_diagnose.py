@@ -51,8 +51,9 @@ def test_finite_effects_and_r_img_in_unit_interval(measured) -> None:
 
 
 def test_equal_to_the_harness_diagnose_and_the_formula(frames: dict, measured) -> None:
+    from idr_core.refiner import RefinerConfig
+
     from workers.backbones.lerobot.adapter import LerobotBackbone
-    from workers.idr import RefinerConfig
     from workers.idr_wrapper import IDRWrapper
 
     backbone = LerobotBackbone(str(TINY))

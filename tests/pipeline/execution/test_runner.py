@@ -81,6 +81,11 @@ def test_run_dir_of_another_config_is_refused(tmp_path) -> None:
             ["env.suite=fake_markr"],
             r"env.suite='fake_markr' is unknown; did you mean 'fake_marker'",
         ),
+        (
+            ["env.suite=workers.envs.tabletop:TabletopEnv"],
+            r"names the old layout of workers/; "
+            r"write env.suite: workers.envs.suites.tabletop.env:TabletopEnv",
+        ),
         (["backbone.kind=fake"], r"backbone.kind='fake' is unknown"),
         (
             ["backbone.params.gian=3"],

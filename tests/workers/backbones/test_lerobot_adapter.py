@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from idr_core.interventions import InterventionConfig
+from idr_core.refiner import RefinerConfig
 
 from pipeline.planning.config import ConfigError
 from training.toy_checkpoints import build_act, build_diffusion
 from workers.backbones.base import Observation
-from workers.idr import RefinerConfig
 from workers.idr_wrapper import IDRWrapper
-from workers.interventions import InterventionConfig
 
 pytestmark = pytest.mark.slow
 

@@ -13,12 +13,12 @@ import socket
 
 import pytest
 import torch
+from idr_core.interventions import InterventionConfig
+from idr_core.refiner import RefinerConfig
 
 from training.toy_checkpoints import build_local_tokenizer, build_pi, tiny_pi_gemma
 from workers.backbones.base import Observation
-from workers.idr import RefinerConfig
 from workers.idr_wrapper import IDRWrapper
-from workers.interventions import InterventionConfig
 
 pytestmark = pytest.mark.slow
 

@@ -1,10 +1,10 @@
 from __future__ import annotations
 
 import torch
+from idr_core.refiner import RefinerConfig
 
 from workers.backbones.base import Observation
 from workers.backbones.noop import NoopBackbone
-from workers.idr import RefinerConfig
 from workers.idr_wrapper import IDRWrapper
 
 

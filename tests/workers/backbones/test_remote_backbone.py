@@ -12,11 +12,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from idr_core.refiner import RefinerConfig
 
 from workers.backbones.websocket import codec
 from workers.backbones.websocket.client import RemoteBackboneError, WebsocketBackbone
 from workers.envs.fakes import FakeMarkerEnv
-from workers.idr import RefinerConfig
 from workers.idr_wrapper import IDRWrapper
 from workers.observation import to_policy_observation
 

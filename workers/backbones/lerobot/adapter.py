@@ -32,25 +32,13 @@ from typing import Any, ClassVar
 
 import torch
 from idr_core.checkpoint import check_checkpoint_dir
+from idr_core.features import ACTION, IMAGE_PREFIX, OBS_STATE, camera_of
+from idr_core.interventions import intervene
 from idr_core.plugins import import_error, policy_plugins
 from idr_core.sampling import DETERMINISTIC_TYPES, crn_mode, noise_shape
 
 from workers.backbones.base import HISTORY_IMAGES, HISTORY_STATE, Observation
-from workers.interventions import intervene
 from workers.io_spec import PolicyIO
-
-STATE_KEY = "observation.state"
-IMAGE_PREFIX = "observation.images."
-SINGLE_IMAGE_KEY = "observation.image"  # one-camera checkpoints (lerobot's PushT): camera "image"
-
-
-def image_suffix(key: str) -> str | None:
-    """The camera name a policy image key stands for (``observation.images.<cam>`` -> cam,
-    ``observation.image`` -> ``image``); None for a key that is not an image."""
-    if key.startswith(IMAGE_PREFIX):
-        return key.removeprefix(IMAGE_PREFIX)
-    return "image" if key == SINGLE_IMAGE_KEY else None
-
 
 # config.json keys by which a policy resizes its images to its own resolution (pi0, pi0.5,
 # pi0-FAST, SmolVLA, X-VLA, Diffusion's resize_shape...): any rendered size then fits it.
@@ -125,7 +113,7 @@ def policy_io(path: Path, chunk_len: int | None = None) -> PolicyIO:
     cfg_path = path / "config.json"
     cfg = json.loads(cfg_path.read_text())
     inputs, outputs = cfg.get("input_features"), cfg.get("output_features")
-    if not isinstance(inputs, dict) or not isinstance(outputs, dict) or "action" not in outputs:
+    if not isinstance(inputs, dict) or not isinstance(outputs, dict) or ACTION not in outputs:
         raise ValueError(
             f"backbone.params.path={str(path)!r}: config.json lacks input_features / "
             "output_features.action, so what the policy reads cannot be checked"
@@ -133,12 +121,12 @@ def policy_io(path: Path, chunk_len: int | None = None) -> PolicyIO:
     images = {
         suffix: _shape(cfg_path, k, f)
         for k, f in inputs.items()
-        if (suffix := image_suffix(k)) is not None
+        if (suffix := camera_of(k)) is not None
     }
     for key, shape in images.items():
         if len(shape) != 3:
             raise ValueError(f"{cfg_path}: {IMAGE_PREFIX + key} shape {shape} is not (C, H, W)")
-    state = inputs.get(STATE_KEY)
+    state = inputs.get(OBS_STATE)
     steps = (
         chunk_len
         or cfg.get("n_action_steps")
@@ -146,12 +134,12 @@ def policy_io(path: Path, chunk_len: int | None = None) -> PolicyIO:
         or cfg.get("action_chunk_size")  # VQ-BeT
         or 1
     )
-    dim = _shape(cfg_path, STATE_KEY, state)[0] if state is not None else None
+    dim = _shape(cfg_path, OBS_STATE, state)[0] if state is not None else None
     mean, mean_source = saved_state_mean(path, dim) if dim is not None else (None, None)
     return PolicyIO(
         images=images,
-        state_dim=_shape(cfg_path, STATE_KEY, state)[0] if state is not None else None,
-        action_dim=_shape(cfg_path, "action", outputs["action"])[0],
+        state_dim=_shape(cfg_path, OBS_STATE, state)[0] if state is not None else None,
+        action_dim=_shape(cfg_path, ACTION, outputs[ACTION])[0],
         chunk_len=int(steps),
         resizes_images=any(cfg.get(k) for k in RESIZE_KEYS),
         source=f"{cfg_path} (policy type {cfg.get('type')!r})",
@@ -179,7 +167,7 @@ def saved_state_mean(path: Path, dim: int) -> tuple[tuple[float, ...] | None, st
         stats_file = path / step["state_file"]
         if not stats_file.is_file():
             return None, None
-        mean = load_file(str(stats_file)).get(f"{STATE_KEY}.mean")
+        mean = load_file(str(stats_file)).get(f"{OBS_STATE}.mean")
         flat = mean.reshape(-1) if mean is not None else None
         if flat is None or len(flat) < dim:
             return None, None
@@ -338,8 +326,8 @@ class LerobotBackbone:
         # refined chunks are clipped into these (idr.clip_actions), as the idr policy clips
         self.action_bounds = action_bounds(self.post.steps)
         self.name = f"lerobot:{cfg.type}"
-        image_keys = [k for k in cfg.input_features if image_suffix(k) is not None]
-        self._image_key = {str(image_suffix(k)): k for k in image_keys}  # suffix -> policy key
+        image_keys = [k for k in cfg.input_features if camera_of(k) is not None]
+        self._image_key = {str(camera_of(k)): k for k in image_keys}  # suffix -> policy key
         mapping = camera_map or {s: s for s in self._image_key}
         wanted = {self._image_key.get(v, IMAGE_PREFIX + v) for v in mapping.values()}
         if wanted != set(image_keys):
@@ -353,9 +341,9 @@ class LerobotBackbone:
         self.image_shapes = {k: tuple(cfg.input_features[k].shape) for k in image_keys}
         # a policy that resizes its images (RESIZE_KEYS) takes any size of its channel count
         self.resizes_images = any(getattr(cfg, k, None) for k in RESIZE_KEYS)
-        state = cfg.input_features.get(STATE_KEY)
+        state = cfg.input_features.get(OBS_STATE)
         self.state_dim = int(state.shape[0]) if state is not None else 0
-        self.action_dim = int(cfg.output_features["action"].shape[0])
+        self.action_dim = int(cfg.output_features[ACTION].shape[0])
         self.chunk_len = int(
             chunk_len
             or getattr(cfg, "n_action_steps", None)
@@ -375,7 +363,7 @@ class LerobotBackbone:
         from lerobot_policy_idr.runtime import state_mean
 
         # do(S) under state_space=centered: about the dataset mean state, in physical units
-        state_feature = cfg.input_features.get(STATE_KEY)
+        state_feature = cfg.input_features.get(OBS_STATE)
         self.state_mean = (
             state_mean(self.pre.steps, int(state_feature.shape[0])) if state_feature else None
         )
@@ -396,9 +384,9 @@ class LerobotBackbone:
 
         rows, iv = self._pending_do
         obs = transition[TransitionKey.OBSERVATION]
-        state = obs[STATE_KEY]
+        state = obs[OBS_STATE]
         cf = intervene(state, iv.strategy, noise_scale=iv.noise_scale, seed=iv.seed)
-        obs[STATE_KEY] = torch.where(rows.to(state.device)[:, None], cf, state)
+        obs[OBS_STATE] = torch.where(rows.to(state.device)[:, None], cf, state)
 
     # -- protocol ---------------------------------------------------------------------------
     def reset(self) -> None:
@@ -438,9 +426,9 @@ class LerobotBackbone:
             state = torch.as_tensor(obs.state).float()
             if state.shape[1] != self.state_dim:
                 raise ValueError(
-                    f"env state has {state.shape[1]} dims, policy {STATE_KEY!r} expects {self.state_dim}"
+                    f"env state has {state.shape[1]} dims, policy {OBS_STATE!r} expects {self.state_dim}"
                 )
-            batch[STATE_KEY] = state
+            batch[OBS_STATE] = state
         batch["task"] = list(obs.instruction)
         return batch
 

@@ -7,13 +7,11 @@ from collections import deque
 
 import torch
 import torch.nn.functional as F
+from idr_core.features import ACTION, OBS_STATE
 from lerobot.policies.pretrained import PreTrainedPolicy
 from torch import Tensor, nn
 
 from lerobot_policy_idr.tiny_vla.configuration_tiny_vla import TinyVLAConfig
-
-STATE_KEY = "observation.state"
-ACTION_KEY = "action"
 
 
 def tokenize(texts: list[str], vocab: list[str], max_tokens: int) -> Tensor:
@@ -130,7 +128,7 @@ class TinyVLAPolicy(PreTrainedPolicy):
         return h[-1]
 
     def _predict(self, batch: dict) -> Tensor:
-        state = batch[STATE_KEY]
+        state = batch[OBS_STATE]
         texts = batch.get("task")
         if texts is None:
             raise ValueError("tiny_vla needs the instruction under batch['task']")
@@ -152,7 +150,7 @@ class TinyVLAPolicy(PreTrainedPolicy):
 
     def forward(self, batch: dict) -> tuple[Tensor, dict]:
         pred = self._predict(batch)
-        target = batch[ACTION_KEY]
+        target = batch[ACTION]
         loss = F.mse_loss(pred, target, reduction="none")
         if "action_is_pad" in batch:
             loss = loss * (~batch["action_is_pad"]).unsqueeze(-1)
