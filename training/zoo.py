@@ -390,9 +390,8 @@ def cmd_train(args: argparse.Namespace) -> None:
     seconds = round(time.perf_counter() - t0, 1)
     # lerobot-train's own CPU (an evaluator reaped meanwhile is not training's)
     train_cpu_s = children_cpu_s() - cpu0 - (evaluator.reaped_cpu_s if evaluator else 0.0)
-    if evaluator is not None:
-        evaluator.finish(args.eval_final_wait_s)
-    # wall time accumulates over resumed sessions (the model card states the total)
+    # wall time accumulates over resumed sessions (the model card states the total); recorded
+    # when training ends, so the checkpoint exports while the evaluator finishes its last steps
     log = out / "zoo_sessions.jsonl"
     if out.exists():
         with log.open("a") as f:
@@ -410,6 +409,8 @@ def cmd_train(args: argparse.Namespace) -> None:
                 )
                 + "\n"
             )
+    if evaluator is not None:
+        evaluator.finish(args.eval_final_wait_s)
     raise SystemExit(rc)
 
 
