@@ -93,12 +93,12 @@ def main() -> None:
     import torch
 
     torch.set_num_threads(1)  # as in a Ray actor with one CPU
-    import workers.observation as observation
+    import workers.episode.observation as observation
     from pipeline.execution.runner import plan_run
     from pipeline.planning.config import load_config
     from pipeline.results.store import RunStore
     from pipeline.tracking.tracker import Tracker
-    from workers.actor import EpisodeWorker
+    from workers.episode.worker import EpisodeWorker
     from workers.hardware import machine_record
 
     cfg = load_config(args.config, [*args.overrides, f"episodes_per_task={args.episodes}"])

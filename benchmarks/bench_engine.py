@@ -30,7 +30,7 @@ from pipeline.planning.config import load_config
 from pipeline.results import aggregate as agg
 from pipeline.results.store import RunStore
 from workers.envs.base import TaskSpec
-from workers.episode import EpisodeResult, EpisodeRow, EpisodeSpec, StepRow
+from workers.episode.rows import EpisodeResult, EpisodeRow, EpisodeSpec, StepRow
 from workers.hardware import machine_record
 
 ROOT = Path(__file__).resolve().parents[1]

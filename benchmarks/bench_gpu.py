@@ -251,7 +251,7 @@ def measure(
     from idr_core.interventions import InterventionConfig
     from idr_core.refiner import RefinerConfig
 
-    from workers.idr_wrapper import IDRWrapper
+    from workers.policy.wrapper import IDRWrapper
 
     state_space = "normalized" if "normalized" in backbone.native_intervention_spaces else "raw"
     iv = InterventionConfig(state_space=state_space)

@@ -91,7 +91,7 @@ def supply(
     """μ(B) without and with IDR's triple for one built model (eager or compiled)."""
     from idr_core.refiner import RefinerConfig
 
-    from workers.idr_wrapper import IDRWrapper
+    from workers.policy.wrapper import IDRWrapper
 
     single = IDRWrapper(backbone, RefinerConfig(mode="baseline"))
     triple = IDRWrapper(backbone, RefinerConfig(mode="E", tau=1e9), batched=True)

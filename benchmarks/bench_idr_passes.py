@@ -26,7 +26,7 @@ from idr_core.refiner import RefinerConfig
 from workers.backbones.base import Observation
 from workers.backbones.fakes import FakeMarkerBackbone
 from workers.hardware import machine_record
-from workers.idr_wrapper import IDRWrapper
+from workers.policy.wrapper import IDRWrapper
 
 RESULTS = Path(__file__).parent / "results" / "idr_passes.json"
 

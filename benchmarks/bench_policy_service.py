@@ -42,7 +42,7 @@ def _requests(n: int, cameras: dict[str, int], state_dim: int) -> list[Any]:
     from idr_core.refiner import RefinerConfig
 
     from workers.backbones.base import Observation
-    from workers.policy_service import InferRequest
+    from workers.policy.service import InferRequest
 
     g = torch.Generator().manual_seed(0)
     return [
@@ -64,8 +64,8 @@ def batching(rounds: int) -> dict[str, Any]:
     from bench_idr_passes import ACTBenchBackbone
 
     from workers.backbones.factory import make_backbone
-    from workers.idr_wrapper import IDRWrapper
-    from workers.policy_service import infer_many
+    from workers.policy.service import infer_many
+    from workers.policy.wrapper import IDRWrapper
 
     backbones = {
         "tiny_vla": (
@@ -184,9 +184,9 @@ def round_trip(calls: int) -> dict[str, float]:
 
     from workers.backbones.fakes import FakeMarkerBackbone
     from workers.envs.fakes import FakeMarkerEnv
-    from workers.idr_wrapper import IDRWrapper
-    from workers.observation import to_policy_observation
-    from workers.policy_actor import connect, policy_actor_class
+    from workers.episode.observation import to_policy_observation
+    from workers.policy.actor import connect, policy_actor_class
+    from workers.policy.wrapper import IDRWrapper
 
     if not ray.is_initialized():
         ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)

@@ -55,8 +55,8 @@ def main() -> None:
     args = ap.parse_args()
     from workers.backbones.websocket.client import WebsocketBackbone
     from workers.backbones.websocket.fake_backbone import KEY_MAP, ClosedFormBackbone
-    from workers.idr_wrapper import IDRWrapper
-    from workers.observation import to_policy_observation
+    from workers.episode.observation import to_policy_observation
+    from workers.policy.wrapper import IDRWrapper
 
     rng = np.random.default_rng(0)
     from workers.envs.base import EnvObservation

@@ -5,7 +5,7 @@ requests one after another, closed loop) ask for IDR inferences (mode E: the thr
 the refinement) of one model through:
 
 - ``in_process``: each client holds its own copy of the model (the in-actor mode);
-- ``ours``: the shared policy service, a Ray policy actor (``workers.policy_actor``) reached
+- ``ours``: the shared policy service, a Ray policy actor (``workers.policy.actor``) reached
   through ``PolicyServiceClient``, as an episode worker reaches it: over the actor's own socket
   (``executor.policy_transport=socket``, the default);
 - ``ours_ray``: the same service with a Ray actor call per request (``policy_transport=ray``);
@@ -104,7 +104,7 @@ def wire_request(raw: Any, seed: int) -> Any:
     from idr_core.refiner import RefinerConfig
 
     from workers.backbones.base import Observation
-    from workers.policy_service import InferRequest
+    from workers.policy.service import InferRequest
 
     images = {k: np.ascontiguousarray(v.transpose(2, 0, 1))[None] for k, v in raw.images.items()}
     state = np.asarray(raw.state, dtype=np.float32)[None]
@@ -134,7 +134,7 @@ def serve_vla_eval(model: str, port: int, max_batch: int, wait_ms: float, stats:
     from vla_eval.specs import IMAGE_RGB, LANGUAGE, RAW
 
     from workers.envs.base import EnvObservation
-    from workers.policy_service import PolicyWorker
+    from workers.policy.service import PolicyWorker
 
     m = MODELS[model]
 
@@ -202,7 +202,7 @@ def _run_job(job: dict[str, Any], state: _ClientState, ready: Any) -> dict[str, 
     wall-clock time every client starts at."""
     from idr_core.refiner import RefinerConfig
 
-    from workers.observation import to_policy_observation
+    from workers.episode.observation import to_policy_observation
 
     path, model, ep = job["path"], job["model"], job["endpoint"]
     m = MODELS[model]
@@ -219,7 +219,7 @@ def _run_job(job: dict[str, Any], state: _ClientState, ready: Any) -> dict[str, 
         state.ray_address = ep["ray_address"]
     if path == "in_process":
         from workers.backbones.factory import make_backbone
-        from workers.idr_wrapper import IDRWrapper
+        from workers.policy.wrapper import IDRWrapper
 
         if model not in state.models:
             state.models[model] = IDRWrapper(make_backbone(m["kind"], m["params"]))
@@ -231,7 +231,7 @@ def _run_job(job: dict[str, Any], state: _ClientState, ready: Any) -> dict[str, 
     if path in SERVICE:
         import ray
 
-        from workers.policy_actor import connect
+        from workers.policy.actor import connect
 
         client = connect(ray.get_actor(ep["actor"]), RefinerConfig(mode="E"))
         return _timed(lambda raw, seed: client.infer(policy_obs(raw), seed), raws, n, warmup, ready)
@@ -244,7 +244,7 @@ def _run_job(job: dict[str, Any], state: _ClientState, ready: Any) -> dict[str, 
     if path == "openpi":
         from workers.backbones.websocket.client import WebsocketBackbone
         from workers.backbones.websocket.fake_backbone import KEY_MAP
-        from workers.idr_wrapper import IDRWrapper
+        from workers.policy.wrapper import IDRWrapper
 
         backbone = WebsocketBackbone(port=ep["port"], key_map=KEY_MAP)
         try:
@@ -393,7 +393,7 @@ class Server:
         elif path in SERVICE:
             import ray
 
-            from workers.policy_actor import policy_actor_class
+            from workers.policy.actor import policy_actor_class
 
             name = f"policy_{path}_{model}"
             cls = policy_actor_class(1, 0).options(name=name, namespace=NAMESPACE)
@@ -494,7 +494,7 @@ class Echo:
     @staticmethod
     def answer_to(model: dict[str, Any], request: Any) -> Any:
         """The step ``model`` (a ``MODELS`` entry) answers ``request`` with, as it crosses back."""
-        from workers.policy_service import PolicyWorker, to_numpy_step
+        from workers.policy.service import PolicyWorker, to_numpy_step
 
         worker = PolicyWorker(model["kind"], model["params"], threads=1)
         return to_numpy_step(worker.infer_many([request])[0])
@@ -521,7 +521,7 @@ def compute_ms(model: str, batches: list[int], rounds: int) -> dict[int, float]:
     """In-process compute of one forward of B requests (the median over rounds)."""
     import torch
 
-    from workers.policy_service import PolicyWorker
+    from workers.policy.service import PolicyWorker
 
     torch.set_num_threads(1)
     m = MODELS[model]
@@ -587,8 +587,8 @@ def breakdown(
     import ray
     from idr_core.refiner import RefinerConfig
 
-    from workers.observation import to_policy_observation
-    from workers.policy_actor import connect, policy_actor_class
+    from workers.episode.observation import to_policy_observation
+    from workers.policy.actor import connect, policy_actor_class
 
     m = MODELS[model]
     raws = raw_observations(model, 0)

@@ -49,7 +49,7 @@ def _requests(n: int, backbone: Any) -> list[Any]:
     from idr_core.refiner import RefinerConfig
 
     from workers.backbones.base import Observation
-    from workers.policy_service import InferRequest
+    from workers.policy.service import InferRequest
 
     g = torch.Generator().manual_seed(0)
     shape = next(iter(backbone.image_shapes.values()))
@@ -71,9 +71,9 @@ def _requests(n: int, backbone: Any) -> list[Any]:
 def forward_cost(rounds: int) -> dict[str, Any]:
     from training.toy_checkpoints import build_act
     from workers.backbones.factory import make_backbone
-    from workers.forward_shape import fix_forward_shape, set_torch_threads
-    from workers.idr_wrapper import IDRWrapper
-    from workers.policy_service import infer_many
+    from workers.policy.forward_shape import fix_forward_shape, set_torch_threads
+    from workers.policy.service import infer_many
+    from workers.policy.wrapper import IDRWrapper
 
     set_torch_threads(1)
     act = build_act(

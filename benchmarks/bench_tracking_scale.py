@@ -41,7 +41,7 @@ def _config(cells: int):
 def _episodes(modes: dict[str, str], tasks_per_suite: int, per_task: int, run_dir: Path):
     """The synthetic episodes (a frame), also written with 10 inferences each to ``run_dir``."""
     from pipeline.results.store import EPISODE_SCHEMA, RunStore, rows_to_table
-    from workers.episode import EpisodeResult, EpisodeRow, StepRow
+    from workers.episode.rows import EpisodeResult, EpisodeRow, StepRow
 
     rng = np.random.default_rng(0)
     rows = []

@@ -31,8 +31,8 @@ def rollout(env: Any, backbone: Any, episode: int, seed: int, replan: int) -> di
     """One stack_color episode driven by the policy; per inference while the top cube is held
     and lifted: (distance to the goal in cm, policy xy action, expert xy action)."""
     from workers.envs.suites.tabletop.layout import TABLE_TOP_Z
+    from workers.episode.observation import to_policy_observation
     from workers.experts.tabletop import CARRY_Z, expert_action
-    from workers.observation import to_policy_observation
 
     obs = env.reset("stack_color", episode, seed)
     backbone.reset()

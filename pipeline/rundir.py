@@ -47,7 +47,7 @@ HELD_OUT_DIR = "calibration_episodes"  # RUN_DIR/calibration_episodes/{episodes,
 TRACKING_FILE = "tracking.json"
 LOGS_DIR = "logs"
 LOCK_FILE = ".lock"
-POLICY_TOKEN_FILE = "policy.token"  # hex, mode 0600 (workers.policy_socket.SocketToken)
+POLICY_TOKEN_FILE = "policy.token"  # hex, mode 0600 (workers.policy.socket_settings.SocketToken)
 MARKERS = (RUN_JSON, EPISODES_DIR, STEPS_DIR)  # any of them: the folder is an idr-eval run dir
 
 

@@ -3,7 +3,21 @@ one fails here instead of in a review: pipeline/ imports workers/, never the rev
 backbones/ never import each other; training/ and tests/ are imported by nothing shipped (the
 benchmarks included: the fakes and toy checkpoints they share with the tests are shipped); the
 method's distribution (lerobot_policy_idr/) imports nothing of the harness, and its idr_core
-nothing of lerobot."""
+nothing of lerobot.
+
+workers/ is in rooms, each importing only its own and the ones below it (``WORKERS_ROOMS``):
+
+0. the modules loose at its top (registry, params, io_spec, rendering, hardware, safe_load,
+   worker_log): what every room shares; they import no room;
+1. ``envs/`` and ``backbones/`` (never each other);
+2. ``experts/`` (scripted experts on an env's privileged state);
+3. ``policy/`` (the wrapper, the shared service, its actor, socket and client): never the
+   episode side;
+4. ``episode/`` (the episode worker, its rows, observations and videos): steps an env with
+   the policy side's wrapper or client.
+
+And the house stays walkable: at most eight modules loose at workers/ top, no module of workers/
+over 450 lines nor function over 80 (but those ``SPLIT_PENDING`` names)."""
 
 from __future__ import annotations
 
@@ -18,8 +32,8 @@ ROOT = Path(__file__).resolve().parents[1]
 # package folder -> module prefixes its code must never import
 FORBIDDEN = {
     "workers": ("pipeline", "training", "tests"),
-    "workers/envs": ("workers.backbones", "workers.experts", "workers.actor"),
-    "workers/backbones": ("workers.envs", "workers.experts", "workers.actor"),
+    "workers/envs": ("workers.backbones", "workers.experts"),
+    "workers/backbones": ("workers.envs", "workers.experts"),
     "pipeline": ("training", "tests"),
     "training": ("tests",),
     # shipped scripts: what they time stands on shipped code (fakes, toy checkpoints), not tests/
@@ -140,7 +154,7 @@ def test_no_benchmark_names_a_module_of_the_tests() -> None:
     assert not named, named
 
 
-@pytest.mark.parametrize("package", ["pipeline", "training"])
+@pytest.mark.parametrize("package", ["pipeline", "training", "workers"])
 def test_no_import_circle_between_modules(package) -> None:
     """Within a layer too: modules import one way (lazy imports inside functions included)."""
     graph: dict[str, set[str]] = {}
@@ -168,8 +182,116 @@ def test_no_import_circle_between_modules(package) -> None:
 
 
 def test_the_driver_actor_contract_imports_no_process_or_socket_code() -> None:
-    """``workers.episode`` (specs and rows both sides share) names an env server by its
+    """``workers.episode.rows`` (specs and rows both sides share) names an env server by its
     ``ServerSpec`` and imports nothing that starts or talks to one."""
-    imported = _imports(ROOT / "workers" / "episode.py")
+    imported = _imports(ROOT / "workers" / "episode" / "rows.py")
     assert "workers.envs.server.spec" in imported
     assert not imported & {"workers.envs.server.client", "socket", "subprocess"}
+
+
+# workers/ in rooms (the module docstring): a room imports its own and the ones below it. Level 0
+# is every module loose at workers/ top.
+WORKERS_ROOMS = (
+    ("workers.envs", "workers.backbones"),  # 1: never each other (FORBIDDEN)
+    ("workers.experts",),  # 2: scripted experts on an env's state
+    ("workers.policy",),  # 3: where a policy lives and how requests reach it
+    ("workers.episode",),  # 4: an episode stepped into rows, with the policy side's client
+)
+LOOSE_AT_TOP = {f.stem for f in (ROOT / "workers").glob("*.py") if f.name != "__init__.py"}
+
+
+def _room(module: str) -> int | None:
+    """The level of ``module`` among workers/'s rooms, or None outside workers/ (or a new folder
+    no one placed)."""
+    parts = module.split(".")
+    if parts[0] != "workers" or len(parts) < 2:
+        return None
+    if parts[1] in LOOSE_AT_TOP:
+        return 0
+    for i, prefixes in enumerate(WORKERS_ROOMS, start=1):
+        if any(module == p or module.startswith(p + ".") for p in prefixes):
+            return i
+    return None
+
+
+def _workers_module(f: Path) -> str:
+    return ".".join(f.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
+
+
+def test_workers_rooms_import_only_downwards() -> None:
+    upward = []
+    for f in sorted((ROOT / "workers").rglob("*.py")):
+        mod = _workers_module(f)
+        own = _room(mod)
+        if own is None:
+            continue
+        for name in sorted(_imports(f)):
+            theirs = _room(name)
+            if theirs is not None and theirs > own:
+                upward.append(f"{mod} (room {own}) imports {name} (room {theirs})")
+    assert not upward, upward
+
+
+def test_the_rooms_rule_fails_an_upward_import() -> None:
+    """The rule reads a module's room from its path: the policy side importing the episode side,
+    or an env the policy side, is upward; the episode side using the policy's client is not."""
+    assert _room("workers.policy.actor") < _room("workers.episode.worker")
+    assert _room("workers.envs.gym_env") < _room("workers.policy.wrapper")
+    assert _room("workers.registry") == 0 < _room("workers.backbones.base")
+    assert _room("workers.backbones.base") == _room("workers.envs.base")
+
+
+def test_every_workers_module_has_a_room() -> None:
+    """A new folder of workers/ is placed in a room on purpose."""
+    unplaced = [
+        str(f.relative_to(ROOT))
+        for f in sorted((ROOT / "workers").rglob("*.py"))
+        if f != ROOT / "workers" / "__init__.py"
+        if _room(_workers_module(f)) is None
+    ]
+    assert not unplaced, unplaced
+
+
+MAX_LOOSE_AT_TOP = 8
+MAX_MODULE_LINES = 450
+MAX_FUNCTION_LINES = 80
+# split pending: files another change is editing now; each is split after it lands (then its
+# entry goes, and test_split_pending_lists_only_what_is_still_over says so)
+SPLIT_PENDING = {
+    "workers/backbones/lerobot/adapter.py",  # the module's lines
+    "workers/envs/suites/lerobot_envs/env.py::__init__",  # a function's lines
+}
+
+
+def _oversized() -> list[str]:
+    """Modules of workers/ over MAX_MODULE_LINES lines ("path") and functions over
+    MAX_FUNCTION_LINES ("path::name")."""
+    found = []
+    for f in sorted((ROOT / "workers").rglob("*.py")):
+        rel, text = str(f.relative_to(ROOT)), f.read_text()
+        if len(text.splitlines()) > MAX_MODULE_LINES:
+            found.append(rel)
+        for node in ast.walk(ast.parse(text, filename=rel)):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                assert node.end_lineno is not None
+                if node.end_lineno - node.lineno + 1 > MAX_FUNCTION_LINES:
+                    found.append(f"{rel}::{node.name}")
+    return found
+
+
+def test_workers_keeps_few_modules_loose_at_its_top() -> None:
+    """The rest lives in rooms whose names say what they hold (docs/architecture.md#layout)."""
+    assert len(LOOSE_AT_TOP) <= MAX_LOOSE_AT_TOP, sorted(LOOSE_AT_TOP)
+
+
+def test_no_workers_module_or_function_is_oversized() -> None:
+    over = [name for name in _oversized() if name not in SPLIT_PENDING]
+    assert not over, (
+        f"over {MAX_MODULE_LINES} lines a module or {MAX_FUNCTION_LINES} a function: {over}"
+    )
+
+
+def test_split_pending_lists_only_what_is_still_over() -> None:
+    """An entry whose file was split goes, so the list never hides a new one."""
+    stale = sorted(SPLIT_PENDING - set(_oversized()))
+    assert not stale, f"split already, remove from SPLIT_PENDING: {stale}"

@@ -84,8 +84,8 @@ def record(
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     from workers.envs.suites.tabletop.env import TabletopEnv
+    from workers.episode.observation import to_policy_observation
     from workers.experts.tabletop import PLACE_TOL, expert_action
-    from workers.observation import to_policy_observation
 
     if root.exists():
         shutil.rmtree(root)

@@ -18,6 +18,15 @@ from typing import Any
 # Where modules went when workers/ was laid out by concern: only the data of the refusal of an
 # entry point copied from the old layout (configs name suites and backbones by registry name).
 MOVED_MODULES: dict[str, str] = {
+    "workers.actor": "workers.episode.worker",
+    "workers.episode": "workers.episode.rows",  # a package now: mapped when named exactly
+    "workers.forward_shape": "workers.policy.forward_shape",
+    "workers.idr_wrapper": "workers.policy.wrapper",
+    "workers.observation": "workers.episode.observation",
+    "workers.policy_actor": "workers.policy.actor",
+    "workers.policy_service": "workers.policy.service",
+    "workers.policy_socket": "workers.policy.socket_server",  # split: see MOVED_CLASSES
+    "workers.videos": "workers.episode.videos",
     "workers.backbones.remote": "workers.backbones.websocket",
     "workers.envs.calvin": "workers.envs.suites.calvin.env",
     "workers.envs.libero": "workers.envs.suites.libero.env",
@@ -34,6 +43,16 @@ MOVED_MODULES: dict[str, str] = {
     "workers.envs.tabletop_sim": "workers.envs.suites.tabletop.sim",
     "workers.envs.vulkan_cpu": "workers.envs.suites.simpler.vulkan_cpu",
     "workers.envs.wire": "workers.envs.server.wire",
+}
+# classes of a module split in the move that went elsewhere than the module's MOVED_MODULES heir
+# ("old.module:Class" -> new module)
+MOVED_CLASSES: dict[str, str] = {
+    "workers.policy_socket:PolicyEndpoint": "workers.policy.socket_settings",
+    "workers.policy_socket:PolicyServiceError": "workers.policy.socket_client",
+    "workers.policy_socket:PolicySocketConnection": "workers.policy.socket_client",
+    "workers.policy_socket:SocketLimits": "workers.policy.socket_settings",
+    "workers.policy_socket:SocketSettings": "workers.policy.socket_settings",
+    "workers.policy_socket:SocketToken": "workers.policy.socket_settings",
 }
 # classes renamed in the move (old name -> new name)
 RENAMED_CLASSES: dict[str, str] = {
@@ -60,8 +79,9 @@ def load_class(registry: dict[str, str], name: str, field: str) -> Any:
 def _retired(module: str, attr: str, *, importable: bool) -> str | None:
     """Where an entry point of the flat layout (``workers.envs.tabletop:TabletopEnv``) lives now,
     or None when it names nothing that moved. Asked only once the entry point has failed, so a
-    path of the present layout is never refused. A module that still imports (the package
-    ``workers.envs.server``) is mapped only when named exactly, not its submodules."""
+    path of the present layout is never refused. A module that still imports (the packages
+    ``workers.envs.server``, ``workers.episode``) is mapped only when named exactly, not its
+    submodules; a class of a module split in the move goes where MOVED_CLASSES says."""
     if module != "workers" and not module.startswith("workers."):
         return None  # a class of one's own: its names are not ours to map
     new_module = module
@@ -70,6 +90,7 @@ def _retired(module: str, attr: str, *, importable: bool) -> str | None:
             new_module = MOVED_MODULES[old] + module[len(old) :]
             break
     head, _, rest = attr.partition(".")
+    new_module = MOVED_CLASSES.get(f"{module}:{head}", new_module)
     new_attr = RENAMED_CLASSES.get(head, head) + (f".{rest}" if rest else "")
     if (new_module, new_attr) == (module, attr):
         return None

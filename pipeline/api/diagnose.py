@@ -2,7 +2,7 @@
 
 The measure is the harness's own, on frames instead of an episode: the policy behind the
 harness's lerobot backbone (``workers.backbones.lerobot.adapter.LerobotBackbone``), wrapped by
-``workers.idr_wrapper.IDRWrapper`` in mode ``diagnose`` (three passes sharing one noise draw:
+``workers.policy.wrapper.IDRWrapper`` in mode ``diagnose`` (three passes sharing one noise draw:
 factual, do(V), do(S); the executed action is the base's), with the default config's
 interventions (``zero``; do(V) on raw pixels, do(S) about the dataset mean state). Per frame
 E_img = ||a - a_do(V)||, E_prop = ||a - a_do(S)|| over the whole chunk and
@@ -27,7 +27,7 @@ from pipeline.errors import ConfigError
 from workers.backbones.base import Observation
 
 if TYPE_CHECKING:
-    from workers.idr_wrapper import IDRWrapper
+    from workers.policy.wrapper import IDRWrapper
 
 #: the interventions of conf/default.yaml (``intervention:``), which diagnose uses by default
 DEFAULT_INTERVENTION = InterventionConfig(
@@ -258,7 +258,7 @@ def diagnose_wrapper(
     """The harness's IDR wrapper of ``backbone`` in mode ``diagnose``."""
     from idr_core.refiner import RefinerConfig
 
-    from workers.idr_wrapper import IDRWrapper
+    from workers.policy.wrapper import IDRWrapper
 
     try:
         return IDRWrapper(backbone, RefinerConfig(mode="diagnose"), intervention)

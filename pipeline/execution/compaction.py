@@ -8,7 +8,7 @@ from collections.abc import Callable, Iterable
 
 from pipeline.execution.signals import critical_section
 from pipeline.results.store import RunStore
-from workers.episode import EpisodeResult
+from workers.episode.rows import EpisodeResult
 
 log = logging.getLogger("idr_eval.runner")
 

@@ -65,7 +65,7 @@ from pipeline.rundir import (
     read_run_json,
     update_run_json,
 )
-from workers.episode import EpisodeResult, WorkerSpec
+from workers.episode.rows import EpisodeResult, WorkerSpec
 from workers.hardware import hardware_class, numerics_env
 
 if TYPE_CHECKING:
@@ -74,7 +74,7 @@ if TYPE_CHECKING:
     from pipeline.tracking.tracker import Tracker
     from workers.envs.base import TaskSpec
     from workers.envs.server.spec import ServerSpec
-    from workers.policy_socket import SocketSettings
+    from workers.policy.socket_settings import SocketSettings
 
 log = logging.getLogger("idr_eval.runner")
 
@@ -213,7 +213,7 @@ def _policy_socket(cfg: RunConfig, run_dir: Path) -> SocketSettings | None:
     if not isinstance(ex, SharedExecutor) or ex.policy_transport != "socket":
         return None
     from pipeline.planning.checkpoint_fit import describe_env
-    from workers.policy_socket import (
+    from workers.policy.socket_settings import (
         DEFAULT_IDLE_S,
         SocketLimits,
         SocketSettings,
@@ -240,7 +240,7 @@ def _with_policy_token(plan: RunPlan) -> RunPlan:
     settings = plan.worker_spec.policy_socket
     if settings is None:
         return plan
-    from workers.policy_socket import SocketToken
+    from workers.policy.socket_settings import SocketToken
 
     token = SocketToken(policy_token(plan.run_dir))
     spec = replace(plan.worker_spec, policy_socket=replace(settings, token=token))

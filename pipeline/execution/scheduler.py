@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pipeline.execution.executors import Executor, Outcome
 from pipeline.execution.progress import Progress
 from pipeline.execution.writer import BatchWriter
-from workers.episode import EpisodeResult, EpisodeRow, EpisodeSpec
+from workers.episode.rows import EpisodeResult, EpisodeRow, EpisodeSpec
 
 log = logging.getLogger("idr_eval.scheduler")
 WAIT_S = 1.0  # how long one wait for outcomes lasts (timeouts are checked in between)

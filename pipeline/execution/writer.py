@@ -12,7 +12,7 @@ from collections.abc import Callable
 
 from pipeline.execution.signals import critical_section
 from pipeline.results.store import RunStore
-from workers.episode import EpisodeResult
+from workers.episode.rows import EpisodeResult
 
 
 class BatchWriter:

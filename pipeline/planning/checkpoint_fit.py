@@ -205,7 +205,7 @@ def _check_intervention_spaces(cfg: RunConfig) -> None:
     """The wrapper's own check (normalized-space interventions only where the backbone applies
     them), for every cell, here before any actor rather than as an error row per episode."""
     from workers.backbones.factory import backbone_class
-    from workers.idr_wrapper import check_intervention_spaces
+    from workers.policy.wrapper import check_intervention_spaces
 
     cls = backbone_class(cfg.backbone.kind)
     try:

@@ -53,7 +53,7 @@ class ExecutorBase(StrictModel):
     )
     # -- where the model lives (each variant narrows it to its own value)
     policy: PolicyPlacement = Field(default="in_actor", description=POLICY_DOC)
-    # -- the forward's shape (a row's float rounding depends on it: workers.forward_shape)
+    # -- the forward's shape (a row's float rounding depends on it: workers.policy.forward_shape)
     forward_rows: int | None = Field(
         default=None,
         ge=1,

@@ -18,7 +18,7 @@ from idr_core.interventions import InterventionConfig
 from idr_core.refiner import RefinerConfig
 
 from workers.envs.base import TaskSpec
-from workers.episode import EpisodeSpec, WorkerSpec
+from workers.episode.rows import EpisodeSpec, WorkerSpec
 
 if TYPE_CHECKING:
     from pipeline.planning.checkpoint_fit import Fit
@@ -118,10 +118,11 @@ class Chain(Sequence[EpisodeSpec]):
 
 
 def planned_numerics(cfg: RunConfig) -> str:
-    """The numerical path ``cfg`` runs on (workers.forward_shape.numerics_label), known before
-    any backbone is built: a backbone that turns out not to batch says ``per_pass`` in its rows."""
+    """The numerical path ``cfg`` runs on (workers.policy.forward_shape.numerics_label), known
+    before any backbone is built: a backbone that turns out not to batch says ``per_pass`` in its
+    rows."""
     from workers.backbones.factory import backbone_class
-    from workers.forward_shape import numerics_label
+    from workers.policy.forward_shape import numerics_label
 
     ex = cfg.executor
     remote = bool(getattr(backbone_class(cfg.backbone.kind), "remote", False))
@@ -142,7 +143,7 @@ class RunPlan:
     checkpoint: dict[str, object] | None = None  # pipeline.planning.provenance.checkpoint_record
     fit: Fit | None = None  # what the pre-flight settled (pipeline.planning.checkpoint_fit)
     env_server: dict[str, object] | None = None  # the env server's hello (python, version)
-    numerics: str = ""  # the numerical path the config asks for (workers.forward_shape)
+    numerics: str = ""  # the numerical path the config asks for (workers.policy.forward_shape)
     # this host's hardware record (workers.hardware.hardware_record), for run.json; None on a
     # cluster, where the actors' rows say what ran
     hardware: dict[str, object] | None = None

@@ -109,7 +109,7 @@ def check_hardware(
 def check_numerics(
     meta: dict[str, Any], numerics: str, run_dir: Path, allow_numerics_change: bool = False
 ) -> None:
-    """Refuse resuming ``run_dir`` on another numerical path (workers.forward_shape) unless
+    """Refuse resuming ``run_dir`` on another numerical path (workers.policy.forward_shape) unless
     ``allow_numerics_change``: its episodes would differ from the first ones in float rounding,
     which in closed loop grows into other trajectories. Run dirs from before it was recorded are
     resumed as before; a mixed run's report names its paths (from the episodes' column)."""

@@ -46,7 +46,7 @@ import pyarrow.parquet as pq
 
 from pipeline.errors import DiskFullError, is_disk_full
 from pipeline.rundir import EPISODES_DIR, QUARANTINE_DIR, STEPS_DIR, write_atomic
-from workers.episode import EpisodeResult, EpisodeRow, StepRow
+from workers.episode.rows import EpisodeResult, EpisodeRow, StepRow
 
 
 def _arrow_type(hint: Any) -> pa.DataType:

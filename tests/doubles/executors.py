@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from pipeline.execution.executors import ExecutorStats, Outcome
-from workers.episode import EpisodeSpec
+from workers.episode.rows import EpisodeSpec
 
 # spec -> the outcomes the executor reports for it (several: a call Ray answered twice)
 Script = Callable[[EpisodeSpec], list[Outcome]]

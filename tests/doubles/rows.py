@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from workers.episode import EpisodeResult, EpisodeRow, StepRow
+from workers.episode.rows import EpisodeResult, EpisodeRow, StepRow
 
 EPISODE_DEFAULTS: dict[str, Any] = {
     "run_id": "r",

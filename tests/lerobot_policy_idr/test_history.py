@@ -32,7 +32,7 @@ def _observation(obs: dict, extras: dict | None = None):
 def test_diffusion_with_two_observation_steps_is_the_same_in_harness_and_plugin(
     tmp_path, mode
 ) -> None:
-    from workers.actor import past_frames
+    from workers.episode.worker import past_frames
 
     base = build_diffusion(tmp_path / "diffusion", n_obs_steps=2)
     folder = make_idr(

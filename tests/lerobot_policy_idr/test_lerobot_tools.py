@@ -81,7 +81,7 @@ def test_lerobot_eval_cli_runs_the_idr_type_on_libero(libero_act, tmp_path) -> N
 def _our_episodes(ckpt: Path, tmp_path: Path) -> tuple[list[list[np.ndarray]], list[list[float]]]:
     from pipeline.execution.runner import plan_run
     from pipeline.planning.config import config_from_dict
-    from workers.actor import EpisodeWorker
+    from workers.episode.worker import EpisodeWorker
 
     cfg = config_from_dict(
         {

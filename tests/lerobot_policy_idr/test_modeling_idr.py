@@ -32,7 +32,7 @@ def _harness(base, tau: float, mode: str = "E"):
     from idr_core.refiner import RefinerConfig
 
     from workers.backbones.lerobot import LerobotBackbone
-    from workers.idr_wrapper import IDRWrapper
+    from workers.policy.wrapper import IDRWrapper
 
     backbone = LerobotBackbone(str(base))
     policy = IDRWrapper(backbone, RefinerConfig(mode=mode, tau=tau))

@@ -125,14 +125,14 @@ def run_cli(tmp_path, monkeypatch, capsys):
     import pipeline.execution.cluster
     import pipeline.execution.runner
     import pipeline.execution.scheduler
-    import workers.actor
+    import workers.episode.worker
 
     def tripwire(*args: object, **kwargs: object) -> None:
         raise _WouldStart
 
     monkeypatch.setattr(pipeline.execution.runner, "execute", tripwire)
     monkeypatch.setattr(pipeline.execution.scheduler.Scheduler, "run_stage", tripwire)
-    monkeypatch.setattr(workers.actor.EpisodeWorker, "__init__", tripwire)
+    monkeypatch.setattr(workers.episode.worker.EpisodeWorker, "__init__", tripwire)
     monkeypatch.setattr(pipeline.execution.cluster, "init_ray", tripwire)
     out = tmp_path / "run"
 

@@ -85,7 +85,7 @@ def test_mujoco_instability_and_nan_action_on_the_tabletop(tmp_path, monkeypatch
     NaN action never reaches MuJoCo's step."""
     import torch
 
-    from workers import actor
+    from workers.episode import worker as episode_worker
 
     cfg = config_from_dict(
         {
@@ -108,8 +108,8 @@ def test_mujoco_instability_and_nan_action_on_the_tabletop(tmp_path, monkeypatch
         }
     )
     plan = plan_run(cfg, tmp_path / "run")
-    worker = actor.EpisodeWorker(plan.worker_spec)  # one simulator for the whole test
-    monkeypatch.setattr(actor, "EpisodeWorker", lambda spec: worker)
+    worker = episode_worker.EpisodeWorker(plan.worker_spec)  # one simulator for the whole test
+    monkeypatch.setattr(episode_worker, "EpisodeWorker", lambda spec: worker)
     monkeypatch.setattr(worker, "close", lambda: None)
     run_episodes(plan)
 
@@ -155,7 +155,7 @@ def test_a_diverging_libero_scene_is_an_error_row(tmp_path, monkeypatch, fault_l
     """LIBERO is MuJoCo too: a divergence (qvel := NaN inside the physics) is detected from
     MuJoCo's warnings, the episode is one SimulationUnstableError row, and the next episode on
     the same simulator is what a rerun gives."""
-    from workers import actor
+    from workers.episode import worker as episode_worker
 
     cfg = config_from_dict(
         {
@@ -177,8 +177,8 @@ def test_a_diverging_libero_scene_is_an_error_row(tmp_path, monkeypatch, fault_l
         }
     )
     plan = plan_run(cfg, tmp_path / "run")
-    worker = actor.EpisodeWorker(plan.worker_spec)  # one simulator for the whole test
-    monkeypatch.setattr(actor, "EpisodeWorker", lambda spec: worker)
+    worker = episode_worker.EpisodeWorker(plan.worker_spec)  # one simulator for the whole test
+    monkeypatch.setattr(episode_worker, "EpisodeWorker", lambda spec: worker)
     monkeypatch.setattr(worker, "close", lambda: None)
     try:
         run_episodes(plan)

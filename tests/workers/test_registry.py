@@ -63,6 +63,21 @@ def test_the_expert_is_registered_outside_backbones_and_envs() -> None:
         ("workers.envs.server.client:RemoteEnv", "workers.envs.server.client:EnvServerClient"),
         # the old module, a package now that does not hold the class
         ("workers.envs.server:EnvServer", "workers.envs.server.serve:EnvServer"),
+        ("workers.episode:EpisodeSpec", "workers.episode.rows:EpisodeSpec"),
+        # workers/ in rooms: the episode side and the policy side
+        ("workers.actor:EpisodeWorker", "workers.episode.worker:EpisodeWorker"),
+        ("workers.idr_wrapper:IDRWrapper", "workers.policy.wrapper:IDRWrapper"),
+        ("workers.policy_actor:RemotePolicy", "workers.policy.actor:PolicyServiceClient"),
+        # a module split in two or more: each class where it went
+        ("workers.policy_socket:SocketToken", "workers.policy.socket_settings:SocketToken"),
+        (
+            "workers.policy_socket:PolicySocketConnection",
+            "workers.policy.socket_client:PolicySocketConnection",
+        ),
+        (
+            "workers.policy_socket:PolicySocketServer",
+            "workers.policy.socket_server:PolicySocketServer",
+        ),
     ],
 )
 def test_an_entry_point_of_the_flat_layout_is_refused_naming_the_new_one(old, new) -> None:
@@ -76,14 +91,19 @@ def test_an_entry_point_of_the_flat_layout_is_refused_naming_the_new_one(old, ne
 
 
 def test_the_refusal_never_touches_a_present_path_and_names_modules_that_exist() -> None:
-    """Each old module is gone (the package ``workers.envs.server`` aside) and each new one is
-    there, so the refusal's name is one to write."""
+    """Each old module is gone (the packages ``workers.envs.server`` and ``workers.episode``
+    aside) and each new one is there, so the refusal's name is one to write; each class of a
+    split module is in the module it is sent to."""
     from workers.envs.server.client import EnvServerClient
-    from workers.registry import MOVED_MODULES
+    from workers.registry import MOVED_CLASSES, MOVED_MODULES
 
     assert load_class({}, "workers.envs.server.client:EnvServerClient", "x") is EnvServerClient
     with pytest.raises(ValueError, match=r"module 'tests.doubles.envs' has no 'RemoteEnv'$"):
         load_class({}, "tests.doubles.envs:RemoteEnv", "env.suite")  # not ours to rename
     for old, new in MOVED_MODULES.items():
         assert importlib.util.find_spec(new) is not None, new
-        assert (importlib.util.find_spec(old) is None) == (old != "workers.envs.server"), old
+        packages_now = {"workers.envs.server", "workers.episode"}
+        assert (importlib.util.find_spec(old) is None) == (old not in packages_now), old
+    for old, new in MOVED_CLASSES.items():
+        assert old.partition(":")[0] in MOVED_MODULES, old
+        assert hasattr(importlib.import_module(new), old.partition(":")[2]), (old, new)

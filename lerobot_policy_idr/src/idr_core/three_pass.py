@@ -5,7 +5,7 @@ rows ordered ``[factual (B) | do(V) (B) | do(S) (B)]``, with the same noise for 
 thirds (common random numbers), so the action differences measure a modality's effect and not
 sampling noise. The same packing serves every test-time method (``idr_core.methods``): a
 request carries its method's passes, factual first. The harness's wrapper
-(``workers.idr_wrapper``) and its policy service run every method through
+(``workers.policy.wrapper``) and its policy service run every method through
 :func:`infer_requests`; the lerobot policy type ``idr`` (``modeling_idr``), whose
 counterfactual rows its preprocessor builds, splits its batch with :func:`split3`.
 """

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from pipeline.execution.executors.base import Executor, ExecutorStats, Outcome
 from pipeline.planning.config import ExecutorConfig
-from workers.episode import WorkerSpec
+from workers.episode.rows import WorkerSpec
 
 __all__ = ["Executor", "ExecutorStats", "Outcome", "make_executor"]
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from workers.episode import EpisodeResult, EpisodeSpec
+from workers.episode.rows import EpisodeResult, EpisodeSpec
 
 
 @dataclass(frozen=True)

@@ -14,15 +14,15 @@ from typing import Any
 from pipeline.errors import RunError
 from pipeline.execution.executors.base import ExecutorStats, Outcome
 from pipeline.execution.timeouts import EpisodeTimeout, alarm, alarm_supported, timeout_reason
-from workers.episode import EpisodeSpec, WorkerSpec
+from workers.episode.rows import EpisodeSpec, WorkerSpec
 
 log = logging.getLogger("idr_eval.executors.inline")
 
 
 def episode_worker(spec: WorkerSpec) -> Any:
-    """The episode worker of ``spec`` (workers.actor, imported when the first one starts: it
-    loads the simulators' and models' modules)."""
-    from workers.actor import EpisodeWorker
+    """The episode worker of ``spec`` (workers.episode.worker, imported when the first one
+    starts: it loads the simulators' and models' modules)."""
+    from workers.episode.worker import EpisodeWorker
 
     return EpisodeWorker(spec)
 

@@ -23,7 +23,7 @@ from pipeline.execution.executors.base import ExecutorStats, Outcome
 from pipeline.execution.timeouts import timeout_reason
 from pipeline.planning.config import ExecutorConfig
 from pipeline.planning.executor_config import SharedExecutor
-from workers.episode import EpisodeSpec, WorkerSpec
+from workers.episode.rows import EpisodeSpec, WorkerSpec
 
 log = logging.getLogger("idr_eval.executors.ray")
 STARTUP_TIMEOUT_S = 600  # an actor that has not loaded by then is taken as never starting
@@ -83,7 +83,7 @@ class RayActorPool:
     # -- lifecycle ----------------------------------------------------------------------------
     def _spawn(self, replacement: bool = False) -> int:
         if self._cls is None:
-            from workers.actor import remote_worker_class
+            from workers.episode.worker import remote_worker_class
 
             ex = self.ex
             demand = ex.actor_demand()
@@ -172,7 +172,7 @@ class RayActorPool:
         import ray
         from ray.exceptions import RayActorError
 
-        from workers.policy_actor import policy_actor_class
+        from workers.policy.actor import policy_actor_class
 
         spec = self.worker_spec
         cls = policy_actor_class(ex.policy_cpus, ex.gpu_share)

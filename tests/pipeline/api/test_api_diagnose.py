@@ -54,7 +54,7 @@ def test_equal_to_the_harness_diagnose_and_the_formula(frames: dict, measured) -
     from idr_core.refiner import RefinerConfig
 
     from workers.backbones.lerobot.adapter import LerobotBackbone
-    from workers.idr_wrapper import IDRWrapper
+    from workers.policy.wrapper import IDRWrapper
 
     backbone = LerobotBackbone(str(TINY))
     wrapper = IDRWrapper(backbone, RefinerConfig(mode="diagnose"), DEFAULT_INTERVENTION)

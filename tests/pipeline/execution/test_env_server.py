@@ -105,9 +105,9 @@ def test_a_server_dying_under_an_episode_is_restarted_and_the_episode_run_again(
 
 @pytest.mark.slow
 def test_ray_actors_start_servers_and_none_outlive_them(tmp_path, ray_local) -> None:
-    from workers.actor import remote_worker_class
     from workers.envs.server.client import ServerSpec
-    from workers.episode import WorkerSpec
+    from workers.episode.rows import WorkerSpec
+    from workers.episode.worker import remote_worker_class
 
     before = _servers()
     cfg = load_config(CONF / "smoke.yaml", ["tracking.enabled=false", SERVER])

@@ -13,7 +13,7 @@ from pipeline import cli
 from pipeline.execution.cluster import check_capacity, probe_address
 from pipeline.planning.config import ConfigError, load_config
 from pipeline.planning.executor_config import InActorExecutor
-from workers.actor import EpisodeWorker, current_node, remote_worker_class
+from workers.episode.worker import EpisodeWorker, current_node, remote_worker_class
 
 CONF = Path(__file__).resolve().parents[3] / "conf"
 

@@ -31,7 +31,7 @@ from pipeline.planning.config import load_config
 from pipeline.rundir import LOGS_DIR, POLICY_TOKEN_FILE
 from tests.pipeline.execution.test_runner import _episodes, _steps
 from workers.io_spec import EnvIO
-from workers.policy_socket import DEFAULT_MAX_FRAME, SocketToken, frame_bound
+from workers.policy.socket_settings import DEFAULT_MAX_FRAME, SocketToken, frame_bound
 
 CONF = Path(__file__).resolve().parents[3] / "conf"
 SHARED = [

@@ -14,7 +14,7 @@ from pipeline.execution.writer import BatchWriter
 from pipeline.planning.config import load_config
 from pipeline.results.store import RunStore
 from tests.doubles.executors import ScriptedExecutor
-from workers.episode import SPEC_COLUMNS, EpisodeResult, EpisodeRow, EpisodeSpec
+from workers.episode.rows import SPEC_COLUMNS, EpisodeResult, EpisodeRow, EpisodeSpec
 
 CONF = Path(__file__).resolve().parents[3] / "conf"
 
@@ -114,7 +114,7 @@ def test_an_actors_row_and_a_dead_actors_error_row_agree_on_spec_columns(tmp_pat
     """For an env whose tasks name suites of their own (as LIBERO's do), the error row the
     scheduler stores for a dead actor and the row the actor writes for the same spec agree on
     every column the spec fixes: the task's suite, not the config's env.suite."""
-    from workers.actor import EpisodeWorker
+    from workers.episode.worker import EpisodeWorker
 
     cfg = load_config(
         CONF / "smoke.yaml",

@@ -7,7 +7,7 @@ import pytest
 
 from pipeline.results.store import EPISODE_SCHEMA, STEP_SCHEMA, RunStore
 from tests.doubles import rows
-from workers.episode import EpisodeResult, EpisodeRow
+from workers.episode.rows import EpisodeResult, EpisodeRow
 
 
 def _result(
@@ -69,7 +69,7 @@ def test_schemas_are_derived_from_the_row_types() -> None:
     with the Arrow type its hint names (F32 -> float32, X | None -> nullable X)."""
     from dataclasses import fields
 
-    from workers.episode import StepRow
+    from workers.episode.rows import StepRow
 
     assert EPISODE_SCHEMA.names == [f.name for f in fields(EpisodeRow)]
     assert STEP_SCHEMA.names == [f.name for f in fields(StepRow)]

@@ -15,7 +15,7 @@ from idr_core.refiner import RefinerConfig
 from pipeline.planning.config import ConfigError
 from training.toy_checkpoints import build_act, build_diffusion
 from workers.backbones.base import Observation
-from workers.idr_wrapper import IDRWrapper
+from workers.policy.wrapper import IDRWrapper
 
 pytestmark = pytest.mark.slow
 
@@ -178,9 +178,9 @@ def test_centered_do_s_is_the_saved_dataset_mean_for_every_normalizer(ckpts) -> 
 def test_chunk_and_replan_bookkeeping(tmp_path) -> None:
     """An episode on the fake env with a real ACT: inference every replan_steps control steps."""
     ckpt = build_act(tmp_path / "act2", image=32, state=2, action=2, chunk=10)
-    from workers.actor import EpisodeWorker
     from workers.envs.factory import suite_tasks
-    from workers.episode import EpisodeSpec, WorkerSpec
+    from workers.episode.rows import EpisodeSpec, WorkerSpec
+    from workers.episode.worker import EpisodeWorker
 
     w = EpisodeWorker(WorkerSpec("lerobot", {"path": str(ckpt)}, "fake_marker", {}, replan_steps=3))
     (reach,) = [t for t in suite_tasks("fake_marker", {}) if t.task_id == "reach"]

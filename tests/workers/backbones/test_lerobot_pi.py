@@ -18,7 +18,7 @@ from idr_core.refiner import RefinerConfig
 
 from training.toy_checkpoints import build_local_tokenizer, build_pi, tiny_pi_gemma
 from workers.backbones.base import Observation
-from workers.idr_wrapper import IDRWrapper
+from workers.policy.wrapper import IDRWrapper
 
 pytestmark = pytest.mark.slow
 

@@ -5,7 +5,7 @@ from idr_core.refiner import RefinerConfig
 
 from workers.backbones.base import Observation
 from workers.backbones.noop import NoopBackbone
-from workers.idr_wrapper import IDRWrapper
+from workers.policy.wrapper import IDRWrapper
 
 
 def test_noop_chunk_is_zero_motion_gripper_held_and_has_no_effects() -> None:

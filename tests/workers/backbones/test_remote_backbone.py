@@ -17,8 +17,8 @@ from idr_core.refiner import RefinerConfig
 from workers.backbones.websocket import codec
 from workers.backbones.websocket.client import RemoteBackboneError, WebsocketBackbone
 from workers.envs.fakes import FakeMarkerEnv
-from workers.idr_wrapper import IDRWrapper
-from workers.observation import to_policy_observation
+from workers.episode.observation import to_policy_observation
+from workers.policy.wrapper import IDRWrapper
 
 ROOT = Path(__file__).resolve().parents[3]
 KEYS = {"image:agentview": "observation/image", "state": "observation/state", "prompt": "prompt"}

@@ -13,7 +13,7 @@ from websockets.sync.server import serve
 from workers.backbones.websocket import codec
 from workers.backbones.websocket.client import RemoteBackboneError, WebsocketBackbone
 from workers.envs.fakes import FakeMarkerEnv
-from workers.observation import to_policy_observation
+from workers.episode.observation import to_policy_observation
 
 
 @pytest.fixture

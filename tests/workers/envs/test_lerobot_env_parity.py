@@ -55,7 +55,7 @@ def _our_episodes(
     intervention (default: the baseline)."""
     from pipeline.execution.runner import plan_run
     from pipeline.planning.config import config_from_dict
-    from workers.actor import EpisodeWorker
+    from workers.episode.worker import EpisodeWorker
 
     cfg = config_from_dict(
         {
@@ -260,7 +260,7 @@ def test_a_history_fed_sampling_base_under_idr_is_the_harness_cell_in_lerobot_ev
 
 def _harness_seeds(rows: list, replan: int) -> list[int]:
     """The step seeds idr-eval gave each inference of the episodes in ``rows``, in order."""
-    from workers.actor import step_seed
+    from workers.episode.worker import step_seed
 
     return [
         step_seed(row.seed, row.task_id, row.episode_index, k)

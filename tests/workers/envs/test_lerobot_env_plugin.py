@@ -56,7 +56,7 @@ def test_a_success_key_the_env_does_not_report_is_refused_naming_the_ones_it_doe
 def test_a_state_only_env_runs_baseline_and_refuses_the_modes_that_need_an_image(tmp_path):
     from pipeline.execution.runner import plan_run
     from pipeline.planning.config import ConfigError
-    from workers.actor import EpisodeWorker
+    from workers.episode.worker import EpisodeWorker
 
     params = {"success_key": "succeed"}
     with pytest.raises(ConfigError, match=r"renders no camera; set env.params.image_obs=true"):
@@ -87,7 +87,7 @@ def test_with_images_idr_diagnoses_a_policy_on_the_plugin_env(tmp_path: Path):
     with those keys; mode diagnose runs the three passes on the plugin's frames."""
     from pipeline.execution.runner import plan_run
     from training.toy_checkpoints import build_act
-    from workers.actor import EpisodeWorker
+    from workers.episode.worker import EpisodeWorker
 
     ckpt = build_act(
         tmp_path / "act", image=128, state=14, action=4, cams=("front",), n_action_steps=4

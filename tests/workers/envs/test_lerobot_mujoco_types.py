@@ -119,8 +119,8 @@ def test_a_diverged_metaworld_episode_is_an_error_row_and_the_next_is_unaffected
     """MuJoCo resets a diverged simulation and carries on: the suite reads MuJoCo's own
     warnings after every step, so the episode ends as an error row, and the next episode on
     the same env runs as in a clean run."""
-    from workers.actor import EpisodeWorker
     from workers.envs.suites.lerobot_envs.env import mujoco_data
+    from workers.episode.worker import EpisodeWorker
 
     params = {"type": "metaworld", "task": "assembly-v3", "max_steps": 8}
     cfg = _cfg({"kind": "noop", "params": {"action_dim": 4, "chunk_len": 4}}, params)

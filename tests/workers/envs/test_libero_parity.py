@@ -36,7 +36,7 @@ def _lerobot_episodes(ckpt: Path) -> tuple[list[dict], dict]:
 def _our_episodes(ckpt: Path, tmp_path: Path) -> tuple[list[dict], list, dict]:
     from pipeline.execution.runner import plan_run
     from pipeline.planning.config import config_from_dict
-    from workers.actor import EpisodeWorker
+    from workers.episode.worker import EpisodeWorker
 
     cfg = config_from_dict(
         {

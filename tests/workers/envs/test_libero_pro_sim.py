@@ -94,7 +94,7 @@ def _problem_language(suite: str, index: int) -> str:
 @needs_server
 @pytest.mark.slow
 def test_tasks_pair_with_their_originals_and_lan_shows_the_reworded_instruction(tmp_path):
-    from workers.actor import EpisodeWorker
+    from workers.episode.worker import EpisodeWorker
 
     tasks = ["libero_spatial/3", "libero_spatial_lan/3", "libero_spatial_task/3"]
     params = {

@@ -71,7 +71,7 @@ class RemoteBackboneError(RuntimeError):
 
 def _to_uint8_hwc(image: Any) -> np.ndarray:
     """(3, H, W) floats in [0, 1] (our policy convention) back to the (H, W, 3) uint8 the env
-    rendered (exact for images made by workers.observation.image_to_tensor)."""
+    rendered (exact for images made by workers.episode.observation.image_to_tensor)."""
     x = image.detach().cpu().numpy() if hasattr(image, "detach") else np.asarray(image)
     return np.rint(np.clip(x, 0, 1) * 255).astype(np.uint8).transpose(1, 2, 0)
 

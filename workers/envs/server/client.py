@@ -10,7 +10,7 @@ Lifecycle: one server per actor, started with the env (``start_timeout_s`` for t
 and the build), health-checked before each reset (a dead one is restarted), killed with its
 process group when a request takes longer than ``timeout_s`` or at close. A server that dies
 or hangs raises :class:`EnvServerError`: an actor-level fault, after which the actor restarts
-it and runs the episode again (``workers.actor``); an exception the env itself raises keeps
+it and runs the episode again (``workers.episode.worker``); an exception the env itself raises keeps
 its type (ValueError, RuntimeError...) and is the episode's, as in-process.
 """
 

@@ -1,5 +1,5 @@
 """Where and how an env server runs: the two settings the driver resolves and an actor needs,
-kept apart from the socket client so that the driver/actor contract (``workers.episode``)
+kept apart from the socket client so that the driver/actor contract (``workers.episode.rows``)
 imports no process or socket code."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
-"""The wire format of the env servers and of the policy actors' sockets (``workers.policy_socket``):
-length-prefixed msgpack frames, numpy arrays as raw buffers.
+"""The wire format of the env servers and of the policy actors' sockets
+(``workers.policy.socket_server``): length-prefixed msgpack frames, numpy arrays as raw buffers.
 
 Both ends import this module: the actor (Python 3.12) and the env server (any Python >= 3.10
 with numpy and msgpack, e.g. 3.11 for PyBullet or SAPIEN), so it needs nothing else. A frame

@@ -12,17 +12,17 @@ from idr_core.refiner import RefinerConfig
 
 from workers.backbones.fakes import FakeMarkerBackbone
 from workers.envs.fakes import FakeMarkerEnv
-from workers.idr_wrapper import IDRWrapper
-from workers.observation import image_to_tensor, to_policy_observation
-from workers.policy_actor import PolicyServiceClient, _image_bytes, connect, policy_actor_class
-from workers.policy_socket import (
+from workers.episode.observation import image_to_tensor, to_policy_observation
+from workers.policy.actor import PolicyServiceClient, _image_bytes, connect, policy_actor_class
+from workers.policy.socket_client import PolicySocketConnection
+from workers.policy.socket_settings import (
     RAY_CALLS,
     PolicyEndpoint,
-    PolicySocketConnection,
     SocketLimits,
     SocketSettings,
     SocketToken,
 )
+from workers.policy.wrapper import IDRWrapper
 
 
 def test_images_cross_as_their_bytes_and_come_back_the_same_floats():
@@ -79,7 +79,7 @@ def test_a_batch_goes_once_every_recent_client_has_a_request_in_it():
     import threading
     import time
 
-    from workers.policy_actor import BatchingPolicyActor
+    from workers.policy.actor import BatchingPolicyActor
 
     actor = BatchingPolicyActor("fake_marker", {"chunk_len": 4}, None, 16, 60_000.0)
     _, reqs = _requests(3)
@@ -116,7 +116,7 @@ def test_a_lone_clients_request_runs_in_its_thread_unless_a_forward_is_running()
 
     import numpy as np
 
-    from workers.policy_actor import BatchingPolicyActor
+    from workers.policy.actor import BatchingPolicyActor
 
     actor = BatchingPolicyActor("fake_marker", {"chunk_len": 4}, None, 16, 1.0)
     ran_in: list[str] = []
@@ -173,7 +173,7 @@ def test_the_client_gets_the_actors_transport_as_a_typed_endpoint():
     """The actor says where its requests go as a PolicyEndpoint (socket: its address and the
     run's token; ray: neither); a client given the socket one is answered over it as the actor
     answers the same request, and the token never shows in a repr."""
-    from workers.policy_actor import BatchingPolicyActor
+    from workers.policy.actor import BatchingPolicyActor
 
     token = SocketToken.new()
     settings = SocketSettings("127.0.0.1", token)

@@ -21,21 +21,21 @@ from pipeline.planning.executor_config import SharedExecutor
 from pipeline.rundir import POLICY_TOKEN_FILE, policy_token
 from workers.envs.fakes import FakeMarkerEnv
 from workers.envs.server import wire
+from workers.episode.observation import to_policy_observation
 from workers.io_spec import EnvIO
-from workers.observation import to_policy_observation
-from workers.policy_actor import PolicyServiceClient
-from workers.policy_service import PolicyWorker
-from workers.policy_socket import (
+from workers.policy.actor import PolicyServiceClient
+from workers.policy.service import PolicyWorker
+from workers.policy.socket_client import PolicySocketConnection
+from workers.policy.socket_messages import request_message
+from workers.policy.socket_server import PolicySocketServer
+from workers.policy.socket_settings import (
     AUTH_FRAME_BYTES,
     RAY_CALLS,
     PolicyEndpoint,
-    PolicySocketConnection,
-    PolicySocketServer,
     SocketLimits,
     SocketToken,
     connection_cap,
     frame_bound,
-    request_message,
 )
 
 PARAMS = {"chunk_len": 4, "gain": 5.0, "noise_std": 0.2}
@@ -175,7 +175,7 @@ def test_an_idle_connection_is_closed_and_its_client_sends_again_on_a_new_one(se
     first = client.infer(obs, 7)
     _wait_for(lambda: server.stats().get("idle_closed", 0) == 1, timeout_s=5)
     # the closed connection breaks on its next use: without a Ray handle to ask where the
-    # actor is, the client says so (with one, it reconnects: test_policy_actor)
+    # actor is, the client says so (with one, it reconnects: policy/test_actor)
     with pytest.raises(Exception, match="cannot be reached"):
         client.infer(obs, 7)
     assert np.array_equal(client.infer(obs, 7).action, first.action)  # a new connection

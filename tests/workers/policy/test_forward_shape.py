@@ -16,7 +16,7 @@ from idr_core.refiner import RefinerConfig
 from training.toy_checkpoints import build_act
 from workers.backbones.base import Observation, concat_observations
 from workers.backbones.factory import make_backbone
-from workers.forward_shape import (
+from workers.policy.forward_shape import (
     FixedShapeBackbone,
     NumericsError,
     check_row_independence,
@@ -25,10 +25,10 @@ from workers.forward_shape import (
     set_torch_threads,
     take_rows,
 )
-from workers.idr_wrapper import IDRWrapper
-from workers.policy_service import InferRequest, PolicyWorker
+from workers.policy.service import InferRequest, PolicyWorker
+from workers.policy.wrapper import IDRWrapper
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 TINY = ROOT / "checkpoints" / "tiny_vla"
 
 

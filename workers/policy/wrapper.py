@@ -27,7 +27,7 @@ from workers.backbones.base import (
     backbone_member,
     concat_observations,
 )
-from workers.forward_shape import cat_rows
+from workers.policy.forward_shape import cat_rows
 
 
 @dataclass

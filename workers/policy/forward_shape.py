@@ -6,10 +6,10 @@ the batch size, and on a CPU by the number of threads. Measured here (2-core CPU
 between forwards of 3 and 96 rows, the same row's actions move by up to 7.6e-6 (tiny VLA) and
 9e-7 (ACT); ACT's also move by 1.2e-6 between 1 and 2 torch threads; at one shape and one thread
 count a row's actions are bit-identical whatever its position and its mates
-(``tests/workers/test_forward_shape.py``). Mates can also change a row's float order through
-their content: the tiny VLA packs its RNN's sequences by instruction length (9.5e-7), so the
-service gives each forward one instruction (``policy_service.infer_many(by_instruction=True)``),
-as an in-actor forward has. In closed loop a difference in the 8th digit grows into another
+(``tests/workers/policy/test_forward_shape.py``). Mates can also change a row's float order
+through their content: the tiny VLA packs its RNN's sequences by instruction length (9.5e-7), so
+the service gives each forward one instruction (``service.infer_many(by_instruction=True)``), as
+an in-actor forward has. In closed loop a difference in the 8th digit grows into another
 trajectory, so a run is reproducible only when every forward has one shape and one instruction.
 
 :class:`FixedShapeBackbone` cuts a batch into forwards of exactly ``rows`` rows (the last one

@@ -13,7 +13,7 @@ from pipeline.execution.runner import execute, plan_run
 from pipeline.planning.config import ConfigError, load_config
 from pipeline.results.store import RunStore
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = Path(__file__).resolve().parents[3] / "conf"
 
 
 def _run(tmp_path: Path, *overrides: str):

@@ -12,8 +12,8 @@ from tests.doubles.backbones import CountingMarkerBackbone
 from workers.backbones.base import Observation
 from workers.backbones.fakes import FakeMarkerBackbone
 from workers.envs.fakes import FakeMarkerEnv
-from workers.idr_wrapper import IDRWrapper
-from workers.observation import to_policy_observation
+from workers.episode.observation import to_policy_observation
+from workers.policy.wrapper import IDRWrapper
 
 
 def _batch(n: int = 3, seed: int = 0) -> Observation:

@@ -6,10 +6,10 @@ from pathlib import Path
 
 import pytest
 
-from workers.actor import episode_failure
 from workers.envs.base import EpisodeInfo, EpisodeStatus
+from workers.episode.worker import episode_failure
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = Path(__file__).resolve().parents[3] / "conf"
 
 
 def last_status(success: bool, steps: int, **info) -> EpisodeStatus:
@@ -41,8 +41,8 @@ def test_episode_failure(env, expected) -> None:
 
 
 def _worker(replan_steps: int = 3, **backbone: object):
-    from workers.actor import EpisodeWorker
-    from workers.episode import WorkerSpec
+    from workers.episode.rows import WorkerSpec
+    from workers.episode.worker import EpisodeWorker
 
     params = {"chunk_len": 4, "noise_std": 0.05, **backbone}
     return EpisodeWorker(WorkerSpec("fake_marker", params, "fake_marker", {}, replan_steps))
@@ -53,7 +53,7 @@ def _spec(task_id: str, episode: int, mode: str = "E"):
     from idr_core.refiner import RefinerConfig
 
     from workers.envs.factory import suite_tasks
-    from workers.episode import EpisodeSpec
+    from workers.episode.rows import EpisodeSpec
 
     (task,) = [t for t in suite_tasks("fake_marker", {}) if t.task_id == task_id]
     return EpisodeSpec(
@@ -95,8 +95,8 @@ def test_rollout_executes_replan_steps_of_each_chunk(task_id, episode) -> None:
 def test_a_user_env_with_status_properties_runs_as_the_record_env_does() -> None:
     """An env named by entry point that keeps status as properties (written before the
     record) gives the same episode rows, through the adapter."""
-    from workers.actor import EpisodeWorker
-    from workers.episode import WorkerSpec
+    from workers.episode.rows import WorkerSpec
+    from workers.episode.worker import EpisodeWorker
 
     rows = []
     for entry in ("fake_marker", "tests.doubles.envs:PropertyMarkerEnv"):

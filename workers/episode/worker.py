@@ -27,7 +27,7 @@ from idr_core.tensors import is_torch
 from workers.backbones.base import backbone_member
 from workers.envs.base import EpisodeStatus, episode_status, suite_info
 from workers.envs.server.client import EnvServerError
-from workers.episode import EpisodeResult, EpisodeRow, EpisodeSpec, StepRow, WorkerSpec
+from workers.episode.rows import EpisodeResult, EpisodeRow, EpisodeSpec, StepRow, WorkerSpec
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +70,7 @@ class _Rollout:
     steps: list[StepRow] = field(default_factory=list)  # one row per inference
     success_step: int | None = None  # the first step at which the env said success
     crn: Any = None  # the last inference's common-random-numbers flag
-    video: Any = None  # workers.videos.EpisodeVideo of a recorded episode
+    video: Any = None  # workers.episode.videos.EpisodeVideo of a recorded episode
     ensemble: Any = None  # temporal ensembling's averager (lerobot_policy_idr.runtime)
     frames: Any = None  # a history-fed base's last frames (policy observations), every env step
 
@@ -91,11 +91,11 @@ class EpisodeWorker:
         # Imported after the rendering backend is set: env modules may import MuJoCo.
         from workers.backbones.factory import make_backbone
         from workers.envs.factory import make_env
-        from workers.forward_shape import fix_forward_shape, set_torch_threads
-        from workers.idr_wrapper import IDRWrapper
+        from workers.policy.forward_shape import fix_forward_shape, set_torch_threads
+        from workers.policy.wrapper import IDRWrapper
 
         if spec.policy_actor is not None:  # shared: the model lives in a policy actor
-            from workers.policy_actor import connect
+            from workers.policy.actor import connect
 
             self.backbone = None
             self.policy: Any = connect(spec.policy_actor)
@@ -187,7 +187,7 @@ class EpisodeWorker:
         done. Returns the step rows and the episode's outcome columns."""
         policy = self.policy
         if self.spec.policy_actor is not None:  # one proxy per episode: threads share the actor
-            from workers.policy_actor import PolicyServiceClient
+            from workers.policy.actor import PolicyServiceClient
 
             policy = PolicyServiceClient(
                 self.spec.policy_actor, self.policy.endpoint, self.policy.info
@@ -223,7 +223,7 @@ class EpisodeWorker:
         s = self.spec
         if spec.episode_index >= s.video_episodes or s.video_dir is None:
             return None
-        from workers.videos import EpisodeVideo, video_path
+        from workers.episode.videos import EpisodeVideo, video_path
 
         camera = s.video_camera or env.cameras[0]
         if camera not in env.cameras:
@@ -234,7 +234,7 @@ class EpisodeWorker:
     def _remember(self, ep: _Rollout) -> None:
         """The current frame joins a history-fed base's frames (as its own select_action
         queues every step's observation)."""
-        from workers.observation import to_policy_observation
+        from workers.episode.observation import to_policy_observation
 
         ep.frames.append(to_policy_observation(ep.obs, ep.status.instruction, self.cameras))
 
@@ -254,7 +254,7 @@ class EpisodeWorker:
         chunk to execute (T, D) (temporal ensembling: the averaged action, (1, D))."""
         from idr_core.methods import method_of
 
-        from workers.observation import to_policy_observation
+        from workers.episode.observation import to_policy_observation
 
         k = len(ep.steps)  # one row per inference
         method = method_of(spec.idr)
@@ -265,8 +265,8 @@ class EpisodeWorker:
             obs = to_policy_observation(ep.obs, ep.status.instruction, self.cameras)
         render_ms = 0.0
         if method.hidden_objects:  # its render is part of the method's cost
-            from workers.idr_wrapper import NO_OBJECTS_KEY
-            from workers.observation import image_to_tensor
+            from workers.episode.observation import image_to_tensor
+            from workers.policy.wrapper import NO_OBJECTS_KEY
 
             t0 = time.perf_counter()
             hidden = env.object_hidden_images()

@@ -1,7 +1,7 @@
 """The shared policy service on Ray: policy actors that batch many episodes' requests, and the
 simulator side's proxy to them.
 
-A policy actor (a threaded Ray actor around :class:`workers.policy_service.PolicyWorker`)
+A policy actor (a threaded Ray actor around :class:`workers.policy.service.PolicyWorker`)
 queues requests as they arrive; a batcher thread takes the first one waiting, gathers more for
 up to ``batch_wait_ms`` or until ``max_batch``, and runs one forward, while requests keep
 queueing, so the next batch starts at once. It stops gathering early once every client it has
@@ -16,7 +16,7 @@ request is a pure function of its content, so a retry gives the same answer.
 :class:`PolicyServiceClient` is what an episode worker holds instead of an ``IDRWrapper`` in shared
 mode: the same ``reset`` / ``infer`` (each inference with its cell), one request per inference (never per env
 step), the observation sent once as numpy: over a connection of its own to the actor's socket
-(``workers.policy_socket``, ``executor.policy_transport=socket``) or as a Ray call (``ray``).
+(``workers.policy.socket_server``, ``executor.policy_transport=socket``) or as a Ray call (``ray``).
 """
 
 from __future__ import annotations
@@ -32,17 +32,11 @@ from idr_core.refiner import RefinerConfig
 from idr_core.tensors import is_torch
 
 from workers.backbones.base import Observation
-from workers.idr_wrapper import IDRStep
-from workers.policy_service import InferRequest, PolicyWorker
-from workers.policy_socket import (
-    RAY_CALLS,
-    PolicyEndpoint,
-    PolicyServiceError,
-    PolicySocketConnection,
-    PolicySocketServer,
-    SocketSettings,
-    SocketToken,
-)
+from workers.policy.service import InferRequest, PolicyWorker
+from workers.policy.socket_client import PolicyServiceError, PolicySocketConnection
+from workers.policy.socket_server import PolicySocketServer
+from workers.policy.socket_settings import RAY_CALLS, PolicyEndpoint, SocketSettings, SocketToken
+from workers.policy.wrapper import IDRStep
 
 
 class BatchingPolicyActor:
@@ -96,7 +90,7 @@ class BatchingPolicyActor:
         return {**self.worker.describe(), "worker": f"{socket.gethostname()}:{os.getpid()}"}
 
     def endpoint(self) -> PolicyEndpoint:
-        """Where episode workers send requests (workers.policy_socket): the socket's address
+        """Where episode workers send requests (workers.policy.socket_server): the socket's address
         now (a restarted actor listens on another port), or Ray calls. The token reaches them
         over Ray's own (authenticated) calls, never a log line."""
         if self._socket is None:
@@ -247,8 +241,8 @@ def _plain(value: Any) -> Any:
 
 def _image_bytes(image: Any) -> Any:
     """An image in [0, 1] as the uint8 it was made from (a quarter of the bytes), when it was
-    made from one exactly (``workers.observation.image_to_tensor``); else as it is. The policy
-    side divides by 255 again: the same floats."""
+    made from one exactly (``workers.episode.observation.image_to_tensor``); else as it is. The
+    policy side divides by 255 again: the same floats."""
     x = _plain(image)
     if isinstance(x, np.ndarray) and x.dtype == np.float32:
         u8 = np.rint(x * 255).clip(0, 255).astype(np.uint8)

@@ -10,7 +10,7 @@ on which other episodes shared its forward (for a backbone whose rows do not int
 a policy network's do not, up to the floating-point order of a batched kernel).
 
 :class:`PolicyWorker` holds the backbone (a plain class, testable without Ray); the Ray actor
-around it (``workers.policy_actor``) batches requests as they arrive.
+around it (``workers.policy.actor``) batches requests as they arrive.
 """
 
 from __future__ import annotations
@@ -26,15 +26,15 @@ from idr_core.interventions import InterventionConfig
 from idr_core.refiner import Diagnostics, RefinerConfig
 
 from workers.backbones.base import Observation, backbone_member
-from workers.forward_shape import (
+from workers.hardware import hardware_class, hardware_record
+from workers.policy.forward_shape import (
     NumericsError,
     as_numpy,
     check_row_independence,
     fix_forward_shape,
     set_torch_threads,
 )
-from workers.hardware import hardware_class, hardware_record
-from workers.idr_wrapper import IDRStep, IDRWrapper, step_of
+from workers.policy.wrapper import IDRStep, IDRWrapper, step_of
 
 
 @dataclass(frozen=True)
@@ -131,9 +131,9 @@ class PolicyWorker:
     """A backbone wrapped by IDR that answers many episodes' requests (no per-episode state:
     the backbone is called on whole chunks, never through a queue of its own).
 
-    ``rows``: every forward has that many rows (``workers.forward_shape``; a row's actions then
-    do not depend on its batch mates, checked on the first request); "dynamic" or None: as many
-    as the batch holds.
+    ``rows``: every forward has that many rows (``workers.policy.forward_shape``; a row's actions
+    then do not depend on its batch mates, checked on the first request); "dynamic" or None: as
+    many as the batch holds.
 
     A dynamic forward that runs out of device memory is split: the requests are halved and the
     halves retried, down to a single request; the largest number of requests that fit is

@@ -13,9 +13,9 @@ from tests.doubles.backbones import CountingMarkerBackbone
 from workers.backbones.base import Observation
 from workers.backbones.fakes import FakeMarkerBackbone
 from workers.envs.fakes import FakeMarkerEnv
-from workers.idr_wrapper import IDRWrapper
-from workers.observation import to_policy_observation
-from workers.policy_service import InferRequest, PolicyWorker, infer_many, to_numpy_step
+from workers.episode.observation import to_policy_observation
+from workers.policy.service import InferRequest, PolicyWorker, infer_many, to_numpy_step
+from workers.policy.wrapper import IDRWrapper
 
 
 def _requests(n: int) -> list[InferRequest]:

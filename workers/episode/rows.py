@@ -44,21 +44,21 @@ class WorkerSpec:
     log_dir: str | None = None  # where a Ray actor writes its output (workers.worker_log)
     # the run's perturbations (``none`` / ``kind:severity``): the env's tasks crossed with them
     perturbations: tuple[str, ...] = ()
-    # the forward's shape (workers.forward_shape): rows per forward (in-actor: None, each
+    # the forward's shape (workers.policy.forward_shape): rows per forward (in-actor: None, each
     # inference's own; shared: rows, or "dynamic") and torch's CPU threads (None: unchanged)
     forward_rows: int | str | None = None
     torch_threads: int | None = None
     # set in the actor's process before anything computes (workers.hardware.numerics_env:
     # executor.numerics_mode portable pins the instruction sets); empty: the host's own
     numerics_env: dict[str, str] = field(default_factory=dict)
-    # episode videos (workers.videos): the first N episodes of each task and cell, into
+    # episode videos (workers.episode.videos): the first N episodes of each task and cell, into
     # video_dir; 0: none
     video_episodes: int = 0
     video_camera: str | None = None
     video_fps: float | None = None
     video_dir: str | None = None
     # shared policy on the socket transport: where the policy actors listen, the run's token and
-    # the socket's limits (workers.policy_socket.SocketSettings); None: no socket
+    # the socket's limits (workers.policy.socket_settings.SocketSettings); None: no socket
     policy_socket: Any = None
 
 
@@ -140,7 +140,7 @@ class EpisodeRow:
     worker: str | None = None
     node: str | None = None  # HOSTNAME/RAY_NODE_ID of the actor (inline: the hostname)
     render_backend: str | None = None
-    # the numerical path that produced the episode (workers.forward_shape.numerics_label):
+    # the numerical path that produced the episode (workers.policy.forward_shape.numerics_label):
     # episodes with one label, config and seed have the same actions bit for bit
     numerics: str | None = None
     # the hardware class that produced it (workers.hardware): the CPU model and the instruction

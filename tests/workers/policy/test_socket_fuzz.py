@@ -24,18 +24,18 @@ from idr_core.refiner import RefinerConfig
 
 from workers.envs.fakes import FakeMarkerEnv
 from workers.envs.server import wire
+from workers.episode.observation import to_policy_observation
 from workers.io_spec import EnvIO
-from workers.observation import to_policy_observation
-from workers.policy_actor import BatchingPolicyActor, PolicyServiceClient
-from workers.policy_socket import (
+from workers.policy.actor import BatchingPolicyActor, PolicyServiceClient
+from workers.policy.socket_client import PolicySocketConnection
+from workers.policy.socket_messages import request_message
+from workers.policy.socket_settings import (
     AUTH_FRAME_BYTES,
     RAY_CALLS,
-    PolicySocketConnection,
     SocketLimits,
     SocketSettings,
     SocketToken,
     frame_bound,
-    request_message,
 )
 
 PARAMS = {"chunk_len": 4, "gain": 5.0, "noise_std": 0.2}

@@ -13,22 +13,19 @@ from idr_core.refiner import RefinerConfig
 
 from workers.envs.fakes import FakeMarkerEnv
 from workers.envs.server import wire
-from workers.idr_wrapper import IDRStep
-from workers.observation import to_policy_observation
-from workers.policy_actor import PolicyServiceClient
-from workers.policy_service import InferRequest, PolicyWorker
-from workers.policy_socket import (
-    RAY_CALLS,
-    PolicyEndpoint,
-    PolicyServiceError,
-    PolicySocketConnection,
-    PolicySocketServer,
-    SocketToken,
+from workers.episode.observation import to_policy_observation
+from workers.policy.actor import PolicyServiceClient
+from workers.policy.service import InferRequest, PolicyWorker
+from workers.policy.socket_client import PolicyServiceError, PolicySocketConnection
+from workers.policy.socket_messages import (
     request_from_message,
     request_message,
     step_from_message,
     step_message,
 )
+from workers.policy.socket_server import PolicySocketServer
+from workers.policy.socket_settings import RAY_CALLS, PolicyEndpoint, SocketToken
+from workers.policy.wrapper import IDRStep
 
 PARAMS = {"chunk_len": 4, "gain": 5.0, "noise_std": 0.2}
 
