@@ -222,9 +222,8 @@ class PolicySocketServer:
     # -- serving -------------------------------------------------------------------------------
     def _serve(self, conn: socket.socket, peer: Any) -> None:
         try:
-            with conn:
-                while self._serve_one(conn, peer):
-                    pass
+            while self._serve_one(conn, peer):
+                pass
         except Exception:  # never out of the thread; the connection is closed
             log.exception("policy socket %s:%d: serving %s failed", *self.address, peer)
         finally:
@@ -232,6 +231,9 @@ class PolicySocketServer:
             self._idled.discard(conn)
             with self._lock:
                 self._active -= 1
+            # closed after its slot is free: a peer that sees the close may connect again at
+            # once and must not find the cap still counting this connection
+            conn.close()
 
     def _serve_one(self, conn: socket.socket, peer: Any) -> bool:
         """One request and its reply; False when the connection is done."""

@@ -75,7 +75,7 @@ def test_unknown_key_suggests_closest() -> None:
             {"intervention": {"strategy": "blur"}},
             r"intervention.strategy: .*'zero', 'mean' or 'gaussian'",
         ),
-        ({"idr": {"alhpa": 0.1}}, r"idr: unknown IDR parameter 'alhpa'; did you mean 'alpha'"),
+        ({"idr": {"alhpa": 0.1}}, r"idr.alhpa: unknown key; did you mean 'alpha'"),
         # an intervention key under idr: was once overridden by the intervention: defaults
         (
             {"idr": {"strategy": "mean"}},

@@ -39,7 +39,7 @@ def test_an_always_open_gate_is_a_number() -> None:
 @pytest.mark.parametrize(
     ("idr", "pattern"),
     [
-        ({"alpah": 0.1}, r"idr: .*unknown IDR parameter 'alpah'; did you mean 'alpha'"),
+        ({"alpah": 0.1}, r"idr.alpah: unknown key; did you mean 'alpha'"),
         ({"strategy": "mean"}, r"'strategy' is an intervention setting.*intervention:"),
         ({"alpha": -0.1}, r"idr: .*alpha=-0.1 must be a number >= 0"),
         ({"mode": "Q"}, r"idr.mode: Input should be"),
