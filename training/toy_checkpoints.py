@@ -389,18 +389,21 @@ def build_pi(
 XVLA_VOCAB = 320  # the tokenizer's ids fit below it; the image token takes the last id
 
 
-def xvla_florence_config(vocab: int = XVLA_VOCAB) -> dict:
+def xvla_florence_config(vocab: int = XVLA_VOCAB, image: int = 64) -> dict:
+    """``image``: the camera's size in px; above 64 px a third DaViT stage (stride 2) keeps
+    the image tokens within the one-layer BART's 128 positions (96 px: 6 x 6 tokens)."""
+    stages = 3 if image > 64 else 2
     return {
         "vision_config": {
             "model_type": "florence_vision",
-            "depths": [1, 1],
-            "patch_size": [7, 3],
-            "patch_stride": [4, 2],
-            "patch_padding": [3, 1],
-            "patch_prenorm": [False, True],
-            "embed_dim": [16, 32],
-            "num_heads": [1, 2],
-            "num_groups": [1, 2],
+            "depths": [1] * stages,
+            "patch_size": [7, 3, 3][:stages],
+            "patch_stride": [4, 2, 2][:stages],
+            "patch_padding": [3, 1, 1][:stages],
+            "patch_prenorm": [False, True, True][:stages],
+            "embed_dim": [16, 32, 32][:stages],
+            "num_heads": [1, 2, 2][:stages],
+            "num_groups": [1, 2, 2][:stages],
             "window_size": 4,
             "drop_path_rate": 0.0,
             "projection_dim": 32,
@@ -444,7 +447,7 @@ def build_xvla(
     cfg = XVLAConfig(
         input_features=inputs,
         output_features=outputs,
-        florence_config=xvla_florence_config(),
+        florence_config=xvla_florence_config(image=image),
         tokenizer_name=str(tokenizer_dir),
         tokenizer_max_length=16,
         hidden_size=32,
@@ -485,4 +488,44 @@ def build_act_ttt(out: Path, image: int = 64, state: int = 8, action: int = 7) -
     )  # fmt: skip
     torch.manual_seed(0)
     policy = get_policy_class("act_ttt")(cfg)
+    return save_checkpoint(policy, cfg, _stats(image, state, action, cams), out)
+
+
+# -- SmolVLA -----------------------------------------------------------------------------------
+def build_smolvla(
+    out: Path,
+    image: int = 96,
+    state: int = 2,
+    action: int = 2,
+    chunk: int = 8,
+    n_action_steps: int = 4,
+    cams: tuple[str, ...] = ("image!",),
+) -> Path:
+    """A random-weight SmolVLA checkpoint built offline: lerobot's SmolVLA on the zoo's tiny
+    SmolVLM2 (``checkpoints/zoo/hub/zoo-smolvlm2-tiny``: its config and processor, named by
+    path, so no hub cache is read), 4 VLM and expert layers, 4 flow-matching steps."""
+    from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
+    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+
+    from training.zoo_hub import HUB_DIR, SMOLVLM
+
+    inputs, outputs = _features(image, state, action, cams)
+    cfg = SmolVLAConfig(
+        input_features=inputs,
+        output_features=outputs,
+        vlm_model_name=str(HUB_DIR / SMOLVLM),
+        load_vlm_weights=False,
+        resize_imgs_with_padding=(image, image),
+        tokenizer_max_length=16,
+        num_vlm_layers=4,
+        num_expert_layers=4,
+        num_steps=4,
+        chunk_size=chunk,
+        n_action_steps=n_action_steps,
+        max_state_dim=8,
+        max_action_dim=7,
+        device="cpu",
+    )
+    torch.manual_seed(0)
+    policy = SmolVLAPolicy(cfg).eval()
     return save_checkpoint(policy, cfg, _stats(image, state, action, cams), out)

@@ -157,9 +157,24 @@ def summary(data: SidecarData) -> pd.DataFrame:
                 "gate_rate": float(r["gate"].mean()),
                 "fallbacks": int(e["fallbacks"].sum()),
                 "clipped": int(e["clipped"].sum()),
+                **per_executed_step(r),
             }
         )
     return pd.DataFrame(out)
+
+
+def per_executed_step(rows: pd.DataFrame) -> dict[str, float]:
+    """Forward rows and inference ms per executed env step (methods infer at different
+    rates: temporal ensembling at every step); NaN for a sidecar written before the policy
+    recorded ``pass_rows`` and ``executed_steps``."""
+    if "executed_steps" not in rows or rows["executed_steps"].isna().all():
+        return {"pass_rows_per_step": np.nan, "inference_ms_per_step": np.nan}
+    known = rows[rows["executed_steps"].notna()]
+    steps = float(known["executed_steps"].sum())
+    return {
+        "pass_rows_per_step": float(known["pass_rows"].sum()) / steps,
+        "inference_ms_per_step": float(known["inference_ms"].sum()) / steps,
+    }
 
 
 def build(dirs: list[Path], eval_info: Path | None, fps: float | None, labels: list[str] | None):
@@ -175,10 +190,10 @@ def _fmt(x: float, digits: int = 3) -> str:
 def markdown(table: pd.DataFrame, figures: dict[str, Path]) -> str:
     head = (
         "| cell | episodes | inferences | success | 95% CI | completion s (successes, "
-        "latency-aware) | inference ms median / p90 | wait s / episode | R_img | gate rate | "
-        "fallbacks | clipped |"
+        "latency-aware) | inference ms median / p90 | rows / ms per executed step | wait s / "
+        "episode | R_img | gate rate | fallbacks | clipped |"
     )
-    lines = ["# IDR diagnostics (sidecar)", "", head, "|" + "---|" * 12]
+    lines = ["# IDR diagnostics (sidecar)", "", head, "|" + "---|" * 13]
     for _, r in table.iterrows():
         ci = (
             "—"
@@ -188,7 +203,8 @@ def markdown(table: pd.DataFrame, figures: dict[str, Path]) -> str:
         lines.append(
             f"| {r['cell_id']} | {r['episodes']} | {r['inferences']} | {r['success']} | {ci} | "
             f"{_fmt(r['completion_s'])} | {_fmt(r['inference_ms_median'])} / "
-            f"{_fmt(r['inference_ms_p90'])} | {_fmt(r['wait_s_per_episode'])} | "
+            f"{_fmt(r['inference_ms_p90'])} | {_fmt(r['pass_rows_per_step'])} / "
+            f"{_fmt(r['inference_ms_per_step'])} | {_fmt(r['wait_s_per_episode'])} | "
             f"{_fmt(r['r_img_mean'])} | {_fmt(r['gate_rate'])} | {r['fallbacks']} | {r['clipped']} |"
         )
     lines += ["", *(f"![{name}](figures/{p.name})" for name, p in figures.items())]

@@ -133,3 +133,32 @@ def test_bad_bases_are_refused_before_loading(bases, tmp_path) -> None:
     weights = truncated / "model.safetensors"
     weights.write_bytes(weights.read_bytes()[:1000])
     refused(truncated, r"not a complete safetensors file")
+
+
+@pytest.mark.slow
+def test_a_method_the_base_cannot_run_is_refused_before_loading(bases, tmp_path) -> None:
+    """idr-eval's pre-flight rule (``idr_core.methods.refusal``), from the config: ensemble on a
+    deterministic base, temporal on one executed action, pcd in lerobot's tools; one message
+    naming the method, the base and why, and no folder written. What runs needs no
+    counterfactual step in the preprocessor."""
+    from lerobot_policy_idr.wrap import main as wrap_main
+
+    def refused(match: str, **fields) -> None:
+        with pytest.raises(IDRConfigError, match=match):
+            IDRConfig(base_policy_path=str(bases["act"]), **fields).resolve_base()
+
+    refused(r"policy.mode='ensemble': mode 'ensemble' .*act.* is deterministic", mode="ensemble")
+    refused(
+        r"policy.mode='temporal': mode 'temporal' .*one action per inference",
+        mode="temporal",
+        n_action_steps=1,
+    )
+    with pytest.raises(IDRConfigError, match=r"policy.mode='pcd': .*on a robot"):
+        IDRConfig(mode="pcd")
+    assert wrap_main([str(bases["act"]), str(tmp_path / "no"), "--mode", "ensemble"]) == 2
+    assert not (tmp_path / "no").exists()
+    for kind, mode in (("act", "temporal"), ("diffusion", "ensemble")):
+        folder = make_idr(bases[kind], tmp_path / mode, "--mode", mode, "--samples", "4")
+        assert "idr_" not in (folder / "policy_preprocessor.json").read_text()
+        cfg = PreTrainedConfig.from_pretrained(folder)
+        assert (cfg.mode, cfg.refiner().samples) == (mode, 4)

@@ -370,16 +370,15 @@ def test_flow_matching_E_equals_the_harness_with_shared_noise(tmp_path, monkeypa
     assert (rows["e_img"] > 0).all()
 
 
-def test_xvla_E_equals_the_harness_and_keeps_xvlas_env_processors(tmp_path) -> None:
+def test_xvla_samples_from_its_seed_and_keeps_xvlas_env_processors(tmp_path) -> None:
     """X-VLA (the paper's CALVIN and SIMPLER backbone; tiny Florence-2 built offline) ignores
-    a noise input: three forwards under one seed, in the plugin as in idr-eval's adapter. And
-    lerobot picks X-VLA's env processors by isinstance on the policy config: an idr config
-    wrapping X-VLA gets them too."""
+    a noise input: three forwards under one seed, which reaches its sampler (equal to the
+    harness closed loop: ``test_closed_loop.py``). And lerobot picks X-VLA's env processors by
+    isinstance on the policy config: an idr config wrapping X-VLA gets them too."""
     from lerobot.envs.configs import LiberoEnv
     from lerobot.envs.factory import make_env_pre_post_processors
 
     from training.toy_checkpoints import build_local_tokenizer, build_xvla
-    from workers.backbones.base import Observation
 
     tok = build_local_tokenizer(tmp_path / "tok", ["pick it", "place it"])
     base = build_xvla(tmp_path / "xvla", tok)
@@ -391,26 +390,22 @@ def test_xvla_E_equals_the_harness_and_keeps_xvlas_env_processors(tmp_path) -> N
         "--diagnostics-dir",
         str(tmp_path / "d"),
     )
-    backbone, harness = _harness(base, 1e9)
-    assert backbone.crn_mode == "seeded_rng" and not backbone.can_batch
     policy, pre, post = load(folder)
+    assert policy.crn == "seeded_rng"
     g = torch.Generator().manual_seed(0)
-    image, state, tasks = (
-        torch.rand(2, 3, 64, 64, generator=g),
-        torch.rand(2, 8, generator=g),
-        ["pick it", "place it"],
-    )
-    step = harness.infer(Observation({"agentview": image}, state, tasks), step_seed=5)
-    obs = {"observation.images.agentview": image, "observation.state": state, "task": tasks}
-    with torch.inference_mode():
-        ours = post(policy.predict_action_chunk(pre(obs), noise=backbone.make_noise(2, 5)))
-    assert torch.equal(ours, step.action)
-    assert not torch.equal(step.a_base, step.a_no_img)  # the image matters to the actions
+    obs = {
+        "observation.images.agentview": torch.rand(2, 3, 64, 64, generator=g),
+        "observation.state": torch.rand(2, 8, generator=g),
+        "task": ["pick it", "place it"],
+    }
     # another seed gives other actions (the seed reaches the sampler), the same seed the same
     with torch.inference_mode():
-        again = post(policy.predict_action_chunk(pre(obs), noise=backbone.make_noise(2, 5)))
-        other = post(policy.predict_action_chunk(pre(obs), noise=backbone.make_noise(2, 6)))
+        ours = post(policy.predict_action_chunk(pre(dict(obs)), seed=5))
+        again = post(policy.predict_action_chunk(pre(dict(obs)), seed=5))
+        other = post(policy.predict_action_chunk(pre(dict(obs)), seed=6))
     assert torch.equal(again, ours) and not torch.equal(other, ours)
+    policy.sidecar.flush()
+    assert (read_sidecar(tmp_path / "d")["e_img"] > 0).all()  # the image moves the actions
     env_pre, env_post = make_env_pre_post_processors(
         LiberoEnv(task="libero_spatial"), policy.config
     )
@@ -422,3 +417,21 @@ def test_xvla_E_equals_the_harness_and_keeps_xvlas_env_processors(tmp_path) -> N
     assert policy.config.type == "idr"
     policy.config._save_pretrained(tmp_path)  # still saves as an idr config
     assert json.loads((tmp_path / "config.json").read_text())["type"] == "idr"
+
+
+def test_a_three_pass_folder_run_as_temporal_reads_its_factual_rows(bases, tmp_path) -> None:
+    """``--policy.path`` of a folder made for E with ``--policy.mode=temporal``: its
+    preprocessor still makes the counterfactual rows, the policy averages the factual ones, as
+    a folder made for temporal does."""
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot_policy_idr.modeling_idr import IDRPolicy
+
+    e_folder = make_idr(bases["act"], tmp_path / "E", "--tau", "3")
+    temporal = rollout(*load(make_idr(bases["act"], tmp_path / "T", "--mode", "temporal")), 3)
+    cfg = PreTrainedConfig.from_pretrained(e_folder)
+    cfg.mode = "temporal"  # --policy.mode=temporal; the processors stay the folder's
+    pre, post = make_pre_post_processors(cfg, pretrained_path=str(e_folder))
+    assert "IDRCounterfactualBatchStep" in [type(s).__name__ for s in pre.steps]
+    overridden = rollout(IDRPolicy.from_pretrained(e_folder, config=cfg), pre, post, 3)
+    assert all(torch.equal(a, b) for a, b in zip(temporal, overridden, strict=True))

@@ -54,12 +54,16 @@ def lerobot_eval_env(
     seed: int,
     state: Any = None,
     max_steps: int | None = None,
+    env_own_processors: bool = False,
 ) -> tuple[list[dict[str, list[np.ndarray]]], dict]:
     """Episodes of lerobot's env config ``env_cfg`` as lerobot-eval runs them for the checkpoint
     in ``policy_dir``: per episode ``{"actions": [...], "states": [...]}`` (``state(vec_env)``
     after each step, when given); and eval_policy_all's info. ``max_steps``: the budget the
     rollout reads (``env.call("_max_episode_steps")``) for an env whose config does not set it
-    (MetaWorld's is 500), as ``env.params.max_steps`` sets ours; the env is unchanged."""
+    (MetaWorld's is 500), as ``env.params.max_steps`` sets ours; the env is unchanged.
+    ``env_own_processors``: the env config's own env processors, where lerobot-eval's
+    ``make_env_pre_post_processors`` gives any X-VLA policy LIBERO's (its 6-D rotation
+    postprocessor cannot act on another env's actions)."""
     import gc
 
     import gymnasium as gym
@@ -108,7 +112,10 @@ def lerobot_eval_env(
         pretrained_path=str(policy_dir),
         preprocessor_overrides={"device_processor": {"device": "cpu"}},
     )
-    env_pre, env_post = make_env_pre_post_processors(env_cfg, cfg)
+    if env_own_processors:
+        env_pre, env_post = env_cfg.get_env_processors()
+    else:
+        env_pre, env_post = make_env_pre_post_processors(env_cfg, cfg)
     try:
         with torch.no_grad():
             info = eval_policy_all(

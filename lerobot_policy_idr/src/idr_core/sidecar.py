@@ -36,6 +36,8 @@ COLUMNS = (
     "w_prop",
     "clipped",  # action elements clipped into the base's bounds
     "fallback",  # "" or why the base action was executed instead (nonfinite, deadline)
+    "pass_rows",  # rows of the base's forward this env's inference cost (3 for IDR)
+    "executed_steps",  # actions executed from its chunk (1 for temporal ensembling)
 )
 
 log = logging.getLogger(__name__)

@@ -25,8 +25,10 @@ from pathlib import Path
 from idr_core.checkpoint import WEIGHTS, check_checkpoint_dir, sha256_file
 from idr_core.features import ACTION, OBS_STATE, is_image_key
 from idr_core.interventions import SPACES, STRATEGIES, InterventionConfig
+from idr_core.methods import passes, refusal
 from idr_core.plugins import describe_failures, plugin_import_errors
-from idr_core.refiner import RefinerConfig
+from idr_core.refiner import MODES, RefinerConfig
+from idr_core.sampling import DETERMINISTIC_TYPES
 from lerobot.configs import PreTrainedConfig
 from lerobot.configs.types import FeatureType, PolicyFeature
 
@@ -72,10 +74,6 @@ REFINE_SPACES = ("physical", "normalized")
 PLUGIN_REFUSED_MODES = {
     "pcd": "the object-hidden contrast needs a simulator that renders the scene without the "
     "task's objects; on a robot there is no such render (idr-eval runs it: env.suite tabletop)",
-    "ensemble": "sample ensembling runs in idr-eval's harness (the idr policy's preprocessor "
-    "builds the three IDR passes, not K draws)",
-    "temporal": "temporal ensembling runs in idr-eval's harness; in lerobot's tools use an ACT "
-    "base's own temporal_ensemble_coeff with mode baseline",
 }
 
 
@@ -101,7 +99,8 @@ class IDRConfig(PreTrainedConfig):
     # The refiner (paper defaults; tau has none: it is the mean E_img of the baseline, which
     # depends on the backbone and the action space; calibrate it with mode=diagnose).
     # baseline, diagnose, A-F (E: the full method), E's controls (random, shuffled,
-    # scale_free) or image guidance (cfg); idr_core.methods lists every mode
+    # scale_free), image guidance (cfg), sample ensembling (ensemble) or temporal ensembling
+    # (temporal); idr_core.methods lists every mode
     mode: str = "E"
     guidance: str = "visual"  # which modality's effect drives the correction
     alpha: float = 0.08
@@ -110,6 +109,8 @@ class IDRConfig(PreTrainedConfig):
     tau: float | None = None
     eps: float = 1e-6
     w: float = 0.08  # the guidance weight of mode cfg (a_base + w * d_img)
+    samples: int = 3  # chunks mode ensemble averages, each under its own noise draw
+    te_coeff: float = 0.01  # mode temporal's coefficient (lerobot's ACT default)
 
     # The interventions do(V) and do(S).
     intervention_strategy: str = "zero"  # zero (the paper's), mean, gaussian
@@ -179,14 +180,17 @@ class IDRConfig(PreTrainedConfig):
                 mode=self.mode,
                 guidance=self.guidance,
                 w=self.w,
+                samples=self.samples,
+                te_coeff=self.te_coeff,
                 clip_actions=self.clip_actions,
             )
         except ValueError as e:
             raise IDRConfigError(str(e).replace("RefinerConfig.", "policy.")) from None
         if self.mode in PLUGIN_REFUSED_MODES:
+            runs = ", ".join(m for m in MODES if m not in PLUGIN_REFUSED_MODES)
             raise IDRConfigError(
                 f"policy.mode={self.mode!r}: {PLUGIN_REFUSED_MODES[self.mode]}; the idr policy "
-                "runs baseline, diagnose, A-F, random, shuffled, scale_free and cfg"
+                f"runs {runs}"
             )
         if cfg.gated and self.tau is None:
             raise IDRConfigError(
@@ -255,9 +259,32 @@ class IDRConfig(PreTrainedConfig):
                     "...): remake the folder with lerobot-idr-wrap, or point base_policy_path at "
                     "the original weights"
                 )
-        if self.mode != "baseline":
+        self._check_method(base, kind)
+        if "no_img" in passes(self.refiner()):  # the counterfactual passes intervene
             self._check_inputs(base)
         return base
+
+    def _check_method(self, base: Path, kind: str) -> None:
+        """The mode's method runs on this base (``idr_core.methods.refusal``, the rule of
+        idr-eval's pre-flight): ``ensemble`` needs a base that samples, ``temporal`` a chunk of
+        more than one executed action. Refused here, before any weight is loaded."""
+        cfg = read_base_config(base)
+        chunk = (
+            self.n_action_steps
+            or cfg.get("n_action_steps")
+            or cfg.get("chunk_size")
+            or cfg.get("action_chunk_size")  # VQ-BeT
+        )
+        why = refusal(
+            self.refiner(),
+            samples=kind not in DETERMINISTIC_TYPES,
+            chunk_len=int(chunk) if chunk else None,
+            hidden_objects=None,
+            base=f"{base} (type {kind})",
+            suite="",
+        )
+        if why is not None:
+            raise IDRConfigError(f"policy.mode={self.mode!r}: {why}")
 
     def _check_inputs(self, base: Path) -> None:
         """The counterfactual passes need an image (do(V)) and a state (do(S)) in the base's

@@ -9,6 +9,13 @@ that run), splits the thirds, unnormalizes them
 ``select_action`` keeps its own queue of ``n_action_steps`` actions (the base's queue would be
 fed 3B rows). Mode ``baseline`` hands ``select_action`` to the base unchanged.
 
+The methods without counterfactual passes get the factual rows alone (no IDR step in the
+preprocessor): ``ensemble`` runs the base on ``samples`` copies of them, each copy under its own
+noise draw (the seeds ``idr_core.methods.sample_seeds`` derives from the step's, as idr-eval
+draws them), and executes the mean; ``temporal`` infers at every ``select_action`` and executes
+lerobot's ``ACTTemporalEnsembler``'s average of the overlapping chunks
+(``runtime.TemporalEnsemble``, the harness's averager).
+
 Safety on hardware: the refined action never leaves the base's action bounds (the dataset's
 min/max where the stats hold them, widened to the base action itself so a gate that is off
 changes nothing); a non-finite refinement, or an inference past ``deadline_ms``, executes the
@@ -24,7 +31,7 @@ from typing import Any
 
 import torch
 from idr_core.features import OBS_STATE, is_image_key
-from idr_core.methods import combine, method_of
+from idr_core.methods import combine, method_of, passes, sample_seeds
 from idr_core.refiner import clip_into, refine
 from idr_core.sampling import crn_mode, noise_shape
 from idr_core.sidecar import SidecarWriter
@@ -42,9 +49,11 @@ from lerobot_policy_idr.configuration_idr import (
 from lerobot_policy_idr.processor_idr import BATCH_SIZE_KEY
 from lerobot_policy_idr.runtime import (
     ACTION,
+    TemporalEnsemble,
     action_bounds,
     base_input,
     history_length,
+    step_noise,
 )
 
 #: batch entries that concatenate every row's image patches along dim 0 (Qwen-VL processors)
@@ -84,12 +93,13 @@ class IDRPolicy(PreTrainedPolicy):
                 "inside its own select_action: use mode=baseline, or a base without it"
             )
         self.action_dim = int(base_cfg.output_features[ACTION].shape[0])
-        base_steps = (
+        self.base_steps = int(
             getattr(base_cfg, "n_action_steps", None)
             or getattr(base_cfg, "chunk_size", None)
             or base_cfg.action_chunk_size  # VQ-BeT executes its whole chunk
         )
-        self.n_action_steps = int(config.n_action_steps or base_steps)
+        self.n_action_steps = int(config.n_action_steps or self.base_steps)
+        self.method = method_of(self.refiner_cfg)
         self.n_obs_steps = int(getattr(base_cfg, "n_obs_steps", 1) or 1)
         self._unnormalize, self._bounds = _action_unnormalizer(base_dir, config)
         self.sidecar = SidecarWriter(config.diagnostics_dir)
@@ -127,6 +137,7 @@ class IDRPolicy(PreTrainedPolicy):
         self._queue: deque[torch.Tensor] = deque(maxlen=self.n_action_steps)
         self._frames: deque[dict[str, Any]] = deque(maxlen=history_length(self.base.config))
         self._fed: dict[str, deque[torch.Tensor]] | None = None  # queue-fed bases: IDR's queues
+        self._ensembler: TemporalEnsemble | None = None  # mode temporal: this episode's averager
         self._steps = 0
         self._tick = 0
         if self._recorded:  # a new episode starts
@@ -136,6 +147,10 @@ class IDRPolicy(PreTrainedPolicy):
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, torch.Tensor], **kwargs: Any) -> torch.Tensor:
+        """B chunks of the mode's method. ``noise``: the base's noise (a ``seeded_rng`` base: a
+        tensor of seeds); ``seed``: the step seed, as idr-eval passes it (a placebo's
+        direction, an ensemble's draws, and the noise where none is given, drawn from it as
+        idr-eval's backbone draws it); neither given: torch's RNG, as the base draws its own."""
         actions, rows = self._infer(batch, kwargs.get("noise"), kwargs.get("seed"))
         self.sidecar.add(rows)
         return actions
@@ -151,29 +166,32 @@ class IDRPolicy(PreTrainedPolicy):
                 ms = (time.perf_counter() - t0) * 1e3
                 self._record_baseline(action.shape[0], ms)
             return self._physical(action)
+        if self.method.every_step:  # temporal ensembling: an inference at every step
+            chunk, rows = self._infer(batch, kwargs.get("noise"), kwargs.get("seed"))
+            if self._ensembler is None:  # the chunk length is the executed horizon's
+                self._ensembler = TemporalEnsemble(self.refiner_cfg.te_coeff, chunk.shape[1])
+            action = self._ensembler.update(chunk)
+            wait = (time.perf_counter() - t0) * 1e3
+            self.sidecar.add([{**r, "wait_ms": wait} for r in rows])
+            return action
         if not self._queue:
-            chunk, rows = self._infer(batch, kwargs.get("noise"))
+            chunk, rows = self._infer(batch, kwargs.get("noise"), kwargs.get("seed"))
             self._queue.extend(chunk[:, : self.n_action_steps].transpose(0, 1))
             wait = (time.perf_counter() - t0) * 1e3
             self.sidecar.add([{**r, "wait_ms": wait} for r in rows])
         else:  # no inference: the frame still joins the history, as the base's own queues take
-            self._with_history(batch)  # every step's observation (Diffusion, VQ-BeT)
+            self._with_history(self._own_rows(batch))  # every step's frame (Diffusion, VQ-BeT)
         return self._queue.popleft()
 
     # -- the three passes, the diagnosis and the refinement ---------------------------------
     def _infer(
         self, batch: dict[str, Any], noise: Any = None, seed: int | None = None
     ) -> tuple[torch.Tensor, list[dict]]:
-        """``seed``: a placebo's direction (modes random, shuffled), as idr-eval passes its step
-        seed; None draws it from torch's RNG, as the base's own noise is drawn."""
+        """``seed``: the step seed (see ``predict_action_chunk``); None draws what it gives
+        from torch's RNG, as the base's own noise is drawn."""
         t0 = time.perf_counter()
-        mode = self.config.mode
-        if mode == "baseline":
-            actions = self._predict(self._with_history(batch))
-            actions = actions[:, : self.n_action_steps]
-            ms = (time.perf_counter() - t0) * 1e3
-            rows = self._rows(actions.shape[0], None, forward_ms=ms, inference_ms=ms)
-            return self._physical(actions), rows
+        if "no_img" not in self.method.passes:  # baseline, ensemble, temporal: factual rows
+            return self._infer_factual(batch, noise, seed, t0)
         rows_in = _batch_rows(batch)
         b = int(batch.get(BATCH_SIZE_KEY, rows_in // 3))
         if rows_in != 3 * b:
@@ -183,6 +201,8 @@ class IDRPolicy(PreTrainedPolicy):
             )
         batch = self._with_history(batch)
         version = weights_version(self.base)
+        if noise is None and seed is not None:  # the noise idr-eval draws from the step seed
+            noise = self._noise(b, seed)
         if noise is None and self.crn == "shared_noise":
             shape = noise_shape(self.base.config, b, self.action_dim)
             if shape is not None:  # one draw from torch's RNG, shared by the three thirds
@@ -207,7 +227,7 @@ class IDRPolicy(PreTrainedPolicy):
         out = out[:, : self.n_action_steps]
         a_base, a_no_img, a_no_prop = split3(self._physical(out), b)
         if seed is None and self.config.mode in ("random", "shuffled"):
-            seed = int(torch.randint(0, 2**31 - 1, ()))
+            seed = _draw()
         final, diag, clipped, fallback = self._refine(a_base, a_no_img, a_no_prop, seed or 0)
         now = time.perf_counter()
         total = (now - t0) * 1e3
@@ -221,22 +241,119 @@ class IDRPolicy(PreTrainedPolicy):
             inference_ms=total,
             clipped=clipped,
             fallback=fallback,
+            pass_rows=3,
+            executed_steps=self.n_action_steps,
         )
         return final, rows
+
+    def _infer_factual(
+        self, batch: dict[str, Any], noise: Any, seed: int | None, t0: float
+    ) -> tuple[torch.Tensor, list[dict]]:
+        """A method of factual passes alone (``passes``: baseline and temporal one, ensemble
+        ``samples``), on the batch's factual rows, combined by ``idr_core.methods.combine``."""
+        names = passes(self.refiner_cfg)
+        batch = self._with_history(self._own_rows(batch))
+        b = _batch_rows(batch)
+        k = len(names)
+        if k > 1 and seed is None:  # the step's draws: from torch's RNG, as its noise is
+            seed = int(noise[0]) if self.crn == "seeded_rng" and noise is not None else _draw()
+        if noise is None and seed is not None:
+            noise = self._noise(b, seed)
+        if k == 1:
+            out = self._forward(batch, noise)
+        else:
+            version = weights_version(self.base)
+            out = self._draws(batch, b, noise, sample_seeds(seed, k))
+            if weights_version(self.base) != version:
+                raise IDRConfigError(
+                    f"the base policy (type {self.base.config.type!r}) changed its own weights "
+                    f"during predict_action_chunk: mode {self.config.mode!r} runs it {k} times "
+                    "on one observation and must run one network. Run it with "
+                    "--policy.mode=baseline, or turn the base's adaptation off"
+                )
+        forward_ms = (time.perf_counter() - t0) * 1e3
+        t1 = time.perf_counter()
+        out = self._physical(out[:, : self.n_action_steps])
+        parts = [out[i * b : (i + 1) * b] for i in range(k)]
+        final, _ = combine(self.refiner_cfg, parts)
+        clipped, fallback = [0] * b, [""] * b
+        if k > 1:  # the ensemble's mean: the safety rules of a refined chunk
+            final, clipped, fallback = self._safe(final, parts[0])
+        now = time.perf_counter()
+        rows = self._rows(
+            b,
+            None,
+            forward_ms=forward_ms,
+            refine_ms=(now - t1) * 1e3,
+            inference_ms=(now - t0) * 1e3,
+            clipped=clipped,
+            fallback=fallback,
+            pass_rows=k,
+            executed_steps=1 if self.method.every_step else self.n_action_steps,
+        )
+        return final, rows
+
+    def _own_rows(self, batch: dict[str, Any]) -> dict[str, Any]:
+        """The rows the mode's method reads: all (three-pass modes), else the factual ones."""
+        return batch if "no_img" in self.method.passes else _factual_rows(batch)
+
+    def _noise(self, b: int, seed: int) -> Any:
+        """The noise idr-eval's backbone draws from ``seed`` for ``b`` rows (None: the base
+        takes none)."""
+        return step_noise(self.base.config, self.crn, b, self.action_dim, seed, self.config.device)
+
+    def _forward(self, batch: dict[str, Any], noise: Any) -> torch.Tensor:
+        """One forward of the factual rows under ``noise`` (a seeded base: under its seed;
+        None: the base draws its own)."""
+        if noise is None or self.crn == "deterministic":
+            return self._predict(batch)
+        if self.crn == "seeded_rng":
+            return self._seeded(batch, int(noise[0]))
+        return self._predict(batch, noise=noise)
+
+    def _draws(self, batch: dict[str, Any], b: int, noise: Any, seeds: list[int]) -> torch.Tensor:
+        """``len(seeds)`` draws for the factual rows, in order, as idr-eval's harness runs an
+        ensemble's passes: a shared-noise base in one forward of the rows repeated, each copy
+        with its seed's noise (the first ``noise`` where given); a seeded base in one forward
+        per seed."""
+        if self.crn == "seeded_rng":
+            return torch.cat([self._seeded(batch, s) for s in seeds], dim=0)
+        noises = [noise if noise is not None else self._noise(b, seeds[0])]
+        noises += [self._noise(b, s) for s in seeds[1:]]
+        return self._predict(_repeat_rows(batch, len(seeds), b), noise=torch.cat(noises, dim=0))
+
+    def _seeded(self, part: dict[str, Any], seed: int, rows: slice | None = None) -> torch.Tensor:
+        """The base's forward on ``part`` under a forked torch RNG seeded with ``seed``."""
+        device = _batch_device(part)
+        with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+            torch.manual_seed(seed)
+            return self._predict(part, rows)
 
     def _seeded_thirds(self, batch: dict[str, Any], b: int, seed: Any) -> torch.Tensor:
         """The three thirds as three forwards of B rows, each under a forked RNG seeded alike
         (``seed``: a tensor of seeds as idr-eval's backbone makes it, else one draw from torch's
         RNG), so the thirds see the same sampling noise."""
-        s = int(seed[0]) if seed is not None else int(torch.randint(0, 2**31 - 1, ()))
-        device = _batch_device(batch)
+        s = int(seed[0]) if seed is not None else _draw()
         outs = []
         for i in range(3):
             part = {k: _rows_of(v, i, b, k) for k, v in batch.items()}
-            with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
-                torch.manual_seed(s)
-                outs.append(self._predict(part, slice(i * b, (i + 1) * b)))
+            outs.append(self._seeded(part, s, slice(i * b, (i + 1) * b)))
         return torch.cat(outs, dim=0)
+
+    def _safe(
+        self, final: torch.Tensor, a_base: torch.Tensor
+    ) -> tuple[torch.Tensor, list[int], list[str]]:
+        """A refined chunk under the hardware rules: a non-finite one executes ``a_base``; it is
+        clipped into the base's action bounds (widened to ``a_base``) where it has them."""
+        b = a_base.shape[0]
+        if not bool(torch.isfinite(a_base).all()):
+            raise ValueError("the base policy's action is not finite; nothing safe to execute")
+        if not bool(torch.isfinite(final).all()):
+            return a_base, [0] * b, ["nonfinite"] * b
+        clipped = [0] * b
+        if self._bounds is not None and self.refiner_cfg.clip_actions:
+            final, clipped = clip_into(final, a_base, *self._bounds)
+        return final, clipped, [""] * b
 
     def _refine(
         self, a_base: torch.Tensor, a_no_img: torch.Tensor, a_no_prop: torch.Tensor, seed: int
@@ -252,12 +369,8 @@ class IDRPolicy(PreTrainedPolicy):
             final, diag = combine(self.refiner_cfg, [a_base, a_no_img])
         if not self.refiner_cfg.refines:
             return final, diag, [0] * b, [""] * b
-        if not bool(torch.isfinite(final).all()):
-            return a_base, diag, [0] * b, ["nonfinite"] * b
-        clipped = [0] * b
-        if self._bounds is not None and self.refiner_cfg.clip_actions:
-            final, clipped = clip_into(final, a_base, *self._bounds)
-        return final, diag, clipped, [""] * b
+        final, clipped, fallback = self._safe(final, a_base)
+        return final, diag, clipped, fallback
 
     def _physical(self, actions: torch.Tensor) -> torch.Tensor:
         return actions if self._unnormalize is None else self._unnormalize(actions)
@@ -312,7 +425,17 @@ class IDRPolicy(PreTrainedPolicy):
         return rows
 
     def _record_baseline(self, b: int, ms: float) -> None:
-        self.sidecar.add(self._rows(b, None, forward_ms=ms, inference_ms=ms, wait_ms=ms))
+        self.sidecar.add(
+            self._rows(
+                b,
+                None,
+                forward_ms=ms,
+                inference_ms=ms,
+                wait_ms=ms,
+                pass_rows=1,
+                executed_steps=self.base_steps,  # the base's select_action runs its own queue
+            )
+        )
 
 
 def _batch_rows(batch: dict[str, Any]) -> int:
@@ -338,6 +461,34 @@ def _rows_of(value: Any, i: int, b: int, key: str = "") -> Any:
     if isinstance(value, list) and len(value) == 3 * b:
         return value[i * b : (i + 1) * b]
     return value
+
+
+def _factual_rows(batch: dict[str, Any]) -> dict[str, Any]:
+    """The factual rows of a batch: all of it, or its first third where a preprocessor with
+    IDR's counterfactual step (a folder made for a three-pass mode) tripled it."""
+    if BATCH_SIZE_KEY not in batch:
+        return batch
+    b = int(batch[BATCH_SIZE_KEY])
+    out = {k: _rows_of(v, 0, b, k) for k, v in batch.items()}
+    out.pop(BATCH_SIZE_KEY)
+    return out
+
+
+def _repeat_rows(batch: dict[str, Any], k: int, b: int) -> dict[str, Any]:
+    """The batch's ``b`` rows ``k`` times over, in order (tensors and per-row lists)."""
+    out = {}
+    for key, value in batch.items():
+        if isinstance(value, torch.Tensor) and value.ndim and value.shape[0] == b:
+            value = torch.cat([value] * k, dim=0)
+        elif isinstance(value, list) and len(value) == b:
+            value = value * k
+        out[key] = value
+    return out
+
+
+def _draw() -> int:
+    """A seed from torch's global RNG (where lerobot's tools take a base's noise from)."""
+    return int(torch.randint(0, 2**31 - 1, ()))
 
 
 def _batch_device(batch: dict[str, Any]) -> torch.device:

@@ -27,6 +27,7 @@ from typing import Any
 import torch
 from idr_core.features import OBS_PREFIX, OBS_STATE, is_image_key
 from idr_core.interventions import intervene, intervene_about
+from idr_core.methods import method_of
 from lerobot.configs.types import PipelineFeatureType, PolicyFeature
 from lerobot.lerobot_types import TransitionKey
 from lerobot.processor import (
@@ -193,8 +194,9 @@ def _index(steps: list, name: str) -> int | None:
 def insert_idr_steps(
     pre: PolicyProcessorPipeline, post: PolicyProcessorPipeline, config: Any
 ) -> tuple[PolicyProcessorPipeline, PolicyProcessorPipeline]:
-    """The base's pipelines with IDR's steps in place (``config``: an IDRConfig). Mode
-    ``baseline`` adds no step: the preprocessor is the base's."""
+    """The base's pipelines with IDR's steps in place (``config``: an IDRConfig). A mode
+    without counterfactual passes (``baseline``, ``ensemble``, ``temporal``) adds no step: the
+    preprocessor is the base's."""
     steps = list(pre.steps)
     if any(type(s).__name__.startswith("IDR") for s in steps):
         raise ValueError("the preprocessor already holds IDR steps")
@@ -203,7 +205,7 @@ def insert_idr_steps(
         i = _index(post_steps, "UnnormalizerProcessorStep")
         if i is not None:  # the policy runs these (normalized space) and unnormalizes, then refines
             post_steps = post_steps[i + 1 :]
-    if config.mode != "baseline":
+    if "no_img" in method_of(config.mode).passes:
         norm = _index(steps, "NormalizerProcessorStep")
         anchors = [i for n in _BEFORE_COUNTERFACTUALS if (i := _index(steps, n)) is not None]
         anchors = [i for i in anchors if norm is None or i < norm]

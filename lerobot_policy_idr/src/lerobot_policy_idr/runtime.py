@@ -1,5 +1,7 @@
 """The lerobot-specific parts of the test-time runtime, shared by the harness's episode loop
-and the ``idr`` policy: temporal ensembling through lerobot's own ``ACTTemporalEnsembler``.
+and the ``idr`` policy: temporal ensembling through lerobot's own ``ACTTemporalEnsembler``, a
+step's noise drawn from its seed, a history-fed base's input, the dataset's state mean and
+action bounds.
 
 The model-free parts (which forwards a method needs, how they become a chunk) are in
 ``idr_core.methods``; this module holds what needs lerobot.
@@ -40,6 +42,25 @@ class TemporalEnsemble:
         # lerobot's ensembler keeps float64 counts and the chunks' own dtype
         action = self._ensembler.update(x)
         return action.numpy() if as_numpy else action
+
+
+def step_noise(
+    config: Any, crn: str, batch_size: int, action_dim: int, seed: int, device: Any = None
+) -> Any:
+    """The noise of one forward of ``batch_size`` rows drawn from ``seed``, as idr-eval's
+    lerobot backbone draws it from a step seed (and the idr policy, given that seed):
+    ``shared_noise`` (``crn``, ``idr_core.sampling``): a standard normal of the base's noise
+    shape from a generator seeded with it; ``seeded_rng``: the seed itself, one per row (the
+    base's forward then runs under a torch RNG seeded with it); else None."""
+    from idr_core.sampling import noise_shape
+
+    if crn == "seeded_rng":
+        return torch.tensor([seed] * batch_size)
+    shape = noise_shape(config, batch_size, action_dim) if crn == "shared_noise" else None
+    if shape is None:
+        return None
+    gen = torch.Generator().manual_seed(seed)
+    return torch.randn(shape, generator=gen).to(device or "cpu")
 
 
 # -- observation history: what a history-fed base reads, for the harness and the plugin alike --

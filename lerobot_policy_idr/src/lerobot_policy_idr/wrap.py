@@ -36,6 +36,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--lam", type=float, default=0.1)
     p.add_argument("--eps", type=float, default=1e-6)
     p.add_argument("--guidance", default="visual", choices=GUIDANCES)
+    p.add_argument("--w", type=float, default=0.08, help="mode cfg's guidance weight")
+    p.add_argument("--samples", type=int, default=3, help="mode ensemble's draws")
+    p.add_argument("--te-coeff", type=float, default=0.01, help="mode temporal's coefficient")
     p.add_argument("--strategy", default="zero", help="intervention: zero, mean, gaussian")
     p.add_argument(
         "--state-space",
@@ -76,6 +79,9 @@ def wrap(args: argparse.Namespace) -> Path:
         lam=args.lam,
         eps=args.eps,
         guidance=args.guidance,
+        w=args.w,
+        samples=args.samples,
+        te_coeff=args.te_coeff,
         intervention_strategy=args.strategy,
         state_space=args.state_space,
         refine_space=args.refine_space,

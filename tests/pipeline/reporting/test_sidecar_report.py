@@ -15,9 +15,14 @@ from pipeline.cli import main
 from pipeline.reporting import sidecar as sidecar_report
 
 
-def _write(directory, episodes: int, envs: int, mode: str, t0: float = 1000.0) -> None:
+def _write(
+    directory, episodes: int, envs: int, mode: str, t0: float = 1000.0, costs: bool = True
+) -> None:
     """``episodes`` x ``envs`` with 3 inferences each, every 5 steps; wall time 1 s apart,
-    each inference 100 ms waited; r_img = 0.1 * tick, gate on at tick 0 only."""
+    each inference 100 ms waited; r_img = 0.1 * tick, gate on at tick 0 only. ``costs``: the
+    rows say their 3 forward rows and 5 executed steps (a sidecar of an older policy does
+    not)."""
+    cost = {"pass_rows": 3, "executed_steps": 5} if costs else {}
     w = SidecarWriter(directory, flush_every=7)
     t = t0
     for e in range(episodes):
@@ -43,6 +48,7 @@ def _write(directory, episodes: int, envs: int, mode: str, t0: float = 1000.0) -
                         "w_prop": 0.05,
                         "clipped": 1,
                         "fallback": "",
+                        **cost,
                     }
                     for i in range(envs)
                 ]
@@ -65,16 +71,20 @@ def test_eval_info_outcomes_and_latency_aware_completion(tmp_path) -> None:
     assert table["success"] == "2/4" and table["success_rate"] == 0.5
     assert table["r_img_mean"] == pytest.approx(0.1) and table["gate_rate"] == pytest.approx(1 / 3)
     assert table["clipped"] == 12 and table["inference_ms_median"] == 100.0
+    # per executed env step: 3 rows and 100 ms per inference, each inference 5 steps
+    assert table["pass_rows_per_step"] == pytest.approx(0.6)
+    assert table["inference_ms_per_step"] == pytest.approx(20.0)
     prog = data.rows.groupby("tick")["progress"].first()
     assert list(prog) == [0.0, 5 / 15, 10 / 15]
 
 
 def test_operator_marks_give_success_and_wall_completion_time(tmp_path) -> None:
-    _write(tmp_path / "d", episodes=2, envs=1, mode="E", t0=1000.0)
+    _write(tmp_path / "d", episodes=2, envs=1, mode="E", t0=1000.0, costs=False)
     # episode 0: rows at 1001, 1002, 1003 (first request at 1000.9); episode 1 from 1014
     mark(tmp_path / "d", "success", when=1004.9)
     mark(tmp_path / "d", "failure", when=1017.0)
     data = sidecar_report.build([tmp_path / "d"], None, None, None)
+    assert np.isnan(sidecar_report.summary(data).iloc[0]["pass_rows_per_step"])  # not recorded
     eps = data.episodes.sort_values("episode")
     assert list(eps["success"]) == [True, False]
     assert eps["completion_s"].iloc[0] == pytest.approx(4.0)

@@ -50,9 +50,12 @@ def _our_episodes(
     env_params: dict[str, Any],
     replan: int = 5,
     cell: dict[str, Any] | None = None,
+    episodes: int = EPISODES,
+    steps: list | None = None,
 ) -> tuple[list[list[np.ndarray]], list]:
     """idr-eval's episodes of ``ckpt``; ``cell``: the one cell's IDR settings and
-    intervention (default: the baseline)."""
+    intervention (default: the baseline); ``steps``: where given, each episode's step rows
+    (one per inference, its diagnostics) are appended to it."""
     from pipeline.execution.runner import plan_run
     from pipeline.planning.config import config_from_dict
     from workers.episode.worker import EpisodeWorker
@@ -62,7 +65,7 @@ def _our_episodes(
             "name": "lerobot_parity",
             "backbone": {"kind": "lerobot", "params": {"path": str(ckpt)}},
             "env": {"suite": "lerobot", "params": env_params},
-            "episodes_per_task": EPISODES,
+            "episodes_per_task": episodes,
             "seed": SEED,
             "grid": [{"mode": [(cell or {}).get("mode", "baseline")]}],
             "idr": {k: v for k, v in (cell or {}).items() if k not in ("mode", "intervention")},
@@ -90,6 +93,8 @@ def _our_episodes(
             result = worker.run_episode(spec)
             assert result.episode.error is None, result.episode.error
             rows.append(result.episode)
+            if steps is not None:
+                steps.append(result.steps)
     finally:
         worker.close()
     return actions, rows
@@ -98,14 +103,14 @@ def _our_episodes(
 def _assert_same_episodes(theirs, info, ours, rows, moves: float = 0.1) -> None:
     """``moves``: how far some action dimension must range over episode 0 (random ACT weights
     move the normalized actions less on some envs)."""
-    assert len(theirs) == len(ours) == EPISODES
+    assert len(theirs) == len(ours) == len(rows)
     for e, (a, b, row) in enumerate(zip(theirs, ours, rows, strict=True)):
         assert len(a["actions"]) == len(b) == row.steps, f"episode {e}: lengths"
         for t, (x, y) in enumerate(zip(a["actions"], b, strict=True)):
             assert np.array_equal(x.astype(np.float32), y), f"episode {e} step {t}: {x} vs {y}"
         assert bool(info["per_task"][0]["metrics"]["successes"][e]) == row.success
     # the two episodes start apart (seed + e) and the actions follow the observation
-    assert not np.array_equal(ours[0][0], ours[1][0])
+    assert len(ours) < 2 or not np.array_equal(ours[0][0], ours[1][0])
     assert np.ptp(np.stack(ours[0]), axis=0).max() > moves  # not one constant action
 
 
@@ -254,7 +259,7 @@ def test_a_history_fed_sampling_base_under_idr_is_the_harness_cell_in_lerobot_ev
     cell = {"mode": "E", "tau": 1e9}  # both sides on their defaults (do(S) centered, clipped)
     ours, rows = _our_episodes(ckpt, tmp_path, {"type": "pusht", **env}, replan=4, cell=cell)
     seeds = _harness_seeds(rows, replan=4)
-    theirs, info = _lerobot_eval_with_seeds(PushtEnv(**env), folder, seeds, noise=True)
+    theirs, info = _lerobot_eval_with_seeds(PushtEnv(**env), folder, seeds)
     _assert_same_episodes(theirs, info, ours, rows, moves=0.01)
 
 
@@ -269,27 +274,23 @@ def _harness_seeds(rows: list, replan: int) -> list[int]:
     ]
 
 
-def _lerobot_eval_with_seeds(env_cfg: Any, folder: Path, seeds: list[int], noise: bool = False):
-    """lerobot-eval's rollout of the IDR folder, its placebo seeds (and, with ``noise``, the
-    base's noise, drawn as idr-eval's lerobot backbone draws it from a step seed) fed in
-    inference order; lerobot-eval itself would draw both from torch's RNG."""
-    import torch
-    from idr_core.sampling import noise_shape
+def _lerobot_eval_with_seeds(
+    env_cfg: Any, folder: Path, seeds: list[int], episodes: int = EPISODES, **kw: Any
+):
+    """lerobot-eval's rollout of the IDR folder, idr-eval's step seeds fed to its inferences in
+    order: the policy draws the base's noise (an ensemble's draws), a placebo's direction, from
+    each as idr-eval does; lerobot-eval itself would draw them from torch's RNG. ``kw``: to
+    ``lerobot_eval_env``."""
     from lerobot_policy_idr.modeling_idr import IDRPolicy
 
     feed = iter(seeds)
     infer = IDRPolicy._infer
 
-    def seeded(self, batch, noise_in=None, seed=None):
-        step = next(feed)
-        if noise:
-            b = batch["observation.state"].shape[0] // 3
-            shape = noise_shape(self.base.config, b, self.action_dim)
-            noise_in = torch.randn(shape, generator=torch.Generator().manual_seed(step))
-        return infer(self, batch, noise_in, step if seed is None else seed)
+    def seeded(self, batch, noise=None, seed=None):
+        return infer(self, batch, noise, next(feed) if seed is None else seed)
 
     IDRPolicy._infer = seeded
     try:
-        return lerobot_eval_env(env_cfg, folder, episodes=EPISODES, seed=SEED)
+        return lerobot_eval_env(env_cfg, folder, episodes=episodes, seed=SEED, **kw)
     finally:
         IDRPolicy._infer = infer

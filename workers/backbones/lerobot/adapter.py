@@ -35,7 +35,7 @@ from idr_core.checkpoint import check_checkpoint_dir
 from idr_core.features import ACTION, IMAGE_PREFIX, OBS_STATE, camera_of
 from idr_core.interventions import intervene
 from idr_core.plugins import import_error, policy_plugins
-from idr_core.sampling import DETERMINISTIC_TYPES, crn_mode, noise_shape
+from idr_core.sampling import DETERMINISTIC_TYPES, crn_mode
 
 from workers.backbones.base import HISTORY_IMAGES, HISTORY_STATE, Observation
 from workers.io_spec import PolicyIO
@@ -393,17 +393,13 @@ class LerobotBackbone:
         self.policy.reset()
 
     def make_noise(self, batch_size: int, seed: int) -> Any:
-        if self.crn_mode == "seeded_rng":
-            return torch.tensor([seed] * batch_size)  # the seed, repeated per row
-        shape = (
-            noise_shape(self.config, batch_size, self.action_dim)
-            if self.crn_mode == "shared_noise"
-            else None
+        """The step's noise from its seed, drawn as the idr policy draws it from one
+        (``runtime.step_noise``)."""
+        from lerobot_policy_idr.runtime import step_noise
+
+        return step_noise(
+            self.config, self.crn_mode, batch_size, self.action_dim, seed, self.device
         )
-        if shape is None:
-            return None
-        gen = torch.Generator().manual_seed(seed)
-        return torch.randn(shape, generator=gen).to(self.device)
 
     def _batch(self, obs: Observation) -> dict[str, Any]:
         batch: dict[str, Any] = {}

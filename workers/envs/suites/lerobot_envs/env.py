@@ -7,8 +7,9 @@ lerobot-eval does, so the scene, its wrappers and its episode length are lerobot
 type). The observation is read the way lerobot's ``preprocess_observation`` reads it:
 ``pixels`` (one image: camera ``image``, policy key ``observation.image``; a dict: one camera
 per key, ``observation.images.<key>``) and ``agent_pos`` (``observation.state``). The
-instruction is the env's ``task_description`` where it has one, else ``instruction`` from the
-config, else a fixed string; success is ``info["is_success"]``; episode ``i`` resets with seed
+instruction is the env's ``task_description`` where it has one, else its ``task``, else
+``instruction`` from the config, else the empty string (lerobot-eval's rule: a policy that reads
+language gets the same task both ways); success is ``info["is_success"]``; episode ``i`` resets with seed
 ``seed + i`` (lerobot-eval's rule with one env) and lerobot's new-rollout option; the step
 budget is the env's ``_max_episode_steps``, which lerobot-eval's rollout reads (MetaWorld: 500,
 whatever the config's ``episode_length`` says), unless ``max_steps`` is given.
@@ -31,7 +32,7 @@ import numpy as np
 
 from workers.envs.base import EnvObservation, TaskSpec
 from workers.envs.episode_clock import EpisodeClock
-from workers.envs.gym_env import DEFAULT_INSTRUCTION, GymnasiumEnv, env_io
+from workers.envs.gym_env import GymnasiumEnv, env_io
 from workers.envs.mujoco.stability import mujoco_instability, raise_if_unstable
 from workers.io_spec import EnvIO
 from workers.param_doc import Doc
@@ -354,8 +355,8 @@ class LerobotEnvSuite(GymnasiumEnv):
         own_gl_context(self._env)
         with self._missing_package(self.env_type):  # types that import their simulator here
             obs, _ = self._env.reset(seed=int(seed) + int(episode_index))
-        described = self._env.call("task_description")
-        self._instruction = str(described or self._fixed_instruction or DEFAULT_INSTRUCTION)
+        described = self._env.call("task_description") or self._env.call("task")
+        self._instruction = str(described or self._fixed_instruction or "")
         self._data = mujoco_data(self._env)
         if self._data is not None:
             mujoco_instability(self._data)  # what an earlier episode left: cleared
