@@ -11,7 +11,8 @@ from typing import Any
 import torch
 
 from pipeline.errors import ConfigError
-from workers.backbones.lerobot.adapter import LerobotBackbone, register_project_policies
+from workers.backbones.lerobot.adapter import LerobotBackbone
+from workers.backbones.lerobot.checkpoint import register_project_policies
 
 
 class PolicyBackbone(LerobotBackbone):

@@ -141,7 +141,7 @@ def test_a_plugin_that_fails_to_import_is_named_with_its_own_error(tmp_path, mon
 
     from lerobot_policy_idr.configuration_idr import IDRConfig, IDRConfigError
 
-    from workers.backbones.lerobot.adapter import check_checkpoint
+    from workers.backbones.lerobot.checkpoint import check_checkpoint
 
     monkeypatch.syspath_prepend(str(PLUGIN_SITE.parent / "broken_policy_plugin"))
     base = tmp_path / "base"

@@ -201,7 +201,7 @@ def test_vlm_members_train_and_load_from_another_folder_by_their_hub_ids(
 
 
 def test_every_member_says_how_it_is_rebuilt_and_a_missing_one_is_refused_naming_that() -> None:
-    from workers.backbones.lerobot.adapter import REBUILD_FILE, check_checkpoint
+    from workers.backbones.lerobot.checkpoint import REBUILD_FILE, check_checkpoint
 
     commands = json.loads((zoo.ROOT / zoo.SHIPPED / REBUILD_FILE).read_text())
     assert set(commands) == set(zoo.MEMBERS)

@@ -156,7 +156,7 @@ def test_centered_do_s_is_the_saved_dataset_mean_for_every_normalizer(ckpts) -> 
     same from the saved files (the pre-flight, torch-free) and the loaded normalizer: under
     MEAN_STD that is ``normalized``'s zero bit for bit, under MIN_MAX (Diffusion) it is not the
     middle of the range that ``normalized`` gives."""
-    from workers.backbones.lerobot.adapter import policy_io
+    from workers.backbones.lerobot.checkpoint import policy_io
 
     for kind, mode in (("act", "MEAN_STD"), ("diffusion", "MIN_MAX")):
         bb = _backbone(ckpts[kind])
@@ -305,7 +305,8 @@ def test_runner_refuses_a_missing_checkpoint_before_work(tmp_path) -> None:
 
 
 def test_policy_io_reads_config_json_only(ckpts, tmp_path) -> None:
-    from workers.backbones.lerobot.adapter import LerobotBackbone, policy_io
+    from workers.backbones.lerobot.adapter import LerobotBackbone
+    from workers.backbones.lerobot.checkpoint import policy_io
 
     io = policy_io(ckpts["act"])
     assert dict(io.images) == {"agentview": (3, 64, 64)}

@@ -291,34 +291,8 @@ class LerobotEnvSuite(GymnasiumEnv):
                 f"not the pixels + agent_pos this suite reads; {LIBERO_TYPES[type]}"
             )
         self.cfg = env_config(type, config)
-        with self._missing_package(type):
-            built = self.cfg.create_envs(n_envs=1, use_async_envs=False)
-        self._suite_of: dict[str, str] = {}
-        self._vecs: dict[str, _OneOfVector] = {}
-        for suite, tasks in built.items():
-            for tid, vec in tasks.items():
-                one = _OneOfVector(vec, success_key)
-                key = _task_key(str(suite), tid, one.attr("task"), len(tasks))
-                self._suite_of[key], self._vecs[key] = str(suite), one
-        first = next(iter(self._vecs.values()))
-        self._env = first
-        space = first.observation_space
-        parts = getattr(space, "spaces", None) or {}
-        pixels = parts.get("pixels")
-        if "agent_pos" not in parts:
-            raise ValueError(
-                f"env.params.type={type!r}: its observation ({space}) has no agent_pos, which "
-                "this suite reads as the state; for LIBERO use env.suite=libero"
-            )
-        # a state-only env (no pixels) runs the baseline mode; the pre-flight refuses the modes
-        # that intervene on an image, naming the config's image option (image_option)
-        cams = (
-            {}
-            if pixels is None
-            else {k: f"pixels/{k}" for k in pixels.spaces}
-            if hasattr(pixels, "spaces")
-            else {"image": "pixels"}
-        )
+        self._build_vectors(type, success_key)
+        cams, pixels = self._cameras(type)
         self.image_option = image_option(self.cfg) if pixels is None else None
         budgets = {k: max_steps or _step_budget(v, self.cfg) for k, v in self._vecs.items()}
         self.env_type = self.env_id = type
@@ -343,6 +317,37 @@ class LerobotEnvSuite(GymnasiumEnv):
             )
             for tid in self._vecs
         }
+
+    def _build_vectors(self, type: str, success_key: str) -> None:
+        """lerobot's vector envs, one per task (``self._vecs``), and each task's suite."""
+        with self._missing_package(type):
+            built = self.cfg.create_envs(n_envs=1, use_async_envs=False)
+        self._suite_of: dict[str, str] = {}
+        self._vecs: dict[str, _OneOfVector] = {}
+        for suite, tasks in built.items():
+            for tid, vec in tasks.items():
+                one = _OneOfVector(vec, success_key)
+                key = _task_key(str(suite), tid, one.attr("task"), len(tasks))
+                self._suite_of[key], self._vecs[key] = str(suite), one
+        self._env = next(iter(self._vecs.values()))
+
+    def _cameras(self, type: str) -> tuple[dict[str, str], Any]:
+        """camera -> observation path, and the pixels space (None: a state-only env, which runs
+        the baseline mode; the pre-flight refuses the modes that intervene on an image, naming
+        the config's image option)."""
+        space = self._env.observation_space
+        parts = getattr(space, "spaces", None) or {}
+        pixels = parts.get("pixels")
+        if "agent_pos" not in parts:
+            raise ValueError(
+                f"env.params.type={type!r}: its observation ({space}) has no agent_pos, which "
+                "this suite reads as the state; for LIBERO use env.suite=libero"
+            )
+        if pixels is None:
+            return {}, None
+        if hasattr(pixels, "spaces"):
+            return {k: f"pixels/{k}" for k in pixels.spaces}, pixels
+        return {"image": "pixels"}, pixels
 
     def tasks(self) -> list[TaskSpec]:
         return list(self._specs.values())
