@@ -378,7 +378,8 @@ def test_xvla_E_equals_the_harness_and_keeps_xvlas_env_processors(tmp_path) -> N
     from lerobot.envs.configs import LiberoEnv
     from lerobot.envs.factory import make_env_pre_post_processors
 
-    from training.toy_checkpoints import build_local_tokenizer, build_xvla
+    from training.toy_checkpoints import build_local_tokenizer
+    from training.toy_xvla_checkpoint import build_xvla
     from workers.backbones.base import Observation
 
     tok = build_local_tokenizer(tmp_path / "tok", ["pick it", "place it"])
