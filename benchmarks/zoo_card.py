@@ -51,7 +51,7 @@ def diagnose_effects(run_dir: Path) -> dict:
 def card_effects(steps: pd.DataFrame) -> dict:
     """``pooled_effects`` of one diagnose cell's inferences without the image-zeroed control's,
     or of the control's where the run holds nothing else."""
-    from pipeline.reporting.observations import pooled_effects, without_control
+    from pipeline.results.observation_stats import pooled_effects, without_control
 
     seen = without_control(steps)
     return pooled_effects(seen if len(seen) else steps)

@@ -19,6 +19,7 @@ import shutil
 import signal
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from idr_core.features import ACTION, OBS_IMAGE, OBS_STATE
@@ -96,45 +97,14 @@ def record(
         robot_type="sawyer",
         use_videos=False,
     )
-    (cam,) = env.cameras
     stop, previous = defer_stop_signals()
     stats: dict[str, dict[str, float]] = {}
     try:
         for task in tasks:
-            expert = expert_for(task)
-            kept, tried, frames, t0 = 0, 0, 0, time.perf_counter()
-            while kept < episodes and not stop:
-                obs = env.reset(task, first_episode + tried, seed)
-                tried += 1
-                buffer = []
-                while not obs.status.done:
-                    action = np.clip(expert.get_action(env.raw_observation["state"]), -1, 1)
-                    action = action.astype(np.float32)
-                    buffer.append(
-                        {
-                            OBS_IMAGE: obs.images[cam],
-                            OBS_STATE: obs.state.astype(np.float32),
-                            ACTION: action,
-                            "task": obs.status.instruction,
-                        }
-                    )
-                    obs = env.step(action)
-                if not obs.status.success:
-                    if tried > 2 * episodes + 10:
-                        raise RuntimeError(f"expert failed too often on {task}: {kept}/{tried}")
-                    continue
-                for frame in buffer:
-                    ds.add_frame(frame)
-                ds.save_episode()
-                kept, frames = kept + 1, frames + len(buffer)
-            stats[task] = {
-                "episodes": kept,
-                "tried": tried,
-                "frames": frames,
-                "seconds": round(time.perf_counter() - t0, 1),
-            }
+            stats[task] = _record_task(ds, env, task, episodes, seed, first_episode, stop)
             print(
-                f"{task}: {kept}/{tried} kept, {frames} frames, {stats[task]['seconds']:.0f}s",
+                f"{task}: {stats[task]['episodes']}/{stats[task]['tried']} kept, "
+                f"{stats[task]['frames']} frames, {stats[task]['seconds']:.0f}s",
                 flush=True,
             )
             if stop:
@@ -146,6 +116,60 @@ def record(
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
+    _write_parts(root, config, first_episode, stats)
+    return stats
+
+
+def _episode(env: Any, expert: Any, task: str, episode: int, seed: int) -> tuple[list[dict], bool]:
+    """One episode the expert drives: its frames and whether it succeeded."""
+    (cam,) = env.cameras
+    obs = env.reset(task, episode, seed)
+    buffer = []
+    while not obs.status.done:
+        action = np.clip(expert.get_action(env.raw_observation["state"]), -1, 1)
+        action = action.astype(np.float32)
+        buffer.append(
+            {
+                OBS_IMAGE: obs.images[cam],
+                OBS_STATE: obs.state.astype(np.float32),
+                ACTION: action,
+                "task": obs.status.instruction,
+            }
+        )
+        obs = env.step(action)
+    return buffer, obs.status.success
+
+
+def _record_task(
+    ds: Any, env: Any, task: str, episodes: int, seed: int, first_episode: int, stop: list[int]
+) -> dict[str, float]:
+    """``episodes`` successful episodes of ``task`` added to ``ds``, or fewer once ``stop``
+    holds a signal; the task's statistics."""
+    expert = expert_for(task)
+    kept, tried, frames, t0 = 0, 0, 0, time.perf_counter()
+    while kept < episodes and not stop:
+        buffer, success = _episode(env, expert, task, first_episode + tried, seed)
+        tried += 1
+        if not success:
+            if tried > 2 * episodes + 10:
+                raise RuntimeError(f"expert failed too often on {task}: {kept}/{tried}")
+            continue
+        for frame in buffer:
+            ds.add_frame(frame)
+        ds.save_episode()
+        kept, frames = kept + 1, frames + len(buffer)
+    return {
+        "episodes": kept,
+        "tried": tried,
+        "frames": frames,
+        "seconds": round(time.perf_counter() - t0, 1),
+    }
+
+
+def _write_parts(
+    root: Path, config: Path, first_episode: int, stats: dict[str, dict[str, float]]
+) -> None:
+    """``meta/zoo_parts.json``: what the dataset holds (an export's card data)."""
     (root / "meta" / "zoo_parts.json").write_text(
         json.dumps(
             {
@@ -160,7 +184,6 @@ def record(
         )
         + "\n"
     )
-    return stats
 
 
 def main() -> None:

@@ -27,7 +27,9 @@ import shutil
 import signal
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from idr_core.features import ACTION, IMAGE_PREFIX, OBS_STATE
@@ -84,8 +86,7 @@ def record(
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     from workers.envs.suites.tabletop.env import TabletopEnv
-    from workers.episode.observation import to_policy_observation
-    from workers.experts.tabletop import PLACE_TOL, expert_action
+    from workers.experts.tabletop import PLACE_TOL
 
     if root.exists():
         shutil.rmtree(root)
@@ -105,6 +106,7 @@ def record(
         driver = LerobotBackbone(path=str(policy), device="cpu")
     place_tol = PLACE_TOL if place_tol is None else place_tol
     rng = np.random.default_rng([seed, first_episode])
+    rollout = _Rollout(env, cameras, place_tol, driver, replan_steps, noise, rng)
     stats: dict[str, dict[str, float]] = {}
     # SIGINT / SIGTERM stop after the episode in progress and still finalize the dataset (some
     # library in the stack swallows KeyboardInterrupt, and an unfinalized dataset is unreadable)
@@ -113,53 +115,10 @@ def record(
         for task in tasks:
             if stop:
                 break
-            kept, tried, frames, t0 = 0, 0, 0, time.perf_counter()
-            while kept < episodes and not stop:
-                obs = env.reset(task, first_episode + tried, seed)
-                tried += 1
-                buffer, queue = [], []
-                if driver is not None:
-                    driver.reset()
-                while not obs.status.done:
-                    action = expert_action(obs.privileged, place_tol).astype(np.float32)
-                    frame = {CAMERA_KEYS[c]: obs.images[c] for c in cameras}
-                    frame.update(
-                        {
-                            OBS_STATE: obs.state,
-                            ACTION: action,
-                            "task": obs.status.instruction,
-                        }
-                    )
-                    buffer.append(frame)
-                    executed = action.copy()
-                    if driver is not None:
-                        if not queue:
-                            batch = to_policy_observation(
-                                obs, obs.status.instruction, driver.cameras
-                            )
-                            chunk = driver.predict_chunk(batch)[0, :replan_steps]
-                            queue = list(chunk.numpy().astype(np.float32))
-                        executed = queue.pop(0)
-                    if noise:
-                        executed[:3] = np.clip(executed[:3] + rng.normal(0, noise, 3), -1, 1)
-                    obs = env.step(executed)
-                if driver is None and not obs.status.success:
-                    continue
-                for frame in buffer:
-                    ds.add_frame(frame)
-                ds.save_episode()
-                kept += 1
-                frames += len(buffer)
-                if tried > 2 * episodes + 10:
-                    raise RuntimeError(f"expert failed too often on {task}: {kept}/{tried}")
-            stats[task] = {
-                "episodes": kept,
-                "tried": tried,
-                "frames": frames,
-                "seconds": time.perf_counter() - t0,
-            }
+            stats[task] = _record_task(ds, rollout, task, episodes, seed, first_episode, stop)
             print(
-                f"{task}: {kept}/{tried} kept, {frames} frames, {stats[task]['seconds']:.0f}s",
+                f"{task}: {stats[task]['episodes']}/{stats[task]['tried']} kept, "
+                f"{stats[task]['frames']} frames, {stats[task]['seconds']:.0f}s",
                 flush=True,
             )
     finally:
@@ -174,6 +133,86 @@ def record(
     if stop:
         print(f"stopped by signal {stop[0]}: {stats}", flush=True)
     return stats
+
+
+@dataclass(frozen=True)
+class _Rollout:
+    """How an episode is driven and labelled: the expert labels every visited state; the
+    executed action is the expert's (plus DART's ``noise``) or, with a ``driver`` (DAgger), the
+    policy's chunks of ``replan_steps``."""
+
+    env: Any
+    cameras: tuple[str, ...]
+    place_tol: float
+    driver: Any  # a LerobotBackbone, or None: the expert drives
+    replan_steps: int
+    noise: float
+    rng: np.random.Generator
+
+    def episode(self, task: str, episode: int, seed: int) -> tuple[list[dict], bool]:
+        """The frames of one episode (the expert's labels) and whether it succeeded."""
+        from workers.episode.observation import to_policy_observation
+        from workers.experts.tabletop import expert_action
+
+        env, driver = self.env, self.driver
+        obs = env.reset(task, episode, seed)
+        buffer, queue = [], []
+        if driver is not None:
+            driver.reset()
+        while not obs.status.done:
+            action = expert_action(obs.privileged, self.place_tol).astype(np.float32)
+            frame = {CAMERA_KEYS[c]: obs.images[c] for c in self.cameras}
+            frame.update(
+                {
+                    OBS_STATE: obs.state,
+                    ACTION: action,
+                    "task": obs.status.instruction,
+                }
+            )
+            buffer.append(frame)
+            executed = action.copy()
+            if driver is not None:
+                if not queue:
+                    batch = to_policy_observation(obs, obs.status.instruction, driver.cameras)
+                    chunk = driver.predict_chunk(batch)[0, : self.replan_steps]
+                    queue = list(chunk.numpy().astype(np.float32))
+                executed = queue.pop(0)
+            if self.noise:
+                executed[:3] = np.clip(executed[:3] + self.rng.normal(0, self.noise, 3), -1, 1)
+            obs = env.step(executed)
+        return buffer, obs.status.success
+
+
+def _record_task(
+    ds: Any,
+    rollout: _Rollout,
+    task: str,
+    episodes: int,
+    seed: int,
+    first_episode: int,
+    stop: list[int],
+) -> dict[str, float]:
+    """``episodes`` episodes of ``task`` added to ``ds`` (successful ones unless a policy
+    drives), or fewer once ``stop`` holds a signal; the task's statistics."""
+    kept, tried, frames, t0 = 0, 0, 0, time.perf_counter()
+    while kept < episodes and not stop:
+        buffer, success = rollout.episode(task, first_episode + tried, seed)
+        tried += 1
+        if rollout.driver is None and not success:
+            continue
+        for frame in buffer:
+            ds.add_frame(frame)
+        ds.save_episode()
+        kept += 1
+        frames += len(buffer)
+        if tried > 2 * episodes + 10:
+            raise RuntimeError(f"expert failed too often on {task}: {kept}/{tried}")
+    return {
+        "episodes": kept,
+        "tried": tried,
+        "frames": frames,
+        "seconds": time.perf_counter() - t0,
+    }
 
 
 def main() -> None:

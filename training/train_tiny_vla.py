@@ -15,92 +15,19 @@ Reproduce the shipped checkpoint (docs/tiny-vla.md):
 from __future__ import annotations
 
 import argparse
-import io
 import json
-import re
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from idr_core.features import ACTION, IMAGE_PREFIX, OBS_STATE
+from idr_core.features import ACTION, OBS_STATE
 
-
-@dataclass
-class DemoTensors:
-    images: dict[str, torch.Tensor]  # key -> uint8 (N, 3, H, W)
-    state: torch.Tensor  # (N, S)
-    action: torch.Tensor  # (N, D)
-    tasks: list[str]  # per frame
-    chunk_index: (
-        torch.Tensor
-    )  # (N, T) frame indices of each frame's action chunk (clamped in episode)
-    chunk_pad: torch.Tensor  # (N, T) True where the chunk ran past the episode end
-    n_episodes: int
-
-
-def _decode(png: bytes) -> np.ndarray:
-    from PIL import Image
-
-    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.uint8).transpose(2, 0, 1)
-
-
-def load_demos(roots: list[Path], chunk: int) -> DemoTensors:
-    """Read LeRobotDataset folders (v3 layout: data/chunk-*/file-*.parquet, meta/tasks.parquet)
-    with pyarrow, decoding the PNG frames once: ~100x faster than per-item dataset access."""
-    import pandas as pd
-    import pyarrow.parquet as pq
-
-    images: dict[str, list[np.ndarray]] = {}
-    state, action, tasks, episode = [], [], [], []
-    offset = 0
-    for root in roots:
-        files = sorted((root / "data").glob("chunk-*/*.parquet"))
-        if not files:
-            raise FileNotFoundError(
-                f"{root} holds no LeRobotDataset data files (data/chunk-*/*.parquet)"
-            )
-        table = pq.read_table(files)
-        task_names = pd.read_parquet(root / "meta" / "tasks.parquet")
-        by_index = {int(i): str(name) for name, i in task_names["task_index"].items()}
-        for k in [c for c in table.column_names if c.startswith(IMAGE_PREFIX)]:
-            images.setdefault(k, []).extend(
-                _decode(v["bytes"]) for v in table.column(k).to_pylist()
-            )
-        state.append(np.asarray(table.column(OBS_STATE).to_pylist(), dtype=np.float32))
-        action.append(np.asarray(table.column(ACTION).to_pylist(), dtype=np.float32))
-        tasks.extend(by_index[int(t)] for t in table.column("task_index").to_pylist())
-        episode.append(
-            np.asarray(table.column("episode_index").to_pylist(), dtype=np.int64) + offset
-        )
-        offset = int(episode[-1].max()) + 1
-    ep = np.concatenate(episode)
-    n = len(ep)
-    idx = np.arange(n)[:, None] + np.arange(chunk)[None]
-    idx = np.minimum(idx, n - 1)
-    pad = ep[idx] != ep[:, None]
-    # clamp to the episode's last frame
-    last = np.zeros(n, dtype=np.int64)
-    for e in np.unique(ep):
-        members = np.flatnonzero(ep == e)
-        last[members] = members[-1]
-    idx = np.minimum(idx, last[:, None])
-    return DemoTensors(
-        images={k: torch.from_numpy(np.stack(v)) for k, v in images.items()},
-        state=torch.from_numpy(np.concatenate(state)),
-        action=torch.from_numpy(np.concatenate(action)),
-        tasks=tasks,
-        chunk_index=torch.from_numpy(idx),
-        chunk_pad=torch.from_numpy(pad),
-        n_episodes=len(np.unique(ep)),
-    )
-
-
-def vocabulary(tasks: list[str]) -> list[str]:
-    return sorted({w for t in set(tasks) for w in re.findall(r"[a-z]+", t.lower())})
+from training.tiny_vla_demos import DemoTensors, load_demos, vocabulary
 
 
 def random_shift(x: torch.Tensor, pad: int, gen: torch.Generator) -> torch.Tensor:
@@ -156,11 +83,6 @@ def train(
 ) -> dict:
     """``architecture``: TinyVLAConfig fields of the net (``ARCHITECTURE_FIELDS``) for a policy
     trained from scratch; a fine-tune keeps its checkpoint's."""
-    from lerobot.configs.types import FeatureType, PolicyFeature
-    from lerobot.processor.factory import make_default_pre_post_processors
-    from lerobot_policy_idr.tiny_vla.configuration_tiny_vla import TinyVLAConfig
-    from lerobot_policy_idr.tiny_vla.modeling_tiny_vla import TinyVLAPolicy
-
     architecture = {k: v for k, v in (architecture or {}).items() if v is not None}
     if init is not None and architecture:
         raise ValueError(
@@ -176,110 +98,14 @@ def train(
     print(f"loaded {n} frames from {[str(d) for d in data]} in {load_s:.0f}s", flush=True)
 
     if init is not None:
-        # fine-tune: the init checkpoint's normalization and vocabulary stay (a policy's inputs
-        # and outputs must mean what they meant when it was trained)
-        cfg = TinyVLAConfig.from_pretrained(init)
-        stats = _checkpoint_stats(init)
-        missing = sorted(set(vocabulary(demos.tasks)) - set(cfg.vocab))
-        if missing:
-            raise ValueError(f"--init {init}: instructions use words it never saw: {missing}")
-        if list(cfg.ignored_state_dims) != list(ignored_state_dims):
-            print(
-                f"--init: keeping its ignored_state_dims {cfg.ignored_state_dims}"
-                f" (asked {list(ignored_state_dims)})",
-                flush=True,
-            )
-        if cfg.chunk_size != chunk:
-            raise ValueError(f"--init {init} predicts chunks of {cfg.chunk_size}, --chunk {chunk}")
-        policy = TinyVLAPolicy.from_pretrained(init, config=cfg)
+        cfg, stats, policy = _fine_tune_start(init, demos, chunk, ignored_state_dims)
     else:
-        stats = {
-            key: {
-                "mean": values.mean(0),
-                "std": values.std(0).clamp(min=1e-3),
-                "min": values.min(0).values,
-                "max": values.max(0).values,
-            }
-            for key, values in ((OBS_STATE, demos.state), (ACTION, demos.action))
-        }
-        inputs = {
-            k: PolicyFeature(FeatureType.VISUAL, tuple(v.shape[1:]))
-            for k, v in demos.images.items()
-        }
-        inputs[OBS_STATE] = PolicyFeature(FeatureType.STATE, (demos.state.shape[1],))
-        outputs = {ACTION: PolicyFeature(FeatureType.ACTION, (demos.action.shape[1],))}
-        cfg = TinyVLAConfig(
-            input_features=inputs,
-            output_features=outputs,
-            vocab=vocabulary(demos.tasks),
-            chunk_size=chunk,
-            n_action_steps=chunk,
-            ignored_state_dims=list(ignored_state_dims),
-            device="cpu",
-            **architecture,
-        )
-        cfg.validate_features()  # e.g. one stride per conv layer, before any training
-        policy = TinyVLAPolicy(cfg)
-    s_mean, s_std = stats[OBS_STATE]["mean"], stats[OBS_STATE]["std"]
-    a_mean, a_std = stats[ACTION]["mean"], stats[ACTION]["std"]
+        cfg, stats, policy = _scratch_start(demos, chunk, ignored_state_dims, architecture)
     policy = policy.to(device)
     policy.train()
-    opt = torch.optim.AdamW(policy.parameters(), lr=lr, weight_decay=cfg.optimizer_weight_decay)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=steps, eta_min=lr * 0.05)
-    # the whole dataset lives on the training device (uint8 images: ~55 KB a frame, two cameras)
-    images = {k: v.to(device) for k, v in demos.images.items()}
-    state_n = ((demos.state - s_mean) / s_std).to(device)
-    action_n = ((demos.action - a_mean) / a_std).to(device)
-    chunk_index, chunk_pad = demos.chunk_index.to(device), demos.chunk_pad.to(device)
-    tasks = np.array(demos.tasks, dtype=object)
-    # balance task families (the organize chain has ~5x the frames of a pick): each family gets
-    # an equal share of every batch
-    family = np.array([t.split(" ")[0] for t in demos.tasks])
-    weights = np.zeros(n)
-    for f in np.unique(family):
-        weights[family == f] = 1.0 / (family == f).sum()
-    weights = torch.from_numpy(weights / weights.sum())
-    losses = []
-    t1 = time.perf_counter()
-    for step in range(1, steps + 1):
-        idx = torch.multinomial(weights, batch_size, replacement=True, generator=gen)
-        didx = idx.to(device)
-        batch = {k: random_shift(v[didx].float() / 255.0, shift, gen) for k, v in images.items()}
-        state = state_n[didx]
-        if state_dropout:
-            # zero (= the dataset mean) the state of some samples, so that the policy must find
-            # the cubes in the images instead of replaying a state-indexed average trajectory
-            keep = torch.rand(batch_size, 1, generator=gen) >= state_dropout
-            state = state * keep.to(device)
-        if state_noise:
-            # Gaussian noise on the normalized state: the end-effector orientation varies by a
-            # few thousandths of a radian with the commanded motion, so a net fed the exact
-            # state learns to copy its previous action from that tilt (the "copycat" shortcut)
-            # and drifts off in closed loop; noise drowns that signal, keeps positions usable
-            state = state + state_noise * torch.randn(state.shape, generator=gen).to(device)
-        batch[OBS_STATE] = state
-        batch[ACTION] = action_n[chunk_index[didx]]
-        batch["action_is_pad"] = chunk_pad[didx]
-        batch["task"] = list(tasks[idx.numpy()])
-        loss, _ = policy(batch)
-        opt.zero_grad()
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(policy.parameters(), 10.0)
-        opt.step()
-        sched.step()
-        losses.append(float(loss.detach()))
-        if step % log_every == 0 or step == steps:
-            print(
-                f"step {step}/{steps} loss {np.mean(losses[-log_every:]):.4f} "
-                f"({(time.perf_counter() - t1) / step * 1e3:.0f} ms/step)",
-                flush=True,
-            )
-    policy.eval().to("cpu")
-    out.mkdir(parents=True, exist_ok=True)
-    policy.save_pretrained(out)
-    pre, post = make_default_pre_post_processors(cfg, dataset_stats=stats)
-    pre.save_pretrained(out)
-    post.save_pretrained(out)
+    settings = _Steps(steps, batch_size, lr, shift, state_dropout, state_noise, log_every)
+    losses, t1 = _optimize(policy, cfg, demos, stats, settings, device, gen)
+    _save_checkpoint(policy, cfg, stats, out)
     meta = {
         "command": " ".join(["python -m training.train_tiny_vla", *sys.argv[1:]]),
         "frames": n,
@@ -308,7 +134,174 @@ def train(
     return meta
 
 
-def main() -> None:
+def _fine_tune_start(
+    init: Path, demos: DemoTensors, chunk: int, ignored_state_dims: tuple[int, ...]
+) -> tuple[Any, dict[str, dict[str, torch.Tensor]], Any]:
+    """The config, normalization stats and policy of the ``init`` checkpoint: its
+    normalization and vocabulary stay (a policy's inputs and outputs must mean what they meant
+    when it was trained)."""
+    from lerobot_policy_idr.tiny_vla.configuration_tiny_vla import TinyVLAConfig
+    from lerobot_policy_idr.tiny_vla.modeling_tiny_vla import TinyVLAPolicy
+
+    cfg = TinyVLAConfig.from_pretrained(init)
+    stats = _checkpoint_stats(init)
+    missing = sorted(set(vocabulary(demos.tasks)) - set(cfg.vocab))
+    if missing:
+        raise ValueError(f"--init {init}: instructions use words it never saw: {missing}")
+    if list(cfg.ignored_state_dims) != list(ignored_state_dims):
+        print(
+            f"--init: keeping its ignored_state_dims {cfg.ignored_state_dims}"
+            f" (asked {list(ignored_state_dims)})",
+            flush=True,
+        )
+    if cfg.chunk_size != chunk:
+        raise ValueError(f"--init {init} predicts chunks of {cfg.chunk_size}, --chunk {chunk}")
+    return cfg, stats, TinyVLAPolicy.from_pretrained(init, config=cfg)
+
+
+def _scratch_start(
+    demos: DemoTensors, chunk: int, ignored_state_dims: tuple[int, ...], architecture: dict
+) -> tuple[Any, dict[str, dict[str, torch.Tensor]], Any]:
+    """A new policy's config (features, vocabulary and net from the demonstrations and
+    ``architecture``), the demonstrations' normalization stats, and the policy."""
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot_policy_idr.tiny_vla.configuration_tiny_vla import TinyVLAConfig
+    from lerobot_policy_idr.tiny_vla.modeling_tiny_vla import TinyVLAPolicy
+
+    stats = {
+        key: {
+            "mean": values.mean(0),
+            "std": values.std(0).clamp(min=1e-3),
+            "min": values.min(0).values,
+            "max": values.max(0).values,
+        }
+        for key, values in ((OBS_STATE, demos.state), (ACTION, demos.action))
+    }
+    inputs = {
+        k: PolicyFeature(FeatureType.VISUAL, tuple(v.shape[1:])) for k, v in demos.images.items()
+    }
+    inputs[OBS_STATE] = PolicyFeature(FeatureType.STATE, (demos.state.shape[1],))
+    outputs = {ACTION: PolicyFeature(FeatureType.ACTION, (demos.action.shape[1],))}
+    cfg = TinyVLAConfig(
+        input_features=inputs,
+        output_features=outputs,
+        vocab=vocabulary(demos.tasks),
+        chunk_size=chunk,
+        n_action_steps=chunk,
+        ignored_state_dims=list(ignored_state_dims),
+        device="cpu",
+        **architecture,
+    )
+    cfg.validate_features()  # e.g. one stride per conv layer, before any training
+    return cfg, stats, TinyVLAPolicy(cfg)
+
+
+@dataclass(frozen=True)
+class _Steps:
+    """How the policy is optimized: ``train``'s arguments of that name."""
+
+    steps: int
+    batch_size: int
+    lr: float
+    shift: int
+    state_dropout: float
+    state_noise: float
+    log_every: int
+
+
+def _family_weights(tasks: list[str]) -> torch.Tensor:
+    """Sampling weights that balance task families (the organize chain has ~5x the frames of a
+    pick): each family gets an equal share of every batch."""
+    family = np.array([t.split(" ")[0] for t in tasks])
+    weights = np.zeros(len(tasks))
+    for f in np.unique(family):
+        weights[family == f] = 1.0 / (family == f).sum()
+    return torch.from_numpy(weights / weights.sum())
+
+
+def _optimize(
+    policy: Any,
+    cfg: Any,
+    demos: DemoTensors,
+    stats: dict[str, dict[str, torch.Tensor]],
+    run: _Steps,
+    device: str,
+    gen: torch.Generator,
+) -> tuple[list[float], float]:
+    """``run.steps`` optimizer steps on batches drawn from ``demos``; the losses, and when the
+    first step started (``time.perf_counter``)."""
+    s_mean, s_std = stats[OBS_STATE]["mean"], stats[OBS_STATE]["std"]
+    a_mean, a_std = stats[ACTION]["mean"], stats[ACTION]["std"]
+    opt = torch.optim.AdamW(policy.parameters(), lr=run.lr, weight_decay=cfg.optimizer_weight_decay)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=run.steps, eta_min=run.lr * 0.05)
+    # the whole dataset lives on the training device (uint8 images: ~55 KB a frame, two cameras)
+    images = {k: v.to(device) for k, v in demos.images.items()}
+    state_n = ((demos.state - s_mean) / s_std).to(device)
+    action_n = ((demos.action - a_mean) / a_std).to(device)
+    chunk_index, chunk_pad = demos.chunk_index.to(device), demos.chunk_pad.to(device)
+    tasks = np.array(demos.tasks, dtype=object)
+    weights = _family_weights(demos.tasks)
+    losses = []
+    t1 = time.perf_counter()
+    for step in range(1, run.steps + 1):
+        idx = torch.multinomial(weights, run.batch_size, replacement=True, generator=gen)
+        didx = idx.to(device)
+        batch = {
+            k: random_shift(v[didx].float() / 255.0, run.shift, gen) for k, v in images.items()
+        }
+        batch[OBS_STATE] = _perturbed_state(state_n[didx], run, device, gen)
+        batch[ACTION] = action_n[chunk_index[didx]]
+        batch["action_is_pad"] = chunk_pad[didx]
+        batch["task"] = list(tasks[idx.numpy()])
+        loss, _ = policy(batch)
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(policy.parameters(), 10.0)
+        opt.step()
+        sched.step()
+        losses.append(float(loss.detach()))
+        if step % run.log_every == 0 or step == run.steps:
+            print(
+                f"step {step}/{run.steps} loss {np.mean(losses[-run.log_every :]):.4f} "
+                f"({(time.perf_counter() - t1) / step * 1e3:.0f} ms/step)",
+                flush=True,
+            )
+    return losses, t1
+
+
+def _perturbed_state(
+    state: torch.Tensor, run: _Steps, device: str, gen: torch.Generator
+) -> torch.Tensor:
+    """A batch's normalized state with ``run``'s dropout and noise applied."""
+    if run.state_dropout:
+        # zero (= the dataset mean) the state of some samples, so that the policy must find
+        # the cubes in the images instead of replaying a state-indexed average trajectory
+        keep = torch.rand(run.batch_size, 1, generator=gen) >= run.state_dropout
+        state = state * keep.to(device)
+    if run.state_noise:
+        # Gaussian noise on the normalized state: the end-effector orientation varies by a
+        # few thousandths of a radian with the commanded motion, so a net fed the exact
+        # state learns to copy its previous action from that tilt (the "copycat" shortcut)
+        # and drifts off in closed loop; noise drowns that signal, keeps positions usable
+        state = state + run.state_noise * torch.randn(state.shape, generator=gen).to(device)
+    return state
+
+
+def _save_checkpoint(
+    policy: Any, cfg: Any, stats: dict[str, dict[str, torch.Tensor]], out: Path
+) -> None:
+    """The policy (on CPU) and its processors with ``stats``, in lerobot's format."""
+    from lerobot.processor.factory import make_default_pre_post_processors
+
+    policy.eval().to("cpu")
+    out.mkdir(parents=True, exist_ok=True)
+    policy.save_pretrained(out)
+    pre, post = make_default_pre_post_processors(cfg, dataset_stats=stats)
+    pre.save_pretrained(out)
+    post.save_pretrained(out)
+
+
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, nargs="+", required=True)
     ap.add_argument("--out", type=Path, required=True)
@@ -367,7 +360,11 @@ def main() -> None:
         default="cpu",
         help="where to train (cpu, cuda); the saved checkpoint is for CPU either way",
     )
-    args = ap.parse_args()
+    return ap
+
+
+def main() -> None:
+    args = _parser().parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
     meta = train(

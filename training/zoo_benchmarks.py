@@ -78,3 +78,14 @@ def offline_env(threads: int) -> dict[str, str]:
         MKL_NUM_THREADS=str(threads),
     )
     return env
+
+
+def run_dir(name: str, seed: int, runs: Path = RUNS, init_from: Path | None = None) -> Path:
+    """The run folder: ``NAME_seedS``, or ``NAME_seedS_continued`` for a stage that starts from an
+    exported checkpoint's weights (so it neither resumes nor overwrites the first stage's run)."""
+    return runs / (f"{name}_seed{seed}" + ("_continued" if init_from is not None else ""))
+
+
+def last_checkpoint(out: Path) -> Path | None:
+    last = out / "checkpoints" / "last"
+    return last if (last / "pretrained_model" / "config.json").is_file() else None

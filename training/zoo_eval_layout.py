@@ -23,7 +23,7 @@ EXPERIMENT = "zoo-training"
 STABLE_S = 2.0  # a checkpoint folder unchanged this long is whole (lerobot writes file by file)
 EXIT_LOCKED = 3  # another evaluator holds the run: not restarted
 MAX_RESTARTS = 3  # evaluators restarted after dying while training runs (a crash loop stops)
-CONTROL = "@image_blackout"  # the image-zeroed control task (pipeline.reporting.observations)
+CONTROL = "@image_blackout"  # the image-zeroed control task (pipeline.results.observation_stats)
 
 # held-out demonstrations per benchmark, recorded from init states no member trained on (the
 # training demonstrations use tabletop episodes 100000-300029, MetaWorld's from 100000)

@@ -75,9 +75,9 @@ def closedloop_metrics(run_dir: Path) -> dict[str, float]:
     """Success of the diagnose cell with its Wilson interval and its R_img (the ratio of mean
     effects, 95% interval resampling episodes), both without the image-zeroed control, whose
     success is ``success_control``; error episodes are left out and counted."""
-    from pipeline.reporting.observations import pooled_effects, without_control
     from pipeline.reporting.run_data import load_run, reference_diagnose
     from pipeline.results.aggregate import wilson
+    from pipeline.results.observation_stats import pooled_effects, without_control
 
     data = load_run(run_dir)
     eps = data.episodes

@@ -196,7 +196,7 @@ def _stop(signum: int, _frame: Any) -> None:
     raise KeyboardInterrupt(signum)
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path, help="a zoo run folder (lerobot-train's --output_dir)")
     ap.add_argument("--benchmark", choices=sorted(BENCHMARKS), default="tabletop")
@@ -217,7 +217,47 @@ def main(argv: list[str] | None = None) -> int:
         "it) or the parent process is gone; without it: evaluate what is saved and exit",
     )
     ap.add_argument("--parent-pid", type=int, default=None)
-    args = ap.parse_args(argv)
+    return ap
+
+
+def _open_tracker(
+    args: argparse.Namespace,
+    run: Path,
+    evals: Path,
+    member: str,
+    seed: int | None,
+    frames: Path,
+    evaluation: Evaluation,
+) -> TrainingRun | None:
+    """The member x seed's MLflow run (reused by a restarted evaluator), its params logged;
+    None where the store is not usable (the figures then go to evals.jsonl only)."""
+    tracker = None
+    uri = args.tracking_uri or default_uri(run)
+    name = member if seed is None else f"{member}_seed{seed}"
+    name += "_continued" if run.name.endswith("_continued") else ""  # a stage's own run
+    try:
+        tracker = TrainingRun(uri, evals, name)
+        log(f"MLflow run {tracker.run_id} in {uri} (experiment {EXPERIMENT})")
+    except Exception as e:
+        log(f"MLflow store {uri} is not usable ({describe(e)}): figures go to evals.jsonl only")
+    params: dict[str, Any] = {
+        "member": member,
+        "seed": seed,
+        "benchmark": args.benchmark,
+        "frames": str(frames),
+        "frames_every": args.frames_every,
+        "eval_every": args.every,
+        "closed_loop_every": args.closed_loop_every,
+        "closed_loop_episodes": args.closed_loop_episodes,
+    }
+    if tracker is not None:
+        tracker.params(params)
+        evaluation.on_frames = lambda fs: tracker.params({"frames_count": fs.n})
+    return tracker
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
     check_eval_settings(
         args.benchmark, args.every, None, args.frames or HELDOUT[args.benchmark][0],
         args.frames_every, args.closed_loop_every, args.closed_loop_episodes,
@@ -256,28 +296,7 @@ def main(argv: list[str] | None = None) -> int:
         closed_loop_set=tuple(args.closed_loop_set),
         device=args.device,
     )
-    tracker = None
-    uri = args.tracking_uri or default_uri(run)
-    name = member if seed is None else f"{member}_seed{seed}"
-    name += "_continued" if run.name.endswith("_continued") else ""  # a stage's own run
-    try:
-        tracker = TrainingRun(uri, evals, name)
-        log(f"MLflow run {tracker.run_id} in {uri} (experiment {EXPERIMENT})")
-    except Exception as e:
-        log(f"MLflow store {uri} is not usable ({describe(e)}): figures go to evals.jsonl only")
-    params: dict[str, Any] = {
-        "member": member,
-        "seed": seed,
-        "benchmark": args.benchmark,
-        "frames": str(frames),
-        "frames_every": args.frames_every,
-        "eval_every": args.every,
-        "closed_loop_every": args.closed_loop_every,
-        "closed_loop_episodes": args.closed_loop_episodes,
-    }
-    if tracker is not None:
-        tracker.params(params)
-        evaluation.on_frames = lambda fs: tracker.params({"frames_count": fs.n})
+    tracker = _open_tracker(args, run, evals, member, seed, frames, evaluation)
     ended_file, parent = evals / ENDED, args.parent_pid
 
     def ended() -> bool:

@@ -167,12 +167,8 @@ def load(
     RunConfig, with dotted overrides applied. ``out``: an existing run dir whose saved config
     explains the error gets a note (as the CLI's)."""
     from pipeline.execution.claim import misplaced_keys_note
-    from pipeline.planning.config import (
-        RunConfig,
-        apply_overrides,
-        config_from_dict,
-        load_config,
-    )
+    from pipeline.planning.config import RunConfig, config_from_dict, load_config
+    from pipeline.planning.config_yaml import apply_overrides
 
     texts = override_strings(overrides)
     try:

@@ -100,7 +100,7 @@ def misplaced_keys_note(run_dir: Path) -> str | None:
     """What a run dir's episodes ran with, where its config.yaml put intervention keys under
     ``idr:`` (accepted once and silently overridden by the ``intervention:`` defaults; refused
     now): its stored episodes' own columns say which settings were used."""
-    from pipeline.planning.config import safe_load_yaml
+    from pipeline.planning.config_yaml import safe_load_yaml
     from pipeline.planning.grid import INTERVENTION_KEYS
 
     saved = run_dir / CONFIG_YAML

@@ -31,24 +31,22 @@ from pipeline.execution.preflight import (
     check_names,
     check_tracking,
     check_videos,
-    perturbations_of,
     select_tasks,
 )
 from pipeline.execution.progress import Progress
 from pipeline.execution.run_log import RUN_LOG
 from pipeline.execution.scheduler import RunSummary, Scheduler
 from pipeline.execution.signals import critical_section
+from pipeline.execution.stages import calibrated_specs, held_out_stage, stage_grids
+from pipeline.execution.worker_setup import build_worker_spec, host_hardware, with_policy_token
 from pipeline.execution.writer import BatchWriter
-from pipeline.planning.calibration_block import fit_sources
 from pipeline.planning.checkpoint_fit import fit_config
 from pipeline.planning.config import ConfigError, RunConfig
 from pipeline.planning.env_runtime import check_env_runtime
-from pipeline.planning.executor_config import SharedExecutor
-from pipeline.planning.plan import CellPlan, RunPlan, SpecGrid, planned_numerics
+from pipeline.planning.plan import RunPlan, planned_numerics
 from pipeline.planning.provenance import check_hardware, check_numerics, check_resume
 from pipeline.reporting.run_data import load_run
 from pipeline.reporting.write import write_report
-from pipeline.results.calibration import calibrate, held_out_record, held_out_tasks
 from pipeline.results.store import RunStore
 from pipeline.rundir import (
     CALIBRATION_FILE,
@@ -59,22 +57,16 @@ from pipeline.rundir import (
     MARKERS,
     REPORT_MD,
     RUN_JSON,
-    VIDEOS_DIR,
     check_run_dir,
-    policy_token,
     read_run_json,
     update_run_json,
 )
-from workers.episode.rows import EpisodeResult, WorkerSpec
-from workers.hardware import hardware_class, numerics_env
+from workers.episode.rows import EpisodeResult
+from workers.hardware import hardware_class
 
 if TYPE_CHECKING:
-    from pipeline.planning.checkpoint_fit import Fit
     from pipeline.reporting.run_data import RunData
     from pipeline.tracking.tracker import Tracker
-    from workers.envs.base import TaskSpec
-    from workers.envs.server.spec import ServerSpec
-    from workers.policy.socket_settings import SocketSettings
 
 log = logging.getLogger("idr_eval.runner")
 
@@ -114,137 +106,13 @@ def plan_run(
         )
         if warning:
             log.warning(warning)
-    specs, deferred = _stages(cfg, run_id, tasks, version)
-    held_out, record = _held_out_stage(cfg, specs, tasks)
-    worker_spec = _worker_spec(cfg, fit, server, run_dir, tasks)
+    specs, deferred = stage_grids(cfg, run_id, tasks, version)
+    held_out, record = held_out_stage(cfg, specs, tasks)
+    worker_spec = build_worker_spec(cfg, fit, server, run_dir, tasks)
     return RunPlan(
         cfg, run_dir, run_id, tasks, specs, worker_spec, deferred, version, checkpoint, fit,
         server_hello, numerics, hardware, held_out, record,
     )  # fmt: skip
-
-
-def host_hardware(cfg: RunConfig) -> dict[str, object] | None:
-    """This host's hardware record where this host's actors run the episodes (a local Ray or
-    inline); None where a cluster's nodes do (executor.address)."""
-    if cfg.executor.kind == "ray" and cfg.executor.address:
-        return None
-    device = cfg.backbone.params.get("device") if cfg.backbone.kind != "remote" else None
-    from workers.hardware import apply_numerics_env, hardware_record, renderer_in_child
-
-    # the actors set the mode's pins first thing; the record is taken as they will see it (and
-    # an inline executor's actor is this process)
-    apply_numerics_env(numerics_env(cfg.executor.numerics_mode))
-    record = hardware_record(device)
-    record["renderer"] = renderer_in_child()
-    return record
-
-
-def _stages(
-    cfg: RunConfig, run_id: str, tasks: list[TaskSpec], version: str
-) -> tuple[SpecGrid, SpecGrid]:
-    """The first stage's grid and the calibrated one: cells with a calibrated tau run in a
-    second stage, after the diagnose cell they calibrate on."""
-    cells = [CellPlan(c.cell_id, c.idr, c.intervention) for c in cfg.cells()]
-    later = {c.cell_id for c in cfg.cells() if c.calibrated_tau}
-    grid = SpecGrid(
-        run_id, (), tuple(tasks), cfg.episodes_per_task, cfg.seed, cfg.backbone.kind, version
-    )
-    specs = grid.replace(cells=tuple(c for c in cells if c.cell_id not in later))
-    return specs, grid.replace(cells=tuple(c for c in cells if c.cell_id in later))
-
-
-def _held_out_stage(
-    cfg: RunConfig, specs: SpecGrid, tasks: list[TaskSpec]
-) -> tuple[SpecGrid | None, dict[str, object] | None]:
-    """With a ``calibration:`` block: the diagnose cells that fit tau, on the held-out
-    episodes of the calibration tasks (pipeline.results.calibration.held_out_tasks), and the
-    record of them; (None, None) without one."""
-    cal = cfg.calibration
-    if cal is None:
-        return None, None
-    cells = cfg.cells()
-    chosen = held_out_tasks(cal, tasks, cells)
-    sources = fit_sources(cells)
-    grid = specs.replace(
-        cells=tuple(c for c in specs.cells if c.cell_id in sources),
-        tasks=tuple(chosen),
-        episodes_per_task=cal.episodes_per_task,
-        first_episode=cal.first(cfg.episodes_per_task),
-    )
-    return grid, held_out_record(cfg, chosen, tasks)
-
-
-def _worker_spec(
-    cfg: RunConfig, fit: Fit, server: ServerSpec | None, run_dir: Path, tasks: list[TaskSpec]
-) -> WorkerSpec:
-    """What every worker builds: the backbone, the env (or its server), how it executes."""
-    backbone_params = dict(cfg.backbone.params)
-    if isinstance(backbone_params.get("path"), str) and Path(backbone_params["path"]).exists():
-        # actors may run in another working directory (or on another node with the same layout)
-        backbone_params["path"] = str(Path(backbone_params["path"]).resolve())
-    return WorkerSpec(
-        cfg.backbone.kind,
-        backbone_params,
-        cfg.env.suite,
-        cfg.env.params,
-        None if fit.replan_steps == "chunk" else int(fit.replan_steps),
-        cfg.backbone.batched,
-        server,
-        envs_per_worker=cfg.executor.episodes_per_actor(),
-        log_dir=str((run_dir / LOGS_DIR).resolve()),
-        perturbations=perturbations_of(tasks),
-        forward_rows=cfg.executor.forward_shape(),
-        torch_threads=cfg.executor.threads(),
-        numerics_env=numerics_env(cfg.executor.numerics_mode),
-        video_episodes=cfg.videos.episodes,
-        video_camera=cfg.videos.camera,
-        video_fps=cfg.videos.fps,
-        video_dir=str((run_dir / VIDEOS_DIR).resolve()),
-        policy_socket=_policy_socket(cfg, run_dir),
-    )
-
-
-def _policy_socket(cfg: RunConfig, run_dir: Path) -> SocketSettings | None:
-    """A shared policy's sockets (``executor.policy_transport=socket``): loopback on a local
-    Ray, the node's address on a cluster (``executor.address``); frames bounded by what the env
-    renders and takes, connections by the episodes in flight. The run's token is added when the
-    run starts (:func:`_with_policy_token`: planning writes nothing). None: no socket."""
-    ex = cfg.executor
-    if not isinstance(ex, SharedExecutor) or ex.policy_transport != "socket":
-        return None
-    from pipeline.planning.checkpoint_fit import describe_env
-    from workers.policy.socket_settings import (
-        DEFAULT_IDLE_S,
-        SocketLimits,
-        SocketSettings,
-        connection_cap,
-        frame_bound,
-    )
-
-    try:
-        env = describe_env(cfg.env.suite, cfg.env.params)
-    except ValueError:  # the pre-flight said so already; the default bound stands
-        env = None
-    limits = SocketLimits(
-        max_frame=frame_bound(env),
-        max_connections=ex.policy_connections or connection_cap(ex.episodes_per_policy_actor()),
-        idle_timeout_s=ex.policy_idle_s or ex.episode_timeout_s or DEFAULT_IDLE_S,
-    )
-    host = None if ex.kind == "ray" and ex.address else "127.0.0.1"
-    return SocketSettings(host, None, limits)
-
-
-def _with_policy_token(plan: RunPlan) -> RunPlan:
-    """The plan with its run's policy-socket token (``RUN_DIR/policy.token``, mode 0600, made
-    on the run's first start and kept for its resumes), where the run opens policy sockets."""
-    settings = plan.worker_spec.policy_socket
-    if settings is None:
-        return plan
-    from workers.policy.socket_settings import SocketToken
-
-    token = SocketToken(policy_token(plan.run_dir))
-    spec = replace(plan.worker_spec, policy_socket=replace(settings, token=token))
-    return replace(plan, worker_spec=spec)
 
 
 def run_params(plan: RunPlan) -> dict[str, object]:
@@ -305,7 +173,7 @@ def _execute(plan: RunPlan) -> RunSummary:
 
         connect(cfg.executor)
     write_meta(plan)
-    plan = _with_policy_token(plan)
+    plan = with_policy_token(plan)
     (plan.run_dir / LOGS_DIR).mkdir(exist_ok=True)  # the actors' output (workers.worker_log)
     RUN_LOG.attach(plan.run_dir)  # the CLI's log, from now on in RUN_DIR/logs/driver.log
     store = RunStore(plan.run_dir)
@@ -416,36 +284,6 @@ def every_episode_failed(store: RunStore, run_dir: Path) -> str | None:
         f"nothing: {shown}. Error rows count as stored: fix the cause, then run again with a "
         f"new --out (or delete {run_dir}). report.md lists the errors"
     )
-
-
-def calibrated_specs(plan: RunPlan, store: RunStore, tracker: Tracker | None = None) -> SpecGrid:
-    """The specs of the cells with ``tau: calibrated``, their tau set from the stored
-    diagnose cell (the paper's rule); logged, and recorded in MLflow when tracked. ``store``:
-    the held-out episodes' store where the plan has them (plan.held_out), else the run's."""
-    result = calibrate(store, plan.cfg.cells(), plan.held_out_record, plan.run_dir)
-    for cell_id, c in result["cells"].items():
-        log.info(
-            "tau of %s (%s of %s in %s): %s",
-            cell_id,
-            c["spec"],
-            c["effect"],
-            c["source_cell"],
-            ", ".join(f"{suite} {tau:.4g}" for suite, tau in c["tau"].items()),
-        )
-    if tracker is not None:
-        tracker.log_calibration(result)
-    suites = {t.suite for t in plan.calibrated.tasks}
-    cells = []
-    for cell in plan.calibrated.cells:
-        taus = result["cells"][cell.cell_id]["tau"]
-        missing = sorted(str(x) for x in suites - set(taus))
-        if missing:
-            raise RuntimeError(
-                f"tau calibration: {cell.cell_id!r} has no tau for suite {missing[0]!r} (its "
-                "diagnose cell stored no inferences there; see the errors in the report)"
-            )
-        cells.append(replace(cell, tau_by_suite={k: float(v) for k, v in taus.items()}))
-    return plan.calibrated.replace(cells=tuple(cells))
 
 
 def run_episodes(

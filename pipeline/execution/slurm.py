@@ -25,114 +25,43 @@ Signals (the batch script asks for ``--requeue --signal=B:USR1@120``):
 - TERM (``scancel``, ``scontrol requeue``, preemption): the driver stops cleanly. Slurm requeues
   the job itself when it was requeued or preempted; after ``scancel``, submitting the same
   command again resumes.
+
+Here the launcher: the signals, the driver, the stop events and the requeue. What Slurm gave the
+job and the checks on it: ``pipeline.execution.slurm_allocation``; Ray's nodes:
+``pipeline.execution.slurm_ray``.
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import os
-import re
 import secrets
-import shlex
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
 
-from pipeline.errors import ConfigError, RunError
+from pipeline.errors import ConfigError
+from pipeline.execution.slurm_allocation import (
+    Allocation,
+    check_fits,
+    check_shared,
+    kill_wait_s,
+    ping_controller,
+    read_allocation,
+    scontrol,
+    warn_sqlite_on_network_fs,
+)
+from pipeline.execution.slurm_ray import start_ray
 
 log = logging.getLogger("idr_eval.slurm")
-NODE_WAIT_S = 120.0  # for every Ray node of the allocation to register
 STOP_WAIT_S = 60.0  # for the driver to flush and exit after a stop signal
 STOP_MARGIN_S = 5.0  # of Slurm's KillWait kept for the launcher's own stop event and Ray's stop
 EVENTS = "slurm.jsonl"  # in the run dir: one line per start and stop of the launcher
-
-
-def _scontrol(*args: str, timeout_s: float = 20.0) -> str:
-    try:
-        out = subprocess.run(
-            ["scontrol", *args], capture_output=True, text=True, timeout=timeout_s, check=True
-        )
-    except FileNotFoundError:
-        raise ConfigError(
-            "scontrol is not on PATH: `idr-eval slurm` runs inside a Slurm allocation (submit "
-            "with `sbatch docker/slurm.sbatch ...` or start one with `salloc`)"
-        ) from None
-    except (subprocess.CalledProcessError, subprocess.TimeoutExpired) as e:
-        detail = (getattr(e, "stderr", "") or "").strip() or str(e)
-        raise ConfigError(f"`scontrol {' '.join(args)}` failed: {detail}") from None
-    return out.stdout
-
-
-def ping_controller() -> None:
-    """Refuse when Slurm's controller does not answer (before anything starts)."""
-    try:
-        out = _scontrol("ping")
-    except ConfigError as e:
-        raise ConfigError(
-            f"Slurm's controller is unreachable ({e}); check the daemons with `scontrol ping`"
-        ) from None
-    if "UP" not in out:
-        raise ConfigError(
-            f"Slurm's controller is down (`scontrol ping`: {out.strip()}); start slurmctld or "
-            "check SLURM_CONF"
-        )
-
-
-def expand_counts(text: str) -> list[int]:
-    """Slurm's compressed per-node counts: ``"2(x3),1"`` -> ``[2, 2, 2, 1]``."""
-    out: list[int] = []
-    for part in filter(None, text.split(",")):
-        m = re.fullmatch(r"(\d+)(?:\(x(\d+)\))?", part.strip())
-        if not m:
-            raise ConfigError(f"cannot read Slurm's per-node count {text!r}")
-        out += [int(m.group(1))] * int(m.group(2) or 1)
-    return out
-
-
-def gres_gpus(spec: str) -> int:
-    """GPUs in a GRES string of ``scontrol show job -d``: ``gpu:a100:2(IDX:0-1),shard:0`` -> 2."""
-    total = 0
-    for item in re.split(r",(?![^(]*\))", spec):
-        fields = item.split("(")[0].split(":")
-        if fields[0] == "gpu" and fields[-1].isdigit():
-            total += int(fields[-1])
-    return total
-
-
-@dataclass(frozen=True)
-class Allocation:
-    """The nodes of this job (the first runs the batch script) and what each was given."""
-
-    job_id: str
-    nodes: tuple[str, ...]
-    cpus: tuple[int, ...]
-    gpus: tuple[int, ...]
-    restarts: int  # SLURM_RESTART_COUNT: how often the job was requeued
-
-    @property
-    def total_cpus(self) -> int:
-        return sum(self.cpus)
-
-    @property
-    def total_gpus(self) -> int:
-        return sum(self.gpus)
-
-
-def kill_wait_s() -> float | None:
-    """Slurm's KillWait: the seconds between a job's TERM and its KILL (None where unreadable)."""
-    with contextlib.suppress(ConfigError):
-        m = re.search(r"^KillWait\s*=\s*(\d+)", _scontrol("show", "config"), re.MULTILINE)
-        if m:
-            return float(m.group(1))
-    return None
 
 
 def stop_wait_s(kill_wait: float | None) -> float:
@@ -141,239 +70,6 @@ def stop_wait_s(kill_wait: float | None) -> float:
     if kill_wait is None:
         return STOP_WAIT_S
     return max(1.0, min(STOP_WAIT_S, kill_wait - STOP_MARGIN_S))
-
-
-def hostnames(nodelist: str) -> list[str]:
-    return _scontrol("show", "hostnames", nodelist).split()
-
-
-def read_allocation(env: dict[str, str] | None = None) -> Allocation:
-    env = dict(os.environ if env is None else env)
-    job_id = env.get("SLURM_JOB_ID")
-    if not job_id:
-        raise ConfigError(
-            "not inside a Slurm allocation (SLURM_JOB_ID is not set): submit with `sbatch "
-            "docker/slurm.sbatch CONFIG RUN_DIR`, or run `idr-eval slurm` inside `salloc`"
-        )
-    nodes = hostnames(env["SLURM_JOB_NODELIST"])
-    cpus = expand_counts(env.get("SLURM_JOB_CPUS_PER_NODE", ""))
-    if len(cpus) != len(nodes):
-        raise ConfigError(
-            f"SLURM_JOB_CPUS_PER_NODE={env.get('SLURM_JOB_CPUS_PER_NODE')!r} does not give one "
-            f"count per node of {nodes}"
-        )
-    gpus = dict.fromkeys(nodes, 0)
-    # per node group: "Nodes=n[1-2] CPU_IDs=0-1 Mem=0 GRES=gpu:1(IDX:0)"
-    for m in re.finditer(r"Nodes=(\S+) .*?GRES=(\S+)", _scontrol("show", "job", "-d", job_id)):
-        for node in hostnames(m.group(1)):
-            if node in gpus:
-                gpus[node] = gres_gpus(m.group(2))
-    return Allocation(
-        job_id,
-        tuple(nodes),
-        tuple(cpus),
-        tuple(gpus[n] for n in nodes),
-        int(env.get("SLURM_RESTART_COUNT", "0") or 0),
-    )
-
-
-def check_fits(alloc: Allocation, demand_cpus: float, demand_gpus: float) -> None:
-    """Refuse an allocation smaller than what the run's actors ask for, with both numbers."""
-    short = []
-    if demand_cpus > alloc.total_cpus + 1e-9:
-        short.append(f"{demand_cpus:g} CPUs but the allocation has {alloc.total_cpus}")
-    if demand_gpus > alloc.total_gpus + 1e-9:
-        short.append(f"{demand_gpus:g} GPUs but the allocation has {alloc.total_gpus}")
-    if short:
-        per_node = ", ".join(
-            f"{n}: {c} CPU, {g} GPU"
-            for n, c, g in zip(alloc.nodes, alloc.cpus, alloc.gpus, strict=True)
-        )
-        raise ConfigError(
-            f"the config's actors ask for {' and '.join(short)} ({per_node}); ask sbatch for "
-            "more (-N, --cpus-per-task, --gres=gpu:N) or lower executor.workers"
-        )
-
-
-def node_address(node: str) -> str:
-    """The node's IP (its NodeAddr in Slurm, resolved): where its Ray node listens."""
-    m = re.search(r"NodeAddr=(\S+)", _scontrol("show", "node", node))
-    return socket.gethostbyname(m.group(1) if m else node)
-
-
-def _srun(node: str | None, alloc: Allocation, cmd: list[str]) -> list[str]:
-    """``cmd`` on ``node``, or once on every node of the allocation."""
-    n = len(alloc.nodes)
-    where = (
-        ["--nodes=1", "--ntasks=1", f"--nodelist={node}"]
-        if node
-        else [f"--nodes={n}", f"--ntasks={n}", "--ntasks-per-node=1"]
-    )
-    # --overlap: a Ray node and a check may share a node's CPUs with the batch script
-    return ["srun", "--overlap", "--kill-on-bad-exit=0", *where, *cmd]
-
-
-def check_shared(alloc: Allocation, control: Path, run_dir: Path) -> None:
-    """Every node writes a token into ``control`` (beside the run dir); refuse the run when the
-    driver does not see one (a node-local path, another mount)."""
-    control.mkdir(parents=True, exist_ok=True)
-    script = 'echo "$SLURMD_NODENAME" > "$0/node-$SLURMD_NODENAME"'
-    subprocess.run(
-        _srun(None, alloc, ["sh", "-c", script, str(control)]),
-        capture_output=True,
-        timeout=120,
-    )
-    missing = [n for n in alloc.nodes if not (control / f"node-{n}").is_file()]
-    if missing:
-        raise ConfigError(
-            f"--out {run_dir}: node(s) {missing} of the allocation do not see {run_dir.parent} "
-            f"(their token is missing from {control}); put the run dir on a filesystem every "
-            "node mounts at the same path"
-        )
-
-
-def warn_sqlite_on_network_fs(tracking_uri: str | None, run_dir: Path) -> None:
-    """A SQLite MLflow store on a network filesystem: MLflow's docs advise a tracking server."""
-    if tracking_uri and not tracking_uri.startswith("sqlite:"):
-        return
-    db = Path(tracking_uri.removeprefix("sqlite:///")) if tracking_uri else run_dir
-    fstype = _fstype(db if db.exists() else db.parent)
-    if fstype in {"nfs", "nfs4", "lustre", "gpfs", "beegfs", "cifs", "smb3", "ceph", "fuse.sshfs"}:
-        log.warning(
-            "MLflow's SQLite store lies on %s (%s): SQLite's locking is unreliable on network "
-            "filesystems; use a tracking server (tracking.uri=http://HOST:5000, see "
-            "docs/mlflow.md)",
-            fstype,
-            db,
-        )
-
-
-def _fstype(path: Path) -> str:
-    best, kind = "", ""
-    try:
-        mounts = Path("/proc/self/mounts").read_text().splitlines()
-    except OSError:
-        return ""
-    target = str(path.resolve())
-    for line in mounts:
-        parts = line.split()
-        if len(parts) > 2 and target.startswith(parts[1]) and len(parts[1]) > len(best):
-            best, kind = parts[1], parts[2]
-    return kind
-
-
-@dataclass
-class RayOnSlurm:
-    """The Ray nodes this launcher started: the head (a child) and one ``srun`` per node."""
-
-    address: str
-    procs: list[subprocess.Popen]
-
-    def stop(self) -> None:
-        for p in reversed(self.procs):  # workers first, the head last
-            if p.poll() is None:
-                try:
-                    os.killpg(p.pid, signal.SIGTERM)
-                except ProcessLookupError:
-                    continue
-        deadline = time.monotonic() + 10
-        for p in self.procs:
-            try:
-                p.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                with contextlib.suppress(ProcessLookupError):
-                    os.killpg(p.pid, signal.SIGKILL)
-
-
-def _ray_bin() -> str:
-    return str(Path(sys.executable).with_name("ray"))
-
-
-def start_ray(alloc: Allocation, control: Path, env: dict[str, str]) -> RayOnSlurm:
-    head = alloc.nodes[0]
-    ip = node_address(head)
-    with socket.socket() as s:  # a free port on the head for the GCS
-        s.bind((ip, 0))
-        port = s.getsockname()[1]
-    address = f"{ip}:{port}"
-    tmp = Path(os.environ.get("TMPDIR", "/tmp"))
-    common = ["--block", "--disable-usage-stats"]
-    procs = []
-    log_dir = control / "ray-logs"
-    log_dir.mkdir(exist_ok=True)
-
-    def launch(cmd: list[str], name: str) -> None:
-        with open(log_dir / f"{name}.log", "w") as f:
-            procs.append(
-                subprocess.Popen(
-                    cmd, stdout=f, stderr=subprocess.STDOUT, env=env, start_new_session=True
-                )
-            )
-
-    launch(
-        [
-            _ray_bin(),
-            "start",
-            "--head",
-            f"--node-ip-address={ip}",
-            f"--port={port}",
-            f"--num-cpus={alloc.cpus[0]}",
-            f"--num-gpus={alloc.gpus[0]}",
-            f"--temp-dir={tmp / f'ray-{alloc.job_id}-{head}'}",
-            "--include-dashboard=false",
-            *common,
-        ],
-        head,
-    )
-    ray = RayOnSlurm(address, procs)
-    try:
-        # the other nodes start at once: `ray start --address` waits for the head's GCS
-        for node, cpus, gpus in zip(alloc.nodes[1:], alloc.cpus[1:], alloc.gpus[1:], strict=True):
-            cmd = [
-                _ray_bin(),
-                "start",
-                f"--address={address}",
-                f"--num-cpus={cpus}",
-                f"--num-gpus={gpus}",
-                f"--temp-dir={tmp / f'ray-{alloc.job_id}-{node}'}",
-                *common,
-            ]
-            # in a container, `ray start` runs in it on every node (docker/slurm.sbatch)
-            wrap = shlex.split(os.environ.get("IDR_EVAL_EXEC", ""))
-            launch(_srun(node, alloc, [*wrap, *cmd]), node)
-        _wait_nodes(address, len(alloc.nodes), procs)
-    except BaseException:
-        ray.stop()
-        raise
-    return ray
-
-
-def _wait_nodes(address: str, n: int, procs: list[subprocess.Popen]) -> None:
-    from ray._raylet import GcsClient
-    from ray.core.generated.gcs_pb2 import GcsNodeInfo
-
-    deadline = time.monotonic() + NODE_WAIT_S
-    alive = 0
-    while time.monotonic() < deadline:
-        dead = [p for p in procs if p.poll() is not None]
-        if dead:
-            raise RunError(
-                f"a Ray node of the allocation exited (rc {dead[0].returncode}) before the run "
-                "started; its log is under the run dir's .slurm-JOBID/ray-logs"
-            )
-        try:
-            client = GcsClient(address=address)
-            alive = len(
-                client.get_all_node_info(
-                    timeout=2, state_filter=GcsNodeInfo.GcsNodeState.ALIVE
-                ).values()
-            )
-        except Exception:  # the GCS is still starting
-            alive = 0
-        if alive >= n:
-            return
-        time.sleep(0.5)
-    raise RunError(f"{alive} of {n} Ray nodes registered at {address} in {NODE_WAIT_S:.0f} s")
 
 
 class _Stop:
@@ -514,7 +210,7 @@ def _launch(
     _keep_ray_logs(run_dir, control, alloc.restarts)
     if requeued:
         # the wall-time warning: back to the queue; the job's next start resumes the run dir
-        _scontrol("requeue", alloc.job_id)
+        scontrol("requeue", alloc.job_id)
     return rc
 
 

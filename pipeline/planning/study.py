@@ -201,6 +201,31 @@ def load_study(
     file's own, so they win); ``only``: the labels (``arch@env``) of the runs to keep, e.g. those
     whose checkpoints this machine holds (the others' configs are not loaded)."""
     path = Path(path)
+    raw = _read_study_file(path)
+    shared = _overrides(raw.get("set"), f"{path}: set")
+    entries = _run_entries(path, raw["runs"])
+    _check_seeds(path, [e for _, _, e in entries])
+    members = sorted({f"{e['arch']}@{e['env']}" for _, _, e in entries})
+    all_labels = [label for _, label, _ in entries]
+    if only is not None:
+        entries = _only(path, entries, only)
+    runs = [_load_run(where, label, entry, shared, extra) for where, label, entry in entries]
+    labels = [r.label for r in runs]
+    dupes = sorted({lab for lab in labels if labels.count(lab) > 1})
+    if dupes:
+        raise ConfigError(
+            f"{path}: runs {dupes} appear twice; each (arch, env) once, or once per training seed"
+        )
+    endpoints = _endpoints(
+        raw.get("endpoints"), path, [*all_labels, *(m for m in members if m not in all_labels)]
+    )
+    study = Study(str(raw.get("name") or path.stem), tuple(runs), endpoints, path)
+    _check_endpoint_cells(path, study)
+    return study
+
+
+def _read_study_file(path: Path) -> dict:
+    """The study file's top-level mapping, with a ``runs:`` key and no unknown keys."""
     if not path.is_file():
         raise ConfigError(f"study file {path} does not exist")
     raw = yaml.safe_load(path.read_text()) or {}
@@ -209,12 +234,15 @@ def load_study(
             f"{path}: a study file has a `runs:` list (see pipeline/planning/study.py)"
         )
     _refuse_unknown(raw, STUDY_KEYS, f"{path}", "a study")
-    shared = _overrides(raw.get("set"), f"{path}: set")
-    runs: list[StudyRun] = []
-    if not isinstance(raw["runs"], list) or not raw["runs"]:
+    return raw
+
+
+def _run_entries(path: Path, raw_runs: Any) -> list[tuple[str, str, dict]]:
+    """Each entry of ``runs:`` checked, as (where it is in the file, its label, the entry)."""
+    if not isinstance(raw_runs, list) or not raw_runs:
         raise ConfigError(f"{path}: runs must be a non-empty list of {{arch, env, config, set}}")
     entries: list[tuple[str, str, dict]] = []
-    for i, entry in enumerate(raw["runs"]):
+    for i, entry in enumerate(raw_runs):
         where = f"{path}: runs[{i}]"
         if not isinstance(entry, dict):
             raise ConfigError(f"{where}: write a mapping {{arch, env, config, set}}")
@@ -231,47 +259,49 @@ def load_study(
                 f"(got {seed!r})"
             )
         entries.append((where, run_label(entry["arch"], entry["env"], seed), entry))
-    _check_seeds(path, [e for _, _, e in entries])
-    members = sorted({f"{e['arch']}@{e['env']}" for _, _, e in entries})
-    all_labels = [label for _, label, _ in entries]
-    if only is not None:
-        labels = [label for _, label, _ in entries]
-        unknown = sorted(set(only) - set(labels))
-        if unknown or not only:
-            raise ConfigError(
-                f"--only {','.join(only)}: {unknown or 'no run'} not in {path}; "
-                f"its runs are {', '.join(labels)}"
-            )
-        entries = [e for e in entries if e[1] in only]
-    for where, label, entry in entries:
-        own = _overrides(entry.get("set"), f"{where}.set")
-        overrides = (*shared, *own, *(extra or []))
-        try:
-            cfg = load_config(entry["config"], list(overrides))
-        except ConfigError as e:
-            raise ConfigError(f"{where} ({label}): {e}") from None
-        runs.append(
-            StudyRun(
-                str(entry["arch"]),
-                str(entry["env"]),
-                Path(entry["config"]),
-                overrides,
-                cfg,
-                entry.get("seed"),
-            )
-        )
-    labels = [r.label for r in runs]
-    dupes = sorted({lab for lab in labels if labels.count(lab) > 1})
-    if dupes:
+    return entries
+
+
+def _only(
+    path: Path, entries: list[tuple[str, str, dict]], only: list[str]
+) -> list[tuple[str, str, dict]]:
+    """The entries ``--only`` names (each of its labels must be one of the study's runs)."""
+    labels = [label for _, label, _ in entries]
+    unknown = sorted(set(only) - set(labels))
+    if unknown or not only:
         raise ConfigError(
-            f"{path}: runs {dupes} appear twice; each (arch, env) once, or once per training seed"
+            f"--only {','.join(only)}: {unknown or 'no run'} not in {path}; "
+            f"its runs are {', '.join(labels)}"
         )
-    endpoints = _endpoints(
-        raw.get("endpoints"), path, [*all_labels, *(m for m in members if m not in all_labels)]
+    return [e for e in entries if e[1] in only]
+
+
+def _load_run(
+    where: str, label: str, entry: dict, shared: tuple[str, ...], extra: list[str] | None
+) -> StudyRun:
+    """A run with its config loaded under the study's overrides, the run's own, then the
+    command line's (the last wins)."""
+    own = _overrides(entry.get("set"), f"{where}.set")
+    overrides = (*shared, *own, *(extra or []))
+    try:
+        cfg = load_config(entry["config"], list(overrides))
+    except ConfigError as e:
+        raise ConfigError(f"{where} ({label}): {e}") from None
+    return StudyRun(
+        str(entry["arch"]),
+        str(entry["env"]),
+        Path(entry["config"]),
+        overrides,
+        cfg,
+        entry.get("seed"),
     )
-    study = Study(str(raw.get("name") or path.stem), tuple(runs), endpoints, path)
-    for i, e in enumerate(endpoints):
-        for run in study.runs_of(e.member):  # none: left out by --only (not loaded)
+
+
+def _check_endpoint_cells(path: Path, study: Study) -> None:
+    """Each primary endpoint's two cells are cells of every loaded run of its member (a run
+    left out by ``--only`` is not loaded, so not checked)."""
+    for i, e in enumerate(study.endpoints):
+        for run in study.runs_of(e.member):
             cells = [c.cell_id for c in run.config.cells()]
             for name in (e.cell, e.reference):
                 if name not in cells:
@@ -279,7 +309,6 @@ def load_study(
                         f"{path}: endpoints.primary[{i}].compare: {run.label} has no cell "
                         f"{name!r}; its cells are {cells}"
                     )
-    return study
 
 
 def _check_seeds(path: Path, entries: list[dict]) -> None:

@@ -19,12 +19,14 @@ Sections, each number with an interval:
 - R_img over normalized task progress per run (10 bins, ratio of bin means);
 - first, the study's declared primary endpoints with Holm's correction and every other paired
   comparison as exploratory (pipeline.reporting.endpoints).
+
+The estimators: ``pipeline.results.observation_stats``; the page:
+``pipeline.reporting.observations_markdown``.
 """
 
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,18 +35,23 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pandas as pd
 
+from pipeline.reporting.observations_markdown import markdown
 from pipeline.results import aggregate as agg
+from pipeline.results.observation_stats import (
+    BINS,
+    FIFTHS,
+    pooled_effects,
+    rank_correlation,
+    ratio,
+    rimg_interval,
+    without_control,
+)
 
 if TYPE_CHECKING:
     from pipeline.planning.study import Endpoint
 
-EPS = agg.RIMG_EPS
-N_BOOT = 2000
-BINS = 10
-FIFTHS = 5  # the open-loop reliance's progress labels (pipeline.api.frames.FIFTHS)
 OBS_MD = "observations.md"
 OBS_JSON = "observations.json"
-CONTROL = "@image_blackout"  # the image-zeroed control's perturbation
 
 
 @dataclass(frozen=True)
@@ -65,81 +72,6 @@ class RunRef:
         from pipeline.planning.study import run_label
 
         return run_label(self.arch, self.env, self.seed)
-
-
-def ratio(e_img: np.ndarray, e_prop: np.ndarray) -> float:
-    return float(e_img.mean() / (e_img.mean() + e_prop.mean() + EPS)) if len(e_img) else math.nan
-
-
-def rimg_interval(
-    steps: pd.DataFrame, n_boot: int = N_BOOT, seed: int = 0
-) -> tuple[float, float, float]:
-    """R_img of ``steps`` (e_img, e_prop, task_id, episode_index) with a 95% percentile interval
-    from resampling whole episodes (steps of one episode are not independent)."""
-    per_ep = steps.groupby(["task_id", "episode_index"])[["e_img", "e_prop"]].agg(["sum", "count"])
-    s_img = per_ep[("e_img", "sum")].to_numpy()
-    s_prop = per_ep[("e_prop", "sum")].to_numpy()
-    if len(s_img) == 0:
-        return math.nan, math.nan, math.nan
-    point = float(s_img.sum() / (s_img.sum() + s_prop.sum() + EPS))
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, len(s_img), size=(n_boot, len(s_img)))
-    a, b = s_img[idx].sum(axis=1), s_prop[idx].sum(axis=1)
-    boots = a / (a + b + EPS)
-    return point, float(np.quantile(boots, 0.025)), float(np.quantile(boots, 0.975))
-
-
-def without_control(steps: pd.DataFrame) -> pd.DataFrame:
-    """``steps`` without the image-zeroed control's (black images at every step: E_img is ~0 by
-    construction), which shows in the heatmap, not in a pooled R_img."""
-    return steps[~steps["task_id"].astype(str).str.contains(CONTROL, regex=False)]
-
-
-def pooled_effects(steps: pd.DataFrame) -> dict:
-    """R_img of ``steps`` (one diagnose cell's inferences) with its 95% interval, and the mean
-    E_img and E_prop: the one estimator of a cell's R_img in the study and the zoo's cards."""
-    point, lo, hi = rimg_interval(steps)
-    return {
-        "r_img": point,
-        "r_img_ci95": [lo, hi],
-        "e_img": float(steps["e_img"].mean()),
-        "e_prop": float(steps["e_prop"].mean()),
-        "inferences": len(steps),
-    }
-
-
-def rank_correlation(x: list[float], y: list[float]) -> dict[str, float | int | str]:
-    """Spearman's rho of (x, y) and its two-sided permutation p (exact up to 8 points)."""
-    from scipy import stats
-
-    n = len(x)
-    if n < 3:
-        return {"n": n, "rho": math.nan, "p": math.nan, "finding": "too few runs (< 3)"}
-
-    ry = stats.rankdata(y)
-    ry = ry - ry.mean()
-
-    def rho_of(rx: np.ndarray, axis: int) -> np.ndarray:
-        rx = rx - rx.mean(axis=axis, keepdims=True)
-        return (rx * ry).sum(axis=axis) / np.sqrt((rx * rx).sum(axis=axis) * (ry * ry).sum())
-
-    # Spearman's rho is Pearson's r of the (average) ranks; re-pairing the points permutes x's
-    # ranks against y's, so only x is permuted (n! pairings, not n!^2) and the statistic is
-    # vectorized over them: the exact test of 8 points (40,320 pairings) takes well under a
-    # second, where spearmanr called once per pairing took 27 ms each (about 18 minutes; both
-    # on a 2-core Intel Xeon)
-    res = stats.permutation_test(
-        (stats.rankdata(x),),
-        rho_of,
-        permutation_type="pairings",
-        vectorized=True,
-        n_resamples=np.inf if n <= 8 else 20000,
-        alternative="two-sided",
-        random_state=0,
-    )
-    rho, p = float(res.statistic), float(res.pvalue)
-    finding = "inconclusive" if not p < 0.05 else ("positive" if rho > 0 else "negative")
-    return {"n": n, "rho": rho, "p": p, "finding": finding}
 
 
 def _diagnose_steps(steps: pd.DataFrame, diag: str) -> pd.DataFrame:
@@ -255,163 +187,6 @@ def build(refs: list[RunRef]) -> dict:
     corr["members"] = [p["member"] for p in points]
     corr["seeds"] = {p["member"]: p["seeds"] for p in points}
     return {"runs": runs, "members": members, "rimg_vs_gain": corr}
-
-
-def _pct(x: float) -> str:
-    return "–" if x is None or not np.isfinite(x) else f"{100 * x:.1f}"
-
-
-def markdown(result: dict, name: str) -> str:
-    from pipeline.reporting.endpoints import markdown as comparisons_markdown
-
-    runs = [r for r in result["runs"] if "r_img" in r]
-    lines = [f"# The paper's observations: `{name}`", ""]
-    seeded = [r for r in result["runs"] if r.get("seed") is not None]
-    lines += [
-        f"{len(result['runs'])} runs (architecture @ environment"
-        f"{', one per training seed where a member lists seeds' if seeded else ''}); each "
-        "number from its run's diagnose cell (R_img) or its E and diagnose cells paired by "
-        "episode (gain).",
-        "",
-    ]
-    if "comparisons" in result:
-        lines += comparisons_markdown(result["comparisons"], result.get("endpoints_hash"))
-    lines += [
-        "## R_img per architecture and environment (observations 1 and 2)",
-        "",
-        "| arch | env | seed | R_img % (95% CI) | E_img | E_prop | inferences "
-        "| success diagnose % (95% CI) |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for r in runs:
-        s = r["success"].get(r["diagnose"], {})
-        ci = s.get("ci95", [math.nan, math.nan])
-        seed = "–" if r.get("seed") is None else r["seed"]
-        lines.append(
-            f"| {r['arch']} | {r['env']} | {seed} | {_pct(r['r_img'])} [{_pct(r['r_img_ci95'][0])}, "
-            f"{_pct(r['r_img_ci95'][1])}] | {r['e_img']:.3g} | {r['e_prop']:.3g} | "
-            f"{r['inferences']} | {_pct(s.get('rate', math.nan))} [{_pct(ci[0])}, {_pct(ci[1])}] |"
-        )
-    lines += [
-        "",
-        "Pooled over each environment's tasks and perturbations, without the image-zeroed "
-        "control (black images: E_img is ~0 by construction; it shows in the heatmap). "
-        "E_img and E_prop are L2 norms in each environment's action units (the backbone's "
-        "unnormalized output, where IDR refines): compare them within an environment only.",
-        "",
-        "![R_img heatmap](figures/observations_rimg_heatmap.png)",
-        "",
-        *_members_markdown(result.get("members") or []),
-        "## IDR mode E against diagnose, per run (exploratory unless a primary endpoint)",
-        "",
-        "| arch | env | Δ success pp (95% CI) | McNemar p | pairs |",
-        "|---|---|---|---|---|",
-    ]
-    for r in result["runs"]:
-        g = r.get("gain_E")
-        if g is None:
-            continue
-        lines.append(
-            f"| {r.get('label') or r['arch']} | {r['env']} | {100 * g['diff']:+.1f} [{100 * g['ci95'][0]:+.1f}, "
-            f"{100 * g['ci95'][1]:+.1f}] | {g['mcnemar_p']:.3g} | {g['n_pairs']} |"
-        )
-    c = result["rimg_vs_gain"]
-    rho = "–" if not np.isfinite(c["rho"]) else f"{c['rho']:+.2f}"
-    p = "–" if not np.isfinite(c["p"]) else f"{c['p']:.3g}"
-    lines += [
-        "",
-        "## R_img against IDR's gain across members (exploratory)",
-        "",
-        f"Spearman ρ = {rho} over {c['n']} members, one point per architecture @ environment "
-        f"(the mean over its training seeds: {_seed_counts(c)}), permutation p = {p}: "
-        f"**{c['finding']}**.",
-        "",
-        "## R_img over task progress (observation 3)",
-        "",
-        "| run | " + " | ".join(f"{b / BINS:.1f}-{(b + 1) / BINS:.1f}" for b in range(BINS)) + " |",
-        "|---|" + "---|" * BINS,
-    ]
-    for r in runs:
-        lines.append(
-            f"| {r.get('label') or r['arch'] + '@' + r['env']} | "
-            + " | ".join(_pct(v) for v in r["progress"])
-            + " |"
-        )
-    lines += [
-        "",
-        "By fifths of progress, with 95% intervals (episodes resampled), as the open-loop "
-        "measure on held-out frames labels them (`idr-eval reliance`):",
-        "",
-        "| run | "
-        + " | ".join(f"{f / FIFTHS:.1f}-{(f + 1) / FIFTHS:.1f}" for f in range(FIFTHS))
-        + " |",
-        "|---|" + "---|" * FIFTHS,
-    ]
-    for r in runs:
-        cells = [
-            "–"
-            if not np.isfinite(f["r_img"])
-            else f"{_pct(f['r_img'])} [{_pct(f['ci95'][0])}, {_pct(f['ci95'][1])}]"
-            for f in r.get("progress_fifths") or []
-        ]
-        lines.append(
-            f"| {r.get('label') or r['arch'] + '@' + r['env']} | " + " | ".join(cells) + " |"
-        )
-    lines += ["", "![R_img over progress](figures/observations_rimg_progress.png)", ""]
-    return "\n".join(lines)
-
-
-def _seed_counts(c: dict) -> str:
-    seeds = c.get("seeds") or {}
-    return ", ".join(f"{m} {k}" for m, k in seeds.items()) or "none"
-
-
-def _interval(rec: dict, scale: float = 100, signed: bool = False) -> str:
-    fmt = "+.1f" if signed else ".1f"
-    v, (lo, hi) = rec["value"], rec["ci95"]
-    if not np.isfinite(v):
-        return "–"
-    return f"{scale * v:{fmt}} [{scale * lo:{fmt}}, {scale * hi:{fmt}}]"
-
-
-def _members_markdown(members: list[dict]) -> list[str]:
-    """Members trained with several seeds: their figures pooled over the seeds."""
-    rows = [m for m in members if "r_img" in m]
-    if not rows:
-        return []
-    lines = [
-        "## Members over their training seeds (seeds as a random effect)",
-        "",
-        "Each figure is the mean of the seeds' figures; its 95% interval resamples training "
-        "seeds, then episodes within each task of each drawn seed (two-level bootstrap), so it "
-        "speaks for another seed of the same recipe, which an interval over one seed's episodes "
-        "does not. Per seed in parentheses.",
-        "",
-        "| member | seeds | R_img % | success diagnose % | success E % | E − diagnose pp | "
-        "p (bootstrap) |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for m in rows:
-        diag, e = m["success"].get(m["diagnose"]), m["success"].get("E")
-        gain = m.get("gain_E")
-
-        def per(rec: dict | None, signed: bool = False) -> str:
-            if not rec:
-                return "–"
-            seeds = ", ".join(
-                f"s{k} {100 * v:{'+.1f' if signed else '.1f'}}" for k, v in rec["per_seed"].items()
-            )
-            return f"{_interval(rec, signed=signed)} ({seeds})"
-
-        lines.append(
-            f"| {m['member']} | {len(m['seeds'])} | {per(m['r_img'])} | {per(diag)} | {per(e)} "
-            f"| {per(gain, signed=True)} | {_pct_p(gain)} |"
-        )
-    return [*lines, ""]
-
-
-def _pct_p(gain: dict | None) -> str:
-    return "–" if not gain or not np.isfinite(gain["p"]) else f"{gain['p']:.3g}"
 
 
 def heatmap_matrix(result: dict) -> pd.DataFrame:

@@ -6,7 +6,7 @@ closed-loop success as a confound (each member sees the same frames, none of its
 Per member: E_img, E_prop and R_img (the ratio of mean effects, as everywhere) over all frames,
 by fifth of episode progress and by gripper phase, each R_img with a 95% interval that
 resamples whole episodes (frames of one episode are not independent:
-``observations.rimg_interval``). For one member, R_img under each intervention strategy
+``observation_stats.rimg_interval``). For one member, R_img under each intervention strategy
 (``zero``, ``mean``, ``gaussian``, for do(V) and do(S) alike): how much the figure owes to the
 choice of counterfactual. Writes ``OUT/reliance.json``, ``reliance.md``, the per-frame table
 ``reliance_frames.parquet`` and a figure of R_img over progress.
@@ -23,7 +23,7 @@ import numpy as np
 import pandas as pd
 from idr_core.interventions import InterventionConfig
 
-from pipeline.reporting.observations import rimg_interval
+from pipeline.results.observation_stats import rimg_interval
 
 RELIANCE_JSON = "reliance.json"
 RELIANCE_MD = "reliance.md"

@@ -107,7 +107,8 @@ def test_E_on_each_sampling_family_is_the_harness_cell_in_lerobot_eval(tmp_path,
     """SmolVLA (one noise draw shared by the three thirds of one forward) and X-VLA (three
     forwards under one seed), random weights: actions and diagnostics bit for bit. lerobot-eval
     gives any X-VLA policy LIBERO's env processors; on PushT it runs with PushT's own."""
-    from training.toy_checkpoints import build_local_tokenizer, build_smolvla, build_xvla
+    from training.toy_checkpoints import build_local_tokenizer, build_smolvla
+    from training.toy_xvla_checkpoint import build_xvla
 
     if family == "smolvla":
         ckpt = build_smolvla(tmp_path / "smolvla", image=96, state=2, action=2)

@@ -378,7 +378,8 @@ def test_xvla_samples_from_its_seed_and_keeps_xvlas_env_processors(tmp_path) -> 
     from lerobot.envs.configs import LiberoEnv
     from lerobot.envs.factory import make_env_pre_post_processors
 
-    from training.toy_checkpoints import build_local_tokenizer, build_xvla
+    from training.toy_checkpoints import build_local_tokenizer
+    from training.toy_xvla_checkpoint import build_xvla
 
     tok = build_local_tokenizer(tmp_path / "tok", ["pick it", "place it"])
     base = build_xvla(tmp_path / "xvla", tok)

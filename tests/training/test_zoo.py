@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from training import zoo
+from training import zoo_benchmarks, zoo_members, zoo_train
 
 # loads a checkpoint folder through lerobot's factory from another working directory and runs
 # one chunk through its saved processors: what lerobot-eval does with it
@@ -43,7 +43,7 @@ def _zoo(*args: str) -> subprocess.CompletedProcess:
         capture_output=True,
         text=True,
         timeout=600,
-        cwd=zoo.ROOT,
+        cwd=zoo_benchmarks.ROOT,
     )
 
 
@@ -132,12 +132,12 @@ def test_parts_merge_train_resume_export_and_load_through_lerobots_factory(
 
 
 def test_a_continued_stage_decays_its_schedule_over_its_own_steps() -> None:
-    flags = zoo.stage_flags(zoo.MEMBERS["smolvla"].flags, 5000)
+    flags = zoo_members.stage_flags(zoo_members.MEMBERS["smolvla"].flags, 5000)
     assert "--policy.scheduler_decay_steps=5000" in flags
     assert not any(f.endswith("=6000") for f in flags)
-    xvla = zoo.stage_flags(zoo.MEMBERS["xvla"].flags, 700)
+    xvla = zoo_members.stage_flags(zoo_members.MEMBERS["xvla"].flags, 700)
     assert "--scheduler.num_decay_steps=700" in xvla
-    assert len(xvla) == len(zoo.MEMBERS["xvla"].flags)
+    assert len(xvla) == len(zoo_members.MEMBERS["xvla"].flags)
 
 
 @pytest.mark.slow
@@ -182,7 +182,9 @@ def test_vlm_members_train_and_load_from_another_folder_by_their_hub_ids(
     out = _zoo("export", member, "--dest", str(dest), *common)
     assert out.returncode == 0, out.stderr[-3000:]
     saved = (dest / "config.json").read_text() + (dest / "policy_preprocessor.json").read_text()
-    assert "idr-eval/zoo-" in saved and str(zoo.ROOT) not in saved  # no machine path saved
+    assert (
+        "idr-eval/zoo-" in saved and str(zoo_benchmarks.ROOT) not in saved
+    )  # no machine path saved
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     run = subprocess.run(
@@ -203,24 +205,28 @@ def test_vlm_members_train_and_load_from_another_folder_by_their_hub_ids(
 def test_every_member_says_how_it_is_rebuilt_and_a_missing_one_is_refused_naming_that() -> None:
     from workers.backbones.lerobot.checkpoint import REBUILD_FILE, check_checkpoint
 
-    commands = json.loads((zoo.ROOT / zoo.SHIPPED / REBUILD_FILE).read_text())
-    assert set(commands) == set(zoo.MEMBERS)
+    commands = json.loads((zoo_benchmarks.ROOT / zoo_benchmarks.SHIPPED / REBUILD_FILE).read_text())
+    assert set(commands) == set(zoo_members.MEMBERS)
     for name, command in commands.items():
         assert f"python -m training.zoo train {name}" in command
         assert "scripts/record_zoo_data.sh" in command
-    absent = zoo.ROOT / zoo.SHIPPED / "no_such_member"
+    absent = zoo_benchmarks.ROOT / zoo_benchmarks.SHIPPED / "no_such_member"
     with pytest.raises(ValueError, match=r"does not exist"):
         check_checkpoint(str(absent))  # no entry: the plain refusal
-    missing = [n for n in zoo.MEMBERS if not (zoo.ROOT / zoo.SHIPPED / n).is_dir()]
+    missing = [
+        n
+        for n in zoo_members.MEMBERS
+        if not (zoo_benchmarks.ROOT / zoo_benchmarks.SHIPPED / n).is_dir()
+    ]
     for name in missing:  # in a fresh clone: the members not shipped in git
         with pytest.raises(ValueError, match=rf"rebuild it with: .*training.zoo train {name}"):
-            check_checkpoint(str(zoo.ROOT / zoo.SHIPPED / name))
+            check_checkpoint(str(zoo_benchmarks.ROOT / zoo_benchmarks.SHIPPED / name))
 
 
 def test_the_zoo_preset_validates() -> None:
     from pipeline.planning.config import load_config
 
-    cfg = load_config(zoo.ROOT / "conf" / "zoo" / "tabletop.yaml")
+    cfg = load_config(zoo_benchmarks.ROOT / "conf" / "zoo" / "tabletop.yaml")
     assert "pick_color@image_blackout:1" in cfg.env.tasks
     assert [c.idr.mode for c in cfg.cells()] == ["diagnose", "E"]
 
@@ -240,9 +246,9 @@ def test_a_zoo_checkpoint_on_a_suite_it_was_not_trained_on_is_refused_before_wor
     from pipeline.execution.runner import plan_run
     from pipeline.planning.config import ConfigError, load_config
 
-    ckpt = zoo.ROOT / zoo.SHIPPED / "tiny_vla"
+    ckpt = zoo_benchmarks.ROOT / zoo_benchmarks.SHIPPED / "tiny_vla"
     cfg = load_config(
-        zoo.ROOT / "conf" / preset,
+        zoo_benchmarks.ROOT / "conf" / preset,
         [
             "backbone.kind=lerobot",
             f"backbone.params={{path: {ckpt}, device: cpu}}",
@@ -257,7 +263,7 @@ def test_a_zoo_checkpoint_on_a_suite_it_was_not_trained_on_is_refused_before_wor
 
 @pytest.mark.slow
 def test_a_tabletop_dataset_is_refused_for_the_metaworld_benchmark(tmp_path) -> None:
-    info = {"features": {k: {"shape": v} for k, v in zoo.TABLETOP_FEATURES.items()}}
+    info = {"features": {k: {"shape": v} for k, v in zoo_benchmarks.TABLETOP_FEATURES.items()}}
     (tmp_path / "ds" / "meta").mkdir(parents=True)
     (tmp_path / "ds" / "meta" / "info.json").write_text(json.dumps(info))
     out = _zoo(
@@ -267,12 +273,14 @@ def test_a_tabletop_dataset_is_refused_for_the_metaworld_benchmark(tmp_path) -> 
     assert out.returncode != 0 and "on metaworld" in out.stderr
     assert "observation.image: wants [96, 96, 3], dataset has None" in out.stderr
     assert "training.metaworld_demos" in out.stderr and not (tmp_path / "r").exists()
-    rebuild = json.loads((zoo.ROOT / "checkpoints/zoo/metaworld/REBUILD.json").read_text())
+    rebuild = json.loads(
+        (zoo_benchmarks.ROOT / "checkpoints/zoo/metaworld/REBUILD.json").read_text()
+    )
     # every member, and a second seed under <member>_seed<N> rebuilt with that seed
-    assert set(zoo.MEMBERS) <= set(rebuild)
-    for folder in set(rebuild) - set(zoo.MEMBERS):
+    assert set(zoo_members.MEMBERS) <= set(rebuild)
+    for folder in set(rebuild) - set(zoo_members.MEMBERS):
         member, _, seed = folder.rpartition("_seed")
-        assert member in zoo.MEMBERS and f"--seed {seed}" in rebuild[folder], folder
+        assert member in zoo_members.MEMBERS and f"--seed {seed}" in rebuild[folder], folder
         assert f"--dest checkpoints/zoo/metaworld/{folder}" in rebuild[folder]
     assert all("--benchmark metaworld" in c for c in rebuild.values())
 
@@ -306,9 +314,9 @@ def test_the_state_cut_keeps_every_frame_and_cuts_the_stats_to_match(toy_dataset
     for f in (out / "meta" / "episodes").rglob("*.parquet"):  # the per-episode stats
         for mean in pq.read_table(f, columns=["stats/observation.state/mean"]).column(0):
             assert len(mean.as_py()) == 5
-    zoo.check_features("act", "tabletop_pos", out)  # fits the benchmark made for it
+    zoo_train.check_features("act", "tabletop_pos", out)  # fits the benchmark made for it
     with pytest.raises(SystemExit, match=r"observation.state: wants \[8\], dataset has \[5\]"):
-        zoo.check_features("act", "tabletop", out)
+        zoo_train.check_features("act", "tabletop", out)
     with pytest.raises(SystemExit, match=r"--keep \[3, 9\]"):
         derive(toy_dataset, tmp_path / "bad", [3, 9])
 
@@ -318,7 +326,7 @@ def test_the_state_cut_keeps_every_frame_and_cuts_the_stats_to_match(toy_dataset
 def test_the_open_loop_error_of_a_learned_policy_beats_the_mean_action(toy_dataset) -> None:
     from training.zoo_openloop import open_loop_error
 
-    out = open_loop_error(zoo.ROOT / "checkpoints/zoo/tiny_vla", toy_dataset, frames=20)
+    out = open_loop_error(zoo_benchmarks.ROOT / "checkpoints/zoo/tiny_vla", toy_dataset, frames=20)
     assert out["frames"] == 20 and out["dims"] == [0, 1, 2, 6]  # dims 3-5 never vary
     assert len(out["mae_in_std"]) == len(out["mean_action_mae_in_std"]) == 4
     assert out["ratio_to_mean_action"] < 0.6  # the shipped zoo tiny VLA learned the actions
@@ -334,13 +342,13 @@ def test_the_shipped_smolvla_solves_metaworld_from_another_folder_and_fails_with
     button, and with black images at every step it does not."""
     from pipeline.results.store import RunStore
 
-    ckpt = zoo.ROOT / zoo.SHIPPED / "metaworld" / "smolvla"
+    ckpt = zoo_benchmarks.ROOT / zoo_benchmarks.SHIPPED / "metaworld" / "smolvla"
     env = {k: v for k, v in os.environ.items() if not k.endswith("_OFFLINE")}
     out = tmp_path / "run"
     r = subprocess.run(
         [
             sys.executable, "-m", "pipeline.cli", "run",
-            str(zoo.ROOT / "conf" / "zoo" / "metaworld.yaml"), "--out", str(out),
+            str(zoo_benchmarks.ROOT / "conf" / "zoo" / "metaworld.yaml"), "--out", str(out),
             f"backbone.params.path={ckpt}", "executor.kind=inline", "executor.workers=1",
             "tracking.enabled=false", "episodes_per_task=3", "grid=[{mode: [diagnose]}]",
             "env.tasks=[button-press-v3, button-press-v3@image_blackout:1]",
@@ -358,7 +366,7 @@ def test_the_shipped_smolvla_solves_metaworld_from_another_folder_and_fails_with
 def test_no_shipped_checkpoint_names_a_folder_of_the_machine_that_trained_it() -> None:
     """lerobot-train writes the folder it loaded from into config.json (pretrained_path); a
     shipped checkpoint must not carry it, since that path exists only where it was trained."""
-    configs = sorted((zoo.ROOT / zoo.SHIPPED).rglob("config.json"))
+    configs = sorted((zoo_benchmarks.ROOT / zoo_benchmarks.SHIPPED).rglob("config.json"))
     shipped = [c for c in configs if (c.parent / "model.safetensors").is_file()]
     assert len(shipped) >= 7
     named = [str(c) for c in shipped if json.loads(c.read_text()).get("pretrained_path")]

@@ -10,10 +10,10 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from training import zoo
+from training import zoo_benchmarks
 from training.zoo_carry import pack, unpack
 
-SHIPPED = zoo.ROOT / "checkpoints" / "zoo" / "tiny_vla"
+SHIPPED = zoo_benchmarks.ROOT / "checkpoints" / "zoo" / "tiny_vla"
 
 
 @pytest.mark.slow

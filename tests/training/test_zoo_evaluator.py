@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from tests.training.test_zoo import _zoo
-from training import zoo
+from training import zoo_benchmarks
 from training import zoo_eval_launch as launch
 from training import zoo_eval_layout as lay
 from training import zoo_eval_measures as meas
@@ -150,7 +150,7 @@ def test_the_loop_follows_training_and_records_a_checkpoint_left_incomplete(tmp_
 def test_bad_evaluation_flags_are_refused_naming_the_flag_and_the_fix(tmp_path) -> None:
     frames = tmp_path / "frames"
     (frames / "meta").mkdir(parents=True)
-    info = {"features": {k: {"shape": v} for k, v in zoo.TABLETOP_FEATURES.items()}}
+    info = {"features": {k: {"shape": v} for k, v in zoo_benchmarks.TABLETOP_FEATURES.items()}}
     (frames / "meta" / "info.json").write_text(json.dumps(info))
 
     def check(**kw):
@@ -180,7 +180,7 @@ def test_bad_evaluation_flags_are_refused_naming_the_flag_and_the_fix(tmp_path) 
 
 def test_the_closed_loop_cell_is_the_zoo_config_on_the_checkpoint_in_diagnose_mode() -> None:
     cfg, sets = meas.closed_loop_overrides("tabletop_pos", Path("/c/pretrained_model"), 20)
-    assert cfg == zoo.ROOT / "conf" / "zoo" / "tabletop.yaml"
+    assert cfg == zoo_benchmarks.ROOT / "conf" / "zoo" / "tabletop.yaml"
     assert "env.params.state_dims=[0,1,2,6,7]" in sets and "episodes_per_task=20" in sets
     assert "backbone.params.path=/c/pretrained_model" in sets
     assert {"grid=[{mode: [diagnose]}]", "executor.kind=inline", "executor.workers=1"} <= set(sets)

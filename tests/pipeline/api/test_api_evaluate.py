@@ -17,7 +17,7 @@ import pytest
 from pipeline import cli
 from pipeline.api import ConfigError, RunResult, evaluate, open_run
 from pipeline.api.run import override_strings
-from pipeline.planning.config import parse_override
+from pipeline.planning.config_yaml import parse_override
 
 ROOT = Path(__file__).resolve().parents[3]
 SMOKE = ROOT / "conf" / "smoke.yaml"

@@ -20,13 +20,8 @@ import pandas as pd
 import psutil
 import pytest
 
-from pipeline.execution.runner import (
-    _policy_socket,
-    _with_policy_token,
-    execute,
-    plan_run,
-    run_params,
-)
+from pipeline.execution.runner import execute, plan_run, run_params
+from pipeline.execution.worker_setup import policy_socket, with_policy_token
 from pipeline.planning.config import load_config
 from pipeline.rundir import LOGS_DIR, POLICY_TOKEN_FILE
 from tests.pipeline.execution.test_runner import _episodes, _steps
@@ -150,7 +145,7 @@ def test_a_local_ray_binds_loopback_a_cluster_the_node_and_the_bounds_follow_the
     tmp_path, monkeypatch
 ) -> None:
     cfg = load_config(CONF / "smoke.yaml", SHARED)
-    local = _policy_socket(cfg, tmp_path)
+    local = policy_socket(cfg, tmp_path)
     assert local is not None and local.host == "127.0.0.1" and local.bind_host() == "127.0.0.1"
     assert local.limits.max_connections == 2 * 6 + 8  # 2 actors x 3 envs in flight
     assert local.limits.idle_timeout_s == 900.0 and local.limits.max_frame == DEFAULT_MAX_FRAME
@@ -158,22 +153,22 @@ def test_a_local_ray_binds_loopback_a_cluster_the_node_and_the_bounds_follow_the
         local.token is None and not (tmp_path / POLICY_TOKEN_FILE).exists()
     )  # planning writes nothing
     plan = plan_run(cfg, tmp_path / "run")
-    started = _with_policy_token(plan).worker_spec.policy_socket
+    started = with_policy_token(plan).worker_spec.policy_socket
     assert started.token == SocketToken.from_hex((tmp_path / "run" / POLICY_TOKEN_FILE).read_text())
-    assert _with_policy_token(plan).worker_spec.policy_socket.token == started.token  # kept
+    assert with_policy_token(plan).worker_spec.policy_socket.token == started.token  # kept
     secret = (tmp_path / "run" / POLICY_TOKEN_FILE).read_text().strip()
     assert secret not in json.dumps(run_params(plan), default=str)  # no MLflow param holds it
-    assert secret not in repr(_with_policy_token(plan))
+    assert secret not in repr(with_policy_token(plan))
     cluster = ["executor.address=10.0.0.1:6379", "executor.policy_connections=5"]
     on_cluster = load_config(
         CONF / "smoke.yaml", [*SHARED, *cluster, "executor.episode_timeout_s=120"]
     )
-    remote = _policy_socket(on_cluster, tmp_path)
+    remote = policy_socket(on_cluster, tmp_path)
     assert remote is not None and remote.host is None  # the node's address, with the token
     assert remote.limits.max_connections == 5 and remote.limits.idle_timeout_s == 120
     # an env that describes itself bounds the frames by its images and dims
     io = EnvIO(cameras=("agentview", "wrist"), image_size=128, state_dim=8, action_dim=7)
     monkeypatch.setattr("pipeline.planning.checkpoint_fit.describe_env", lambda suite, params: io)
-    assert _policy_socket(cfg, tmp_path).limits.max_frame == frame_bound(io)
+    assert policy_socket(cfg, tmp_path).limits.max_frame == frame_bound(io)
     ray_calls = load_config(CONF / "smoke.yaml", [*SHARED, "executor.policy_transport=ray"])
-    assert _policy_socket(ray_calls, tmp_path) is None
+    assert policy_socket(ray_calls, tmp_path) is None

@@ -22,14 +22,13 @@ import pytest
 
 from pipeline.cli import main
 from pipeline.errors import ConfigError
-from pipeline.execution.slurm import (
-    STOP_WAIT_S,
+from pipeline.execution.slurm import STOP_WAIT_S, stop_wait_s
+from pipeline.execution.slurm_allocation import (
     Allocation,
     check_fits,
     expand_counts,
     gres_gpus,
     kill_wait_s,
-    stop_wait_s,
 )
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
@@ -67,7 +66,7 @@ def test_an_allocation_too_small_names_both_numbers() -> None:
 
 
 def test_sqlite_on_a_network_filesystem_is_warned_about(tmp_path, monkeypatch, caplog) -> None:
-    import pipeline.execution.slurm as slurm_mod
+    import pipeline.execution.slurm_allocation as slurm_mod
 
     monkeypatch.setattr(slurm_mod, "_fstype", lambda path: "nfs4")
     with caplog.at_level("WARNING", logger="idr_eval.slurm"):

@@ -6,7 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.planning.config import ConfigError, apply_overrides, config_from_dict, load_config
+from pipeline.planning.config import ConfigError, config_from_dict, load_config
+from pipeline.planning.config_yaml import apply_overrides
 
 CONF = Path(__file__).resolve().parents[3] / "conf"
 

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 
 from pipeline import cli
-from pipeline.reporting.observations import rank_correlation, rimg_interval
+from pipeline.results.observation_stats import rank_correlation, rimg_interval
 from pipeline.results.store import RunStore
 
 CONF = Path(__file__).resolve().parents[3] / "conf"
