@@ -145,5 +145,5 @@ def test_calibrated_cell_without_a_diagnose_cell_of_its_intervention_is_refused(
             CONF / "smoke.yaml",
             ["grid=[{mode: [diagnose, E], strategy: [zero, mean]}]", "idr.tau=calibrated*2"],
         )
-    with pytest.raises(ConfigError, match=r"idr: tau='calibrate' is not a number or a calibr"):
+    with pytest.raises(ConfigError, match=r"idr.tau: tau='calibrate' is not a number or a calibr"):
         load_config(CONF / "smoke.yaml", ["idr.tau=calibrate"])
