@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import ast
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -102,17 +103,23 @@ def _layer(module: str) -> int | None:
     return None
 
 
-def test_pipeline_layers_import_only_downwards() -> None:
+def _upward(package: str, level: Callable[[str], int | None], word: str) -> list[str]:
+    """Imports in ``package`` of a module at a higher ``level`` than the importer's."""
     upward = []
-    for f in sorted((ROOT / "pipeline").rglob("*.py")):
+    for f in sorted((ROOT / package).rglob("*.py")):
         mod = ".".join(f.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
-        own = _layer(mod)
+        own = level(mod)
         if own is None:
             continue
         for name in sorted(_imports(f)):
-            theirs = _layer(name)
+            theirs = level(name)
             if theirs is not None and theirs > own:
-                upward.append(f"{mod} (layer {own}) imports {name} (layer {theirs})")
+                upward.append(f"{mod} ({word} {own}) imports {name} ({word} {theirs})")
+    return upward
+
+
+def test_pipeline_layers_import_only_downwards() -> None:
+    upward = _upward("pipeline", _layer, "layer")
     assert not upward, upward
 
 
@@ -228,16 +235,7 @@ def _workers_module(f: Path) -> str:
 
 
 def test_workers_rooms_import_only_downwards() -> None:
-    upward = []
-    for f in sorted((ROOT / "workers").rglob("*.py")):
-        mod = _workers_module(f)
-        own = _room(mod)
-        if own is None:
-            continue
-        for name in sorted(_imports(f)):
-            theirs = _room(name)
-            if theirs is not None and theirs > own:
-                upward.append(f"{mod} (room {own}) imports {name} (room {theirs})")
+    upward = _upward("workers", _room, "room")
     assert not upward, upward
 
 
