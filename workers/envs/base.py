@@ -159,6 +159,14 @@ class SuiteInfo:
             "None: the worker's MuJoCo backend (egl / osmesa)"
         },
     )
+    empty_instruction_ok: bool = field(
+        default=False,
+        metadata={
+            "doc": "bool: the env describes no task and gives an empty instruction, as "
+            "lerobot-eval feeds its policies on such envs (PushT, ALOHA); False: an empty "
+            "instruction breaks the contract"
+        },
+    )
     policy_reset_per_subtask: bool = field(
         default=False,
         metadata={

@@ -110,6 +110,16 @@ class _StaleFailureCauseEnv(PropertyMarkerEnv):
     failure_cause = "wrong_order"  # set before any episode failed
 
 
+class _NoInstructionEnv(PropertyMarkerEnv):
+    @property
+    def instruction(self) -> str:
+        return ""
+
+
+class _SaysItDescribesNoTaskEnv(_NoInstructionEnv):
+    empty_instruction_ok = True  # as the lerobot suite on PushT: lerobot-eval feeds ""
+
+
 class _FailureOnSuccessEnv(PropertyMarkerEnv):
     @property
     def success(self) -> bool:
@@ -127,6 +137,7 @@ class _FailureOnSuccessEnv(PropertyMarkerEnv):
         (_EmptyInitStateEnv, "init_state_id must be None or a non-empty str"),
         (_StaleFailureCauseEnv, "after reset: failure_cause must be None"),
         (_FailureOnSuccessEnv, "failure_cause is set on a successful episode"),
+        (_NoInstructionEnv, "instruction is empty"),
         (_SameInitEnv, "init states must vary"),
         (_NondeterministicEnv, "stepping must be deterministic"),
         (_LaxShapeEnv, "wrong action shape must raise ValueError"),
@@ -137,6 +148,10 @@ class _FailureOnSuccessEnv(PropertyMarkerEnv):
 def test_broken_envs_fail_with_the_rule_named(env_cls, rule) -> None:
     with pytest.raises(EnvContractError, match=rule):
         check_env(env_cls(), run_to_horizon=True)
+
+
+def test_an_env_that_describes_no_task_may_say_so_and_give_an_empty_instruction() -> None:
+    check_env(_SaysItDescribesNoTaskEnv(), run_to_horizon=True)
 
 
 def test_image_carries_information_the_state_lacks() -> None:
