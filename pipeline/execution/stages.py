@@ -10,7 +10,8 @@ from typing import TYPE_CHECKING
 
 from pipeline.planning.calibration_block import fit_sources
 from pipeline.planning.config import RunConfig
-from pipeline.planning.plan import CellPlan, RunPlan, SpecGrid
+from pipeline.planning.grid import SpecGrid
+from pipeline.planning.plan import RunPlan
 from pipeline.results.calibration import calibrate, held_out_record, held_out_tasks
 from pipeline.results.store import RunStore
 
@@ -26,8 +27,8 @@ def stage_grids(
 ) -> tuple[SpecGrid, SpecGrid]:
     """The first stage's grid and the calibrated one: cells with a calibrated tau run in a
     second stage, after the diagnose cell they calibrate on."""
-    cells = [CellPlan(c.cell_id, c.idr, c.intervention) for c in cfg.cells()]
-    later = {c.cell_id for c in cfg.cells() if c.calibrated_tau}
+    cells = cfg.cells()
+    later = {c.cell_id for c in cells if c.calibrated_tau}
     grid = SpecGrid(
         run_id, (), tuple(tasks), cfg.episodes_per_task, cfg.seed, cfg.backbone.kind, version
     )

@@ -1,4 +1,6 @@
-"""IDR cells from a grid: parameter lists in groups, zipped within a group, crossed across.
+"""A run's grid: its cells, from parameter lists, and its episodes, cells x tasks x episodes.
+
+Cells: parameter lists in groups, zipped within a group, crossed across.
 
 Like robomimic's sweep generator: ``[{mode: [baseline, E]}, {alpha: [0.05, 0.1], tau: [5, 7]}]``
 gives baseline plus E x {(0.05, 5), (0.1, 7)}. Cell ids are built from the varied parameters
@@ -13,18 +15,30 @@ calibration needs.
 diagnose cell ran, per backbone x suite (see :class:`TauSpec`): ``calibrated`` (the paper's
 rule: the mean diagnosed effect), ``calibrated*K`` (K times that mean) or ``calibrated_qP``
 (its P-th percentile), also combined (``calibrated_q90*0.5``).
+
+Episodes: a plan of a paper-sized grid has hundreds of thousands of episodes; :class:`SpecGrid`
+is a ``Sequence[EpisodeSpec]`` that makes the spec at an index when asked (the scheduler walks
+it once, skipping stored keys), so a large run starts without building them all. Order: cell by
+cell, task by task, episode by episode, as every cell sees the same tasks and episodes. A
+cell's settings reach the episode here, with tau set per suite once calibrated
+(:meth:`Cell.idr_for`): the one step between the config and the worker.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
-from dataclasses import asdict, dataclass, fields
-from typing import Any
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, overload
 
 from idr_core.calibration import TauSpec, parse_tau
 from idr_core.interventions import InterventionConfig
 from idr_core.methods import SETTINGS, method_of, unread_settings
 from idr_core.refiner import RefinerConfig
+
+from workers.envs.base import TaskSpec
+from workers.episode.rows import EpisodeSpec
 
 IDR_KEYS = tuple(f.name for f in fields(RefinerConfig))
 INTERVENTION_KEYS = tuple(f.name for f in fields(InterventionConfig) if f.name != "seed")
@@ -71,6 +85,15 @@ class Cell:
     # tau: calibrated[...] -> tau is set, after the diagnose cell ran, from the effect it
     # measured, per suite (the paper's rule); idr.tau holds a placeholder until then
     calibrated_tau: TauSpec | None = None
+    # after calibration: tau per suite (None: idr.tau as it is)
+    tau_by_suite: Mapping[str, float] | None = None
+
+    def idr_for(self, suite: str | None) -> RefinerConfig:
+        """The settings an episode on ``suite`` runs with: ``idr`` with tau set for the suite
+        once calibrated."""
+        if self.tau_by_suite is None:
+            return self.idr
+        return dataclasses.replace(self.idr, tau=float(self.tau_by_suite[suite or ""]))
 
     def params(self) -> dict[str, Any]:
         """Flat parameters, for tables and MLflow (a calibrated tau as its spelling)."""
@@ -233,3 +256,83 @@ def expand_grid(groups: list[dict[str, Any]], base: dict[str, Any] | None = None
             cid, idr, iv, tuple(varied), calibrated_tau=tau_spec if idr.gated else None
         )
     return list(cells.values())
+
+
+@dataclass(frozen=True)
+class SpecGrid(Sequence[EpisodeSpec]):
+    run_id: str
+    cells: tuple[Cell, ...]
+    tasks: tuple[TaskSpec, ...]
+    episodes_per_task: int
+    seed: int
+    backbone: str
+    code_version: str | None = None
+    # index of the first episode (held-out calibration episodes start past the evaluated ones)
+    first_episode: int = 0
+    _n: int = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        n = len(self.cells) * len(self.tasks) * self.episodes_per_task
+        object.__setattr__(self, "_n", n)
+
+    def __len__(self) -> int:
+        return self._n
+
+    def _spec(self, i: int) -> EpisodeSpec:
+        per_cell = len(self.tasks) * self.episodes_per_task
+        c, rest = divmod(i, per_cell)
+        t, e = divmod(rest, self.episodes_per_task)
+        cell, task = self.cells[c], self.tasks[t]
+        return EpisodeSpec(
+            run_id=self.run_id,
+            cell_id=cell.cell_id,
+            idr=cell.idr_for(task.suite),
+            intervention=cell.intervention,
+            task=task,
+            episode_index=self.first_episode + e,
+            seed=self.seed,
+            backbone=self.backbone,
+            code_version=self.code_version,
+        )
+
+    @overload
+    def __getitem__(self, i: int) -> EpisodeSpec: ...
+    @overload
+    def __getitem__(self, i: slice) -> list[EpisodeSpec]: ...
+    def __getitem__(self, i: int | slice) -> EpisodeSpec | list[EpisodeSpec]:
+        if isinstance(i, slice):
+            return [self._spec(j) for j in range(*i.indices(self._n))]
+        if i < 0:
+            i += self._n
+        if not 0 <= i < self._n:
+            raise IndexError(i)
+        return self._spec(i)
+
+    def __iter__(self) -> Iterator[EpisodeSpec]:
+        return (self._spec(i) for i in range(self._n))
+
+    def replace(self, **changes: object) -> SpecGrid:
+        return dataclasses.replace(self, **changes)  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True)
+class Chain(Sequence[EpisodeSpec]):
+    """Several spec sequences read as one (a run's stages, for counting and listing)."""
+
+    parts: tuple[Sequence[EpisodeSpec], ...]
+
+    def __len__(self) -> int:
+        return sum(len(p) for p in self.parts)
+
+    def __getitem__(self, i: int) -> EpisodeSpec:  # type: ignore[override]
+        if i < 0:
+            i += len(self)
+        for p in self.parts:
+            if i < len(p):
+                return p[i]
+            i -= len(p)
+        raise IndexError(i)
+
+    def __iter__(self) -> Iterator[EpisodeSpec]:
+        for p in self.parts:
+            yield from p
