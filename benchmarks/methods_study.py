@@ -1,13 +1,14 @@
 """The test-time methods measured side by side: each run dir's methods table as data, into
 ``benchmarks/results/methods.json`` (docs/methods.md renders it).
 
-    python benchmarks/methods_study.py LABEL=RUN_DIR [LABEL=RUN_DIR ...] [--out PATH]
+    python benchmarks/methods_study.py LABEL=RUN_DIR [LABEL=RUN_DIR ...] [--out PATH] [--merge]
 
 The file holds ``runs.<LABEL>.cells.<CELL>``: each cell's success, its pairings and its cost.
 ``LABEL`` names the policy and the benchmark (``tiny_vla_tabletop``, ``smolvla_seed1_metaworld``...); a run dir holds one
 backbone on one suite and several methods as values of ``mode`` (conf/grids/methods.yaml on
 the tabletop; conf/zoo/metaworld.yaml with a methods grid on MetaWorld). The figures are
-exploratory: no comparison was declared before its data.
+exploratory: no comparison was declared before its data. ``--merge`` keeps the runs the file
+already holds under other labels (their run dirs need not be here) and replaces those given.
 """
 
 from __future__ import annotations
@@ -57,8 +58,13 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("runs", nargs="+", help="LABEL=RUN_DIR")
     p.add_argument("--out", type=Path, default=OUT)
+    p.add_argument(
+        "--merge", action="store_true", help="keep the runs --out holds under other labels"
+    )
     args = p.parse_args(argv)
     runs = {}
+    if args.merge and args.out.exists():
+        runs = dict(json.loads(args.out.read_text())["runs"])
     for item in args.runs:
         member, _, path = item.partition("=")
         if not path or not Path(path).is_dir():

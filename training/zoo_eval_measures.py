@@ -161,6 +161,8 @@ class Evaluation:
 
     def closed_loop(self, step: int, checkpoint: Path) -> dict[str, float]:
         from pipeline.api import evaluate
+        from pipeline.errors import ConfigError
+        from pipeline.rundir import read_run_json
 
         config, overrides = closed_loop_overrides(
             self.benchmark,
@@ -170,8 +172,26 @@ class Evaluation:
             self.closed_loop_set,
         )
         out = self.evals / f"step_{step:06d}"
-        evaluate(config, out, overrides, echo=log)  # an interrupted one resumes here
+        try:
+            evaluate(config, out, overrides, echo=log)  # an interrupted one resumes here
+        except ConfigError as e:
+            if read_run_json(out) is None:
+                raise  # a fresh run dir refused: the config itself is bad
+            # an interrupted evaluation that may not be resumed (another code version, CPU
+            # class or config): it is kept aside, never mixed, and the step runs afresh
+            aside = set_aside(out)
+            log(f"step {step}: {e}; its closed loop starts afresh (kept in {aside})")
+            evaluate(config, out, overrides, echo=log)
         return closedloop_metrics(out)
+
+
+def set_aside(run_dir: Path) -> Path:
+    """Rename ``run_dir`` to the first free ``<name>.superseded-K`` beside it."""
+    k = 1
+    while (aside := run_dir.with_name(f"{run_dir.name}.superseded-{k}")).exists():
+        k += 1
+    run_dir.rename(aside)
+    return aside
 
 
 def describe(e: BaseException) -> str:

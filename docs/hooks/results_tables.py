@@ -1190,10 +1190,72 @@ def _mde(d: Mapping[str, Any] | None) -> str:
     return "none" if d.get("mde_pp") is None else f"{d['mde_pp']:.0f}"
 
 
+def _short(d: Mapping[str, Any] | None) -> str:
+    if not d:
+        return "-"
+    lo, hi = d["ci95"]
+    return f"{100 * d['diff']:+.0f} [{100 * lo:+.0f}, {100 * hi:+.0f}]"
+
+
+def _verdict(run: Mapping[str, Any]) -> tuple[str, str]:
+    """The run's highest point success (with its forward rows per env step) and the methods
+    that beat the reference cell by a paired test (a positive difference, McNemar p < 0.05;
+    a bootstrap interval alone is not enough with this few discordant pairs)."""
+    cells = list(run["cells"].values())
+    best = max(cells, key=lambda c: (c["success"], -(c["rows_per_step"] or 0.0)))
+    rows = "-" if best["rows_per_step"] is None else f"{best['rows_per_step']:.2f}"
+    helping = [
+        f"`{c['cell']}`"
+        for c in cells
+        if c.get("vs_reference")
+        and c["vs_reference"]["diff"] > 0
+        and c["vs_reference"]["mcnemar_p"] < 0.05
+    ]
+    return f"`{best['cell']}` {100 * best['success']:.0f}% ({rows} rows/step)", (
+        ", ".join(helping) or "none"
+    )
+
+
+def _methods_overview(d: Data) -> str:
+    """One row per run: IDR's E and its placebos, and which method is worth its forwards."""
+    rows = []
+    for run in d["runs"].values():
+        cells = run["cells"]
+        best, helping = _verdict(run)
+        rows.append(
+            [
+                f"{run['member']} ({run['episodes_per_task']}/task)",
+                run["reference"],
+                _short(cells.get("E", {}).get("vs_reference")),
+                _short(cells.get("random", {}).get("vs_E")),
+                _short(cells.get("shuffled", {}).get("vs_E")),
+                _short(cells.get("scale_free", {}).get("vs_reference")),
+                best,
+                helping,
+            ]
+        )
+    return table(
+        [
+            "run (episodes per task)",
+            "reference",
+            "E − ref pp [95% CI]",
+            "random − E",
+            "shuffled − E",
+            "scale_free − ref",
+            "highest success",
+            "beats ref (McNemar p < 0.05)",
+        ],
+        rows,
+    )
+
+
 def methods(d: Data) -> str:
     """methods.json: per member and suite, each method's success, its pairings against the
-    reference cell and against IDR's mode E, and what it spends per executed env step."""
+    reference cell and against IDR's mode E, and what it spends per executed env step; first
+    one row per run, IDR's E against its placebos and the methods whose gain clears its
+    interval."""
     parts = [f"*{d['label'].capitalize()}: no comparison here was declared before its data.*"]
+    parts.append(_methods_overview(d))
     for run in d["runs"].values():
         ref = run["reference"]
         rows = [

@@ -280,3 +280,35 @@ def test_a_member_trained_with_eval_every_has_its_figures_in_mlflow_at_each_save
     assert len(client.search_runs([exp.experiment_id])) == 1
     assert len(client.get_metric_history(run_id, "openloop_r_img")) == 2
     print(f"first session {first_s:.0f} s, resumed {second_s:.0f} s")
+
+
+def test_an_interrupted_closed_loop_of_another_code_version_is_set_aside_and_rerun(
+    tmp_path, monkeypatch
+) -> None:
+    """A step's closed loop left by another code version may not be resumed (the runner refuses
+    mixing versions); the evaluator keeps it aside and runs the step afresh, while a config the
+    runner refuses in a fresh run dir stays that step's error."""
+    from pipeline.errors import ConfigError
+    from pipeline.rundir import read_run_json, write_run_json
+
+    smoke = zoo_benchmarks.ROOT / "conf" / "smoke.yaml"
+    overrides = ["tracking.enabled=false", "executor.kind=inline", "episodes_per_task=1"]
+    overrides.append("grid=[{mode: [diagnose]}]")
+    monkeypatch.setattr(meas, "closed_loop_overrides", lambda *a, **k: (smoke, list(overrides)))
+    evaluation = meas.Evaluation("metaworld", 100, tmp_path / "frames", tmp_path / "evals")
+    first = evaluation.closed_loop(500, tmp_path / "ckpt")
+    out = tmp_path / "evals" / "step_000500"
+    meta = read_run_json(out)
+    assert meta is not None and first["closedloop_episodes"] == 2.0
+    write_run_json(out, {**meta, "code_version": "v0-elsewhere"})
+
+    again = evaluation.closed_loop(500, tmp_path / "ckpt")
+    assert again["closedloop_episodes"] == 2.0
+    aside = tmp_path / "evals" / "step_000500.superseded-1"
+    assert read_run_json(aside)["code_version"] == "v0-elsewhere"  # kept, not mixed
+    assert read_run_json(out)["code_version"] != "v0-elsewhere"
+
+    overrides.append("episodes_per_task=0")
+    with pytest.raises(ConfigError, match="episodes_per_task"):
+        evaluation.closed_loop(1000, tmp_path / "ckpt")
+    assert not (tmp_path / "evals" / "step_001000.superseded-1").exists()
