@@ -133,9 +133,8 @@ def comparisons(refs: Sequence[RunRef], endpoints: Sequence[Endpoint]) -> dict[s
         eps = next(iter(by_seed.values())) if by_seed else episodes.get(e.member)
         d = compare(eps, e.cell, e.reference, e.suite) if eps is not None else None
         primary.append(_row(e.member, e.cell, e.reference, e.suite, d) | {"ran": eps is not None})
-    adjusted = holm([r["p"] for r in primary]) if primary else np.array([])
-    for r, p in zip(primary, adjusted, strict=True):
-        r["p_holm"] = float(p)
+    for r, p in zip(primary, family_holm(primary), strict=True):
+        r["p_holm"] = p
     declared = {(e.member, e.cell, e.reference) for e in endpoints if e.suite is None}
     exploratory = []
     for label, eps in episodes.items():
@@ -154,6 +153,21 @@ def comparisons(refs: Sequence[RunRef], endpoints: Sequence[Endpoint]) -> dict[s
             if cell != reference and (member, cell, reference) not in declared:
                 exploratory.append(_pooled_row(member, cell, str(reference), None, by_seed))
     return {"primary": primary, "exploratory": exploratory}
+
+
+def family_holm(primary: Sequence[dict]) -> list[float]:
+    """Holm's adjusted p of each declared endpoint over the whole declared family: an endpoint
+    not run (or without pairs) counts as p = 1, so the family keeps its declared size and an
+    adjusted p given now is never below the one the complete study gives (a rejection now
+    stands whatever the missing endpoints show); its own adjusted p is NaN."""
+    if not primary:
+        return []
+    raw = [r["p"] if r["ran"] and np.isfinite(r["p"]) else 1.0 for r in primary]
+    adjusted = holm(raw)
+    return [
+        float(a) if r["ran"] and np.isfinite(r["p"]) else math.nan
+        for r, a in zip(primary, adjusted, strict=True)
+    ]
 
 
 def _pp(x: float) -> str:
@@ -182,7 +196,8 @@ def markdown(result: dict[str, list[dict]], pinned: str | None) -> list[str]:
         lines += [
             f"Declared in the study file before its first episode ({len(primary)} "
             f"comparisons{f', hash {pinned[:12]}' if pinned else ''}); p-values adjusted by "
-            "Holm's step-down over these comparisons (family-wise α = 0.05). A member with "
+            "Holm's step-down over these comparisons (family-wise α = 0.05; one not run counts "
+            "as p = 1, so the family keeps its declared size). A member with "
             "several training seeds is pooled over them (mean of the seeds' differences, "
             "two-level bootstrap: seeds, then episodes within each task); one seed: McNemar.",
             "",

@@ -96,3 +96,21 @@ def test_a_study_without_endpoints_says_every_comparison_is_exploratory(tmp_path
     lines = markdown({"primary": [], "exploratory": []}, None)
     assert "None declared" in "\n".join(lines)
     assert "## Exploratory comparisons" in lines
+
+
+def test_an_endpoint_not_run_keeps_the_declared_family_size_in_holm() -> None:
+    """Three declared endpoints, one not run (left out by --only): Holm over three, the missing
+    one at p = 1, so each adjusted p now bounds the complete study's from above."""
+    import math
+
+    from pipeline.reporting.endpoints import family_holm
+    from pipeline.results.power import holm
+
+    ran = [{"ran": True, "p": 0.01}, {"ran": True, "p": 0.04}]
+    partial = family_holm([*ran, {"ran": False, "p": math.nan}])
+    assert partial[:2] == pytest.approx([0.03, 0.08]) and math.isnan(partial[2])
+    for missing in (1e-6, 0.02, 0.5, 1.0):  # whatever the missing endpoint gives later
+        complete = holm([0.01, 0.04, missing])
+        assert all(c <= p + 1e-12 for c, p in zip(complete[:2], partial[:2], strict=True))
+    # a declared endpoint that ran but has no pairs counts the same way
+    assert family_holm([*ran, {"ran": True, "p": math.nan}])[:2] == pytest.approx([0.03, 0.08])
