@@ -992,6 +992,99 @@ def paper_observations(d: Data) -> str:
     )
 
 
+def _ci_pp(value: float, ci: list[float], signed: bool = True) -> str:
+    f = "+.1f" if signed else ".1f"
+    if not all(math.isfinite(x) for x in (value, *ci)):
+        return "–"
+    return f"{100 * value:{f}} [{100 * ci[0]:{f}}, {100 * ci[1]:{f}}]"
+
+
+def _p_text(x: float | None) -> str:
+    return "–" if x is None or not math.isfinite(x) else f"{x:.2g}"
+
+
+PRIMARY_HEADER = ["member", "comparison", "seeds (each seed's Δ pp)", "Δ success pp [95% CI]",
+                  "p (test)", "Holm p", "MDE pp"]  # fmt: skip
+
+
+def confirmatory_metaworld(d: Data) -> str:
+    """confirmatory_metaworld.json (benchmarks/confirmatory_study.py: the study's observations
+    with the evidence of its declaration): the primary endpoints with Holm, each member pooled
+    over its training seeds, each run's tau and success, the exploratory comparisons."""
+    declared = "yes" if d["declared_before_data"] else "**no**"
+    head = (
+        f"*Confirmatory: `{d['study_file']}` committed at {d['commit'][:12]} "
+        f"({d['committed_at']}), first episode {d['first_episode_at']}: declared before its "
+        f"data: {declared}; endpoints hash {str(d['endpoints_hash'])[:12]}; "
+        f"{d['wall_minutes']:.0f} minutes from first to last episode.*"
+    )
+    primary = []
+    for r in d["comparisons"]["primary"]:
+        per = ", ".join(f"s{k} {100 * v:+.0f}" for k, v in (r.get("per_seed") or {}).items())
+        primary.append(
+            [
+                r["member"],
+                f"{r['cell']} vs {r['reference']}",
+                f"{r['seeds']} ({per})" if per else str(r["seeds"]) if r["ran"] else "not run",
+                _ci_pp(r["diff"], r["ci95"]) if r["ran"] else "not run",
+                f"{_p_text(r['p'])} ({r['test']})" if r["ran"] else "–",
+                _p_text(r.get("p_holm")),
+                "–" if not r["ran"] else f"≥ {r['mde_pp']:.0f}" if r["seeds"] > 1 else
+                f"{r['mde_pp']:.0f}",
+            ]
+        )  # fmt: skip
+    members = []
+    for m in d["members"]:
+        if "r_img" not in m:
+            continue
+        succ = m["success"]
+        members.append(
+            [
+                m["member"],
+                str(len(m["seeds"])),
+                f"{m['r_img']['value']:.2f} [{m['r_img']['ci95'][0]:.2f}, "
+                f"{m['r_img']['ci95'][1]:.2f}]",
+                _ci_pp(succ[m["diagnose"]]["value"], succ[m["diagnose"]]["ci95"], signed=False),
+                _ci_pp(succ["E"]["value"], succ["E"]["ci95"], signed=False),
+            ]
+        )
+    runs = []
+    for r in d["runs"]:
+        label = f"{r['arch']}@{r['env']}:seed{r['seed']}"
+        rec = d["run_records"].get(label, {})
+        tau = (rec.get("tau") or {}).get("tau")
+        fitted = (rec.get("tau") or {}).get("fitted_on", "-")
+        s = r.get("success", {})
+        runs.append(
+            [label, f"{r['r_img']:.2f}", "-" if tau is None else f"{tau:.2f} ({fitted})",
+             *(f"{100 * s[c]['rate']:.0f}% (n={s[c]['n']})" if c in s else "-"
+               for c in ("diagnose", "E", "random")),
+             f"{rec.get('errors', '-')}"]
+        )  # fmt: skip
+    exploratory = [
+        [
+            r["member"],
+            f"{r['cell']} vs {r['reference']}",
+            str(r["seeds"]),
+            _ci_pp(r["diff"], r["ci95"]),
+            f"{_p_text(r['p'])} ({r['test']})",
+        ]
+        for r in d["comparisons"]["exploratory"]
+    ]
+    return block(
+        head,
+        "**Primary endpoints** (Holm over the declared six; one not run counts as p = 1)",
+        table(PRIMARY_HEADER, primary),
+        "**Members pooled over their training seeds** (two-level bootstrap 95% intervals)",
+        table(["member", "seeds", "R_img", "diagnose success %", "E success %"], members),
+        "**Each run** (τ fitted on its held-out episodes; success of each cell)",
+        table(["run", "R_img", "τ (fitted on)", "diagnose", "E", "random", "error rows"], runs),
+        "**Exploratory** (not declared: uncorrected p, hypotheses for a later study)",
+        table(["member", "comparison", "seeds", "Δ success pp [95% CI]", "p (test)"], exploratory),
+        source("confirmatory_metaworld", d),
+    )
+
+
 def carried(c: dict | None) -> str:
     """How a checkpoint came from the machine that trained it (training/zoo_carry.py)."""
     if not c:
@@ -1330,6 +1423,7 @@ RENDERERS: dict[str, Callable[[Data], str]] = {
         zoo_smolvla_vision,
         zoo_metaworld_vision,
         paper_observations,
+        confirmatory_metaworld,
         reliance_metaworld,
         zoo_training_metaworld,
         isa_spread,
