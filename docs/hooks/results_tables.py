@@ -1016,8 +1016,15 @@ def confirmatory_metaworld(d: Data) -> str:
         f"*Confirmatory: `{d['study_file']}` committed at {d['commit'][:12]} "
         f"({d['committed_at']}), first episode {d['first_episode_at']}: declared before its "
         f"data: {declared}; endpoints hash {str(d['endpoints_hash'])[:12]}; "
-        f"{d['wall_minutes']:.0f} minutes from first to last episode.*"
+        f"{d['wall_minutes']:.0f} minutes from first to last episode, summed over the "
+        "sessions that ran the members.*"
     )
+    if len(d.get("machines", [])) > 1:
+        head += (
+            "\n\n*Members ran on: "
+            + "; ".join(machine({"machine": m}) for m in d["machines"])
+            + ".*"
+        )
     primary = []
     for r in d["comparisons"]["primary"]:
         per = ", ".join(f"s{k} {100 * v:+.0f}" for k, v in (r.get("per_seed") or {}).items())

@@ -182,11 +182,16 @@ def build(refs: list[RunRef]) -> dict:
     for r in refs:
         grouped.setdefault(r.member, []).append(r)
     members = [_member_section(m, rs) for m, rs in grouped.items() if len(rs) > 1]
+    return {"runs": runs, "members": members, "rimg_vs_gain": rimg_vs_gain(runs)}
+
+
+def rimg_vs_gain(runs: list[dict]) -> dict:
+    """R_img against E's gain across members (one point per member, its seeds' mean)."""
     points = _points(runs)
     corr = rank_correlation([p["r_img"] for p in points], [p["gain"] for p in points])
     corr["members"] = [p["member"] for p in points]
     corr["seeds"] = {p["member"]: p["seeds"] for p in points}
-    return {"runs": runs, "members": members, "rimg_vs_gain": corr}
+    return corr
 
 
 def heatmap_matrix(result: dict) -> pd.DataFrame:

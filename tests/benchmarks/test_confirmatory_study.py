@@ -29,31 +29,39 @@ def _load(name: str, path: Path) -> Any:
 confirmatory_study = _load("confirmatory_study", ROOT / "benchmarks" / "confirmatory_study.py")
 
 
-@pytest.fixture(scope="module")
-def study_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    tmp = tmp_path_factory.mktemp("study")
-    study = tmp / "study.yaml"
-    study.write_text(
-        f"""
+STUDY = """
 name: fake_confirmatory
-set: [episodes_per_task=3, "grid=[{{mode: [diagnose, E, random]}}]", executor.kind=inline,
+set: [episodes_per_task=3, "grid=[{mode: [diagnose, E, random]}]", executor.kind=inline,
       executor.workers=1, tracking.enabled=false, idr.tau=calibrated,
-      "calibration={{episodes_per_task: 10}}", "backbone.params.noise_std=0.3"]
+      "calibration={episodes_per_task: 10}", "backbone.params.noise_std=0.3"]
 runs:
-  - {{arch: fake, env: smoke, seed: 0, config: {SMOKE}}}
-  - {{arch: fake, env: smoke, seed: 1, config: {SMOKE}, set: [backbone.params.gain=3.0]}}
+  - {arch: fake, env: smoke, seed: 0, config: SMOKE}
+  - {arch: fake, env: smoke, seed: 1, config: SMOKE, set: [backbone.params.gain=3.0]}
+  - {arch: other, env: smoke, seed: 0, config: SMOKE, set: [backbone.params.gain=1.0]}
+  - {arch: other, env: smoke, seed: 1, config: SMOKE, set: [backbone.params.gain=2.0]}
 endpoints:
   primary:
-    - {{member: fake@smoke, compare: [E, diagnose]}}
-    - {{member: fake@smoke, compare: [E, random]}}
+    - {member: fake@smoke, compare: [E, diagnose]}
+    - {member: other@smoke, compare: [E, diagnose]}
+    - {member: fake@smoke, compare: [E, random]}
 """
-    )
+FAKE = "fake@smoke:seed0,fake@smoke:seed1"
+OTHER = "other@smoke:seed0,other@smoke:seed1"
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """The study file and its dir, holding the member ``fake`` alone (``--only``)."""
+    tmp = tmp_path_factory.mktemp("study")
+    study = tmp / "study.yaml"
+    study.write_text(STUDY.replace("SMOKE", str(SMOKE)))
     out = tmp / "out"
-    assert cli.main(["study", str(study), "--out", str(out)]) == 0
-    return out
+    assert cli.main(["study", str(study), "--out", str(out), "--only", FAKE]) == 0
+    return study, out
 
 
-def test_the_results_file_holds_the_claim_and_its_evidence(study_dir: Path, tmp_path: Path):
+def test_the_results_file_holds_the_claim_and_its_evidence(study, tmp_path: Path) -> None:
+    _, study_dir = study
     out = tmp_path / "confirmatory.json"
     assert confirmatory_study.main([str(study_dir), "--out", str(out)]) == 0
     data = json.loads(out.read_text())
@@ -67,11 +75,12 @@ def test_the_results_file_holds_the_claim_and_its_evidence(study_dir: Path, tmp_
         assert rec["tau"]["fitted_on"] == "held_out"
         assert rec["hardware"] and rec["code_versions"]
     primary = data["comparisons"]["primary"]
-    assert [(r["cell"], r["reference"], r["seeds"]) for r in primary] == [
-        ("E", "diagnose", 2),
-        ("E", "random", 2),
+    assert [(r["member"], r["reference"], r["ran"]) for r in primary] == [
+        ("fake@smoke", "diagnose", True),
+        ("other@smoke", "diagnose", False),  # left out by --only
+        ("fake@smoke", "random", True),
     ]
-    assert all(r["p_holm"] >= r["p"] for r in primary)
+    assert all(r["p_holm"] >= r["p"] for r in primary if r["ran"])
     assert data["wall_minutes"] > 0 and data["machine"]["cpu_model"]
 
     # the docs render every primary endpoint, pooled member and run from this file
@@ -80,10 +89,37 @@ def test_the_results_file_holds_the_claim_and_its_evidence(study_dir: Path, tmp_
     assert "declared before its data: yes" in md and data["commit"][:12] in md
     rows = [line for line in md.splitlines() if line.startswith("| fake@smoke |")]
     assert [r.split(" | ")[1] for r in rows[:2]] == ["E vs diagnose", "E vs random"]
-    for r in primary:
-        assert f"{r['p_holm']:.2g}" in rows[primary.index(r)]
+    assert f"{primary[0]['p_holm']:.2g}" in rows[0] and f"{primary[2]['p_holm']:.2g}" in rows[1]
+    assert "| other@smoke | E vs diagnose | not run |" in md
     assert "| fake@smoke:seed0 |" in md and "| fake@smoke:seed1 |" in md
     assert "(held_out)" in md
+
+
+def test_a_member_run_later_is_merged_and_holm_is_computed_again(study, tmp_path: Path):
+    from pipeline.results.power import holm
+
+    study_file, study_dir = study
+    out = tmp_path / "confirmatory.json"
+    assert confirmatory_study.main([str(study_dir), "--out", str(out)]) == 0
+    partial = json.loads(out.read_text())["comparisons"]["primary"]
+    # the other member, run into the same study dir later (a second --only), then merged
+    assert cli.main(["study", str(study_file), "--out", str(study_dir), "--only", OTHER]) == 0
+    assert confirmatory_study.main([str(study_dir), "--out", str(out), "--merge"]) == 0
+    data = json.loads(out.read_text())
+    primary = data["comparisons"]["primary"]
+    assert [r["ran"] for r in primary] == [True, True, True]
+    assert primary[0] == {**partial[0], "p_holm": primary[0]["p_holm"]}  # kept as it ran
+    assert [r["p_holm"] for r in primary] == pytest.approx(holm([r["p"] for r in primary]))
+    # the partial file's adjusted p bounded the complete family's from above
+    assert primary[0]["p_holm"] <= partial[0]["p_holm"] + 1e-12
+    assert set(data["run_records"]) == {*FAKE.split(","), *OTHER.split(",")}
+    assert {m["member"] for m in data["members"]} >= {"fake@smoke", "other@smoke"}
+    assert data["rimg_vs_gain"]["members"] and len(data["machines"]) == 1
+    # a file of another declaration is never merged into
+    other = json.loads(out.read_text()) | {"endpoints_hash": "0" * 64}
+    out.write_text(json.dumps(other))
+    with pytest.raises(SystemExit, match="never merged"):
+        confirmatory_study.main([str(study_dir), "--out", str(out), "--merge"])
 
 
 def test_a_study_file_with_uncommitted_changes_is_not_the_declared_one(tmp_path: Path) -> None:
