@@ -1430,7 +1430,6 @@ RENDERERS: dict[str, Callable[[Data], str]] = {
         zoo_smolvla_vision,
         zoo_metaworld_vision,
         paper_observations,
-        confirmatory_metaworld,
         reliance_metaworld,
         zoo_training_metaworld,
         isa_spread,
