@@ -5,28 +5,19 @@ refused. The study is the smoke's fakes, two training seeds of one member, run t
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
-from typing import Any
 
 import pytest
 
 from pipeline import cli
+from tests.benchmarks import load_script
 
 ROOT = Path(__file__).resolve().parents[2]
 SMOKE = ROOT / "conf" / "smoke.yaml"
 
 
-def _load(name: str, path: Path) -> Any:
-    spec = importlib.util.spec_from_file_location(name, path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-confirmatory_study = _load("confirmatory_study", ROOT / "benchmarks" / "confirmatory_study.py")
+confirmatory_study = load_script(ROOT / "benchmarks" / "confirmatory_study.py")
 
 
 STUDY = """
@@ -84,7 +75,7 @@ def test_the_results_file_holds_the_claim_and_its_evidence(study, tmp_path: Path
     assert data["wall_minutes"] > 0 and data["machine"]["cpu_model"]
 
     # the docs render every primary endpoint, pooled member and run from this file
-    hook = _load("results_tables", ROOT / "docs" / "hooks" / "results_tables.py")
+    hook = load_script(ROOT / "docs" / "hooks" / "results_tables.py")
     md = hook.confirmatory_metaworld(data)
     assert "declared before its data: yes" in md and data["commit"][:12] in md
     rows = [line for line in md.splitlines() if line.startswith("| fake@smoke |")]

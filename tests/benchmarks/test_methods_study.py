@@ -6,28 +6,19 @@ The run is the smoke's fakes through the real planner, executor and store (inlin
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
-from typing import Any
 
 import pytest
 
 from pipeline.execution.runner import execute, plan_run
 from pipeline.planning.config import load_config
+from tests.benchmarks import load_script
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def _load(name: str, path: Path) -> Any:
-    spec = importlib.util.spec_from_file_location(name, path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-methods_study = _load("methods_study", ROOT / "benchmarks" / "methods_study.py")
+methods_study = load_script(ROOT / "benchmarks" / "methods_study.py")
 
 
 @pytest.fixture(scope="module")

@@ -5,16 +5,15 @@ with such a mode goes through ``results_path``."""
 from __future__ import annotations
 
 import ast
-import importlib.util
 import tempfile
 from pathlib import Path
+
+from tests.benchmarks import load_script
 
 ROOT = Path(__file__).resolve().parents[2]
 BENCHMARKS = ROOT / "benchmarks"
 COMMITTED = BENCHMARKS / "results" / "gpu_supply.json"
-spec = importlib.util.spec_from_file_location("results_path", BENCHMARKS / "results_path.py")
-results_path = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(results_path)
+results_path = load_script(BENCHMARKS / "results_path.py")
 
 # the flags of a run at toy sizes, whose figures are not the machine's
 TRIAL_FLAGS = ("--dry", "--quick", "--tiny", "--smoke", "--fast", "--toy")

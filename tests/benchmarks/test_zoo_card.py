@@ -4,7 +4,6 @@ run holds nothing else."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -12,11 +11,10 @@ import pandas as pd
 import pytest
 
 from pipeline import cli
+from tests.benchmarks import load_script
 
 ROOT = Path(__file__).resolve().parents[2]
-spec = importlib.util.spec_from_file_location("zoo_card", ROOT / "benchmarks" / "zoo_card.py")
-zoo_card = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(zoo_card)
+zoo_card = load_script(ROOT / "benchmarks" / "zoo_card.py")
 
 
 def _steps(task: str, e_img: float, e_prop: float, episodes: int = 4) -> list[dict]:

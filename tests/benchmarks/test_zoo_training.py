@@ -7,7 +7,6 @@ The ledgers here are fabricated test inputs in the evaluator's record format
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import struct
 from pathlib import Path
@@ -15,18 +14,12 @@ from typing import Any
 
 import pytest
 
+from tests.benchmarks import load_script
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def _load(name: str, path: Path) -> Any:
-    spec = importlib.util.spec_from_file_location(name, path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-zoo_training = _load("zoo_training", ROOT / "benchmarks" / "zoo_training.py")
+zoo_training = load_script(ROOT / "benchmarks" / "zoo_training.py")
 
 
 def _ok(step: int, r: float, success: float | None = None) -> dict[str, Any]:
@@ -132,7 +125,7 @@ def test_the_figure_is_a_png_of_the_declared_size(data: dict[str, Any], tmp_path
 
 
 def test_the_renderer_shows_every_step_and_each_failure(data: dict[str, Any]) -> None:
-    hook = _load("results_tables", ROOT / "docs" / "hooks" / "results_tables.py")
+    hook = load_script(ROOT / "docs" / "hooks" / "results_tables.py")
     text = hook.RENDERERS["zoo_training_metaworld"](data)
     assert text.count("| step |") == 2  # one table per member@seed
     for step in ("| 500 |", "| 1,000 |", "| 1,500 |", "| 2,000 |"):
