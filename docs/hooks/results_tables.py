@@ -1063,7 +1063,8 @@ def confirmatory_metaworld(d: Data) -> str:
         fitted = (rec.get("tau") or {}).get("fitted_on", "-")
         s = r.get("success", {})
         runs.append(
-            [label, f"{r['r_img']:.2f}", "-" if tau is None else f"{tau:.2f} ({fitted})",
+            [label, f"{r['r_img']:.2f} [{r['r_img_ci95'][0]:.2f}, {r['r_img_ci95'][1]:.2f}]",
+             "-" if tau is None else f"{tau:.2f} ({fitted})",
              *(f"{100 * s[c]['rate']:.0f}% (n={s[c]['n']})" if c in s else "-"
                for c in ("diagnose", "E", "random")),
              f"{rec.get('errors', '-')}"]
@@ -1085,7 +1086,9 @@ def confirmatory_metaworld(d: Data) -> str:
         "**Members pooled over their training seeds** (two-level bootstrap 95% intervals)",
         table(["member", "seeds", "R_img", "diagnose success %", "E success %"], members),
         "**Each run** (τ fitted on its held-out episodes; success of each cell)",
-        table(["run", "R_img", "τ (fitted on)", "diagnose", "E", "random", "error rows"], runs),
+        table(
+            ["run", "R_img [95% CI]", "τ (fitted on)", "diagnose", "E", "random", "errors"], runs
+        ),
         "**Exploratory** (not declared: uncorrected p, hypotheses for a later study)",
         table(["member", "comparison", "seeds", "Δ success pp [95% CI]", "p (test)"], exploratory),
         source("confirmatory_metaworld", d),
@@ -1430,6 +1433,7 @@ RENDERERS: dict[str, Callable[[Data], str]] = {
         zoo_smolvla_vision,
         zoo_metaworld_vision,
         paper_observations,
+        confirmatory_metaworld,
         reliance_metaworld,
         zoo_training_metaworld,
         isa_spread,
