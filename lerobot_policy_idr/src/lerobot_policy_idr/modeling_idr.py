@@ -200,17 +200,23 @@ class IDRPolicy(PreTrainedPolicy):
                 "the idr_counterfactual_batch step (load it with the idr folder's processors)"
             )
         batch = self._with_history(batch)
+        # the thirds the method reads, in one forward: all three, or cfg's factual and do(V)
+        # (the rows idr-eval's runtime forwards, so the forward's shape, and with it the
+        # float order on a CPU whose kernels depend on the batch, is the harness's)
+        k = len(self.method.passes)
+        if k < 3:
+            batch = {key: _rows_of(v, 0, b, key, count=k) for key, v in batch.items()}
         version = weights_version(self.base)
         if noise is None and seed is not None:  # the noise idr-eval draws from the step seed
             noise = self._noise(b, seed)
         if noise is None and self.crn == "shared_noise":
             shape = noise_shape(self.base.config, b, self.action_dim)
-            if shape is not None:  # one draw from torch's RNG, shared by the three thirds
+            if shape is not None:  # one draw from torch's RNG, shared by the thirds
                 noise = torch.randn(shape, device=_batch_device(batch))
-        if self.crn == "seeded_rng":  # X-VLA ignores a noise input: three forwards, one seed
-            out = self._seeded_thirds(batch, b, noise)
+        if self.crn == "seeded_rng":  # X-VLA ignores a noise input: a forward a third, one seed
+            out = self._seeded_thirds(batch, b, noise, k)
         elif noise is not None:
-            out = self._predict(batch, noise=repeat3(noise))
+            out = self._predict(batch, noise=repeat3(noise) if k == 3 else torch.cat([noise] * k))
         else:
             out = self._predict(batch)
         if weights_version(self.base) != version:
@@ -225,7 +231,11 @@ class IDRPolicy(PreTrainedPolicy):
         # the executed horizon: E_img is a norm over the chunk, so it is taken over the actions
         # that will run (n_action_steps), as idr-eval does
         out = out[:, : self.n_action_steps]
-        a_base, a_no_img, a_no_prop = split3(self._physical(out), b)
+        if k == 3:
+            a_base, a_no_img, a_no_prop = split3(self._physical(out), b)
+        else:  # cfg: no do(S) third
+            physical = self._physical(out)
+            a_base, a_no_img, a_no_prop = physical[:b], physical[b : 2 * b], None
         if seed is None and self.config.mode in ("random", "shuffled"):
             seed = _draw()
         final, diag, clipped, fallback = self._refine(a_base, a_no_img, a_no_prop, seed or 0)
@@ -241,7 +251,7 @@ class IDRPolicy(PreTrainedPolicy):
             inference_ms=total,
             clipped=clipped,
             fallback=fallback,
-            pass_rows=3,
+            pass_rows=k,
             executed_steps=self.n_action_steps,
         )
         return final, rows
@@ -329,13 +339,15 @@ class IDRPolicy(PreTrainedPolicy):
             torch.manual_seed(seed)
             return self._predict(part, rows)
 
-    def _seeded_thirds(self, batch: dict[str, Any], b: int, seed: Any) -> torch.Tensor:
-        """The three thirds as three forwards of B rows, each under a forked RNG seeded alike
+    def _seeded_thirds(
+        self, batch: dict[str, Any], b: int, seed: Any, thirds: int = 3
+    ) -> torch.Tensor:
+        """The ``thirds`` thirds as forwards of B rows each, each under a forked RNG seeded alike
         (``seed``: a tensor of seeds as idr-eval's backbone makes it, else one draw from torch's
         RNG), so the thirds see the same sampling noise."""
         s = int(seed[0]) if seed is not None else _draw()
         outs = []
-        for i in range(3):
+        for i in range(thirds):
             part = {k: _rows_of(v, i, b, k) for k, v in batch.items()}
             outs.append(self._seeded(part, s, slice(i * b, (i + 1) * b)))
         return torch.cat(outs, dim=0)
@@ -356,12 +368,17 @@ class IDRPolicy(PreTrainedPolicy):
         return final, clipped, [""] * b
 
     def _refine(
-        self, a_base: torch.Tensor, a_no_img: torch.Tensor, a_no_prop: torch.Tensor, seed: int
+        self,
+        a_base: torch.Tensor,
+        a_no_img: torch.Tensor,
+        a_no_prop: torch.Tensor | None,
+        seed: int,
     ):
         b = a_base.shape[0]
         if not bool(torch.isfinite(a_base).all()):
             raise ValueError("the base policy's action is not finite; nothing safe to execute")
-        if not (bool(torch.isfinite(a_no_img).all()) and bool(torch.isfinite(a_no_prop).all())):
+        counterfactual = [a for a in (a_no_img, a_no_prop) if a is not None]
+        if not all(bool(torch.isfinite(a).all()) for a in counterfactual):
             return a_base, None, [0] * b, ["nonfinite"] * b
         if method_of(self.refiner_cfg).diagnoses:
             final, diag = refine(a_base, a_no_img, a_no_prop, self.refiner_cfg, seed=seed)
@@ -445,21 +462,23 @@ def _batch_rows(batch: dict[str, Any]) -> int:
     raise ValueError(f"the idr policy found no state or image tensor in the batch: {sorted(batch)}")
 
 
-def _rows_of(value: Any, i: int, b: int, key: str = "") -> Any:
-    """Third ``i`` of a 3B-row batch entry (tensors and per-row lists; others as they are).
-    A Qwen-VL processor's ``pixel_values`` hold every row's image patches one after another
-    (EO1): the thirds are its thirds, the three thirds' images being of one size; its
-    ``image_grid_thw`` has one row per image, so several per batch row with several cameras."""
+def _rows_of(value: Any, i: int, b: int, key: str = "", count: int = 1) -> Any:
+    """Thirds ``i`` to ``i + count - 1`` of a 3B-row batch entry (tensors and per-row lists;
+    others as they are). A Qwen-VL processor's ``pixel_values`` hold every row's image patches
+    one after another (EO1): the thirds are its thirds, the three thirds' images being of one
+    size; its ``image_grid_thw`` has one row per image, so several per batch row with several
+    cameras."""
+    j = i + count
     if isinstance(value, torch.Tensor) and value.ndim and value.shape[0] == 3 * b:
-        return value[i * b : (i + 1) * b]
+        return value[i * b : j * b]
     if key in FLAT_PATCH_KEYS and isinstance(value, torch.Tensor) and value.shape[0] % 3 == 0:
         n = value.shape[0] // 3
-        return value[i * n : (i + 1) * n]
+        return value[i * n : j * n]
     if key in PER_IMAGE_KEYS and isinstance(value, torch.Tensor) and value.shape[0] % (3 * b) == 0:
         n = value.shape[0] // 3  # one row per image, several cameras per batch row
-        return value[i * n : (i + 1) * n]
+        return value[i * n : j * n]
     if isinstance(value, list) and len(value) == 3 * b:
-        return value[i * b : (i + 1) * b]
+        return value[i * b : j * b]
     return value
 
 
