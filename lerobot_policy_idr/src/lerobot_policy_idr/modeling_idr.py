@@ -204,8 +204,6 @@ class IDRPolicy(PreTrainedPolicy):
         # (the rows idr-eval's runtime forwards, so the forward's shape, and with it the
         # float order on a CPU whose kernels depend on the batch, is the harness's)
         k = len(self.method.passes)
-        if k < 3:
-            batch = {key: _rows_of(v, 0, b, key, count=k) for key, v in batch.items()}
         version = weights_version(self.base)
         if noise is None and seed is not None:  # the noise idr-eval draws from the step seed
             noise = self._noise(b, seed)
@@ -215,10 +213,14 @@ class IDRPolicy(PreTrainedPolicy):
                 noise = torch.randn(shape, device=_batch_device(batch))
         if self.crn == "seeded_rng":  # X-VLA ignores a noise input: a forward a third, one seed
             out = self._seeded_thirds(batch, b, noise, k)
-        elif noise is not None:
-            out = self._predict(batch, noise=repeat3(noise) if k == 3 else torch.cat([noise] * k))
         else:
-            out = self._predict(batch)
+            read = {key: _rows_of(v, 0, b, key, count=k) for key, v in batch.items()}
+            if noise is None:
+                out = self._predict(read)
+            else:
+                out = self._predict(
+                    read, noise=repeat3(noise) if k == 3 else torch.cat([noise] * k)
+                )
         if weights_version(self.base) != version:
             raise IDRConfigError(
                 f"the base policy (type {self.base.config.type!r}) changed its own weights during "
