@@ -6,7 +6,7 @@ Runs ``conf/default.yaml`` at ``--episodes`` per task (default 3) three times, e
 ``idr-eval run`` process: portable twice, native once. Writes
 ``benchmarks/results/portable_numerics.json``: the machine, the wall times, whether the two
 portable runs are identical, how many episodes native and portable share bit for bit, and the
-portable run's per-episode hashes (``pipeline.results.digest``), which
+portable run's per-episode hashes (``pipeline.results.digest``) and the columns they cover, which
 ``tests/pipeline/results/test_portable_digest.py`` checks on whatever machine runs it.
 
 A machine's result is added to the file's ``machines`` list (the same CPU model and instruction
@@ -69,8 +69,15 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=3)
     ap.add_argument("--reference", action="store_true", help="keep the file's reference")
     args = ap.parse_args()
-    from pipeline.results.digest import episode_hashes, first_difference, run_digest
+    from pipeline.results.digest import (
+        episode_hashes,
+        first_difference,
+        hashed_columns,
+        run_digest,
+    )
 
+    old = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {}
+    keep = args.reference and old.get("hashes")
     with tempfile.TemporaryDirectory() as tmp:
         t = Path(tmp)
         wall = {
@@ -78,10 +85,10 @@ def main() -> None:
             "portable_2": run(t / "p2", "portable", args.episodes),
             "native": run(t / "n", "native", args.episodes),
         }
-        p1, p2, n = (episode_hashes(t / d) for d in ("p1", "p2", "n"))
+        # a kept reference is compared over the columns it hashed, a new one records its own
+        columns = old["columns"] if keep else hashed_columns(t / "p1")
+        p1, p2, n = (episode_hashes(t / d, columns) for d in ("p1", "p2", "n"))
     same_native = sum(p1[k] == n.get(k) for k in p1)
-    old = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {}
-    keep = args.reference and old.get("hashes")
     reference = old["hashes"] if keep else p1
     here = machine()
     entry = {
@@ -100,6 +107,7 @@ def main() -> None:
         "overrides": slice_overrides(args.episodes),
         "episodes": len(p1),
         "digest": run_digest(reference),
+        "columns": columns,
         "hashes": reference,
         "machines": machines,
         "measured_on": here,

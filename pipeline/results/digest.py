@@ -55,13 +55,32 @@ def _row_hash(row: dict[str, Any]) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def episode_hashes(run_dir: str | Path) -> dict[str, str]:
-    """``cell/task/episode`` -> the hash of that episode's row and its step rows."""
+def hashed_columns(run_dir: str | Path) -> dict[str, list[str]]:
+    """The columns ``episode_hashes`` covers in ``run_dir`` by default: every column of each
+    table but the excluded ones. A reference records them, so that a column added to the
+    schema later does not change what its hashes compare."""
+    store = RunStore(Path(run_dir), read_only=True)
+    return {
+        "episodes": [c for c in store.episodes().schema.names if c not in EXCLUDED],
+        "steps": [c for c in store.steps().schema.names if c not in EXCLUDED],
+    }
+
+
+def episode_hashes(
+    run_dir: str | Path, columns: dict[str, list[str]] | None = None
+) -> dict[str, str]:
+    """``cell/task/episode`` -> the hash of that episode's row and its step rows, over
+    ``columns`` (``{"episodes": [...], "steps": [...]}``; default: ``hashed_columns``). A
+    named column the run lacks is refused: the hashes could not be compared."""
     store = RunStore(Path(run_dir), read_only=True)
     episodes = store.episodes().to_pandas()
     steps = store.steps().to_pandas()
-    keep_e = [c for c in episodes.columns if c not in EXCLUDED]
-    keep_s = [c for c in steps.columns if c not in EXCLUDED]
+    keep = columns or hashed_columns(run_dir)
+    keep_e, keep_s = list(keep["episodes"]), list(keep["steps"])
+    for name, table, cols in (("episodes", episodes, keep_e), ("steps", steps, keep_s)):
+        missing = [c for c in cols if c not in table.columns]
+        if missing:
+            raise ValueError(f"{run_dir}: the {name} table has no column(s) {missing} to hash")
     steps = steps.sort_values([*EPISODE_KEY, "inference_index"])
     by_episode = {k: g for k, g in steps.groupby(list(EPISODE_KEY), sort=False)}
     out = {}

@@ -28,12 +28,25 @@ def _steps(run_dir: Path) -> pd.DataFrame:
 
 @pytest.mark.slow
 def test_inline_and_ray_give_identical_tables(tmp_path, ray_local) -> None:
+    """The Ray actors run under the portable numerics pins where the CPU allows them (the
+    cross-machine digest test asserts them only on the machines its reference lists): the
+    rows say so, and the fake's tables are those of the inline run."""
+    from workers.hardware import PORTABLE_ISA, check_portable_cpu
+
+    portable = check_portable_cpu() is None
     inline = load_config(CONF / "smoke.yaml", ["executor.kind=inline", "tracking.enabled=false"])
-    ray_cfg = load_config(CONF / "smoke.yaml", ["executor.kind=ray", "tracking.enabled=false"])
+    ray_cfg = load_config(
+        CONF / "smoke.yaml",
+        ["executor.kind=ray", "tracking.enabled=false"]
+        + (["executor.numerics_mode=portable"] if portable else []),
+    )
     s1 = execute(plan_run(inline, tmp_path / "inline"))
     s2 = execute(plan_run(ray_cfg, tmp_path / "ray"))
     assert s1.stored == s2.stored == 12 and s1.errors == s2.errors == 0
     a, b = _episodes(tmp_path / "inline"), _episodes(tmp_path / "ray")
+    if portable:
+        assert set(b.pop("hardware")) == {f"portable {PORTABLE_ISA}"}
+        assert set(a.pop("hardware")) != {f"portable {PORTABLE_ISA}"}  # inline: the host's
     pd.testing.assert_frame_equal(a, b)
     pd.testing.assert_frame_equal(_steps(tmp_path / "inline"), _steps(tmp_path / "ray"))
     assert len(s2.workers) == 2  # two actors ran

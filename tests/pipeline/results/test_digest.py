@@ -9,10 +9,16 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+import pytest
 
 from pipeline.execution.runner import execute, plan_run
 from pipeline.planning.config import load_config
-from pipeline.results.digest import episode_hashes, first_difference, run_digest
+from pipeline.results.digest import (
+    episode_hashes,
+    first_difference,
+    hashed_columns,
+    run_digest,
+)
 
 CONF = Path(__file__).resolve().parents[3] / "conf"
 
@@ -48,3 +54,12 @@ def test_hashes_ignore_timing_and_hardware_and_name_the_first_changed_episode(tm
     assert first_difference(c, a) == f"{key}: differs"
     assert sum(c[k] != a[k] for k in a) == 1 and run_digest(c) != run_digest(a)
     assert first_difference({}, a).endswith("missing here")
+
+    # a reference's recorded columns: a change outside them leaves its hashes, one inside not
+    columns = hashed_columns(tmp_path / "a")
+    assert "action_final" in columns["steps"] and "run_id" not in columns["episodes"]
+    older = {**columns, "steps": [n for n in columns["steps"] if n != "action_final"]}
+    assert episode_hashes(tmp_path / "c", older) == episode_hashes(tmp_path / "a", older)
+    assert episode_hashes(tmp_path / "c", columns) == c
+    with pytest.raises(ValueError, match=r"steps table has no column\(s\) \['not_a_column'\]"):
+        episode_hashes(tmp_path / "a", {**columns, "steps": ["not_a_column"]})
