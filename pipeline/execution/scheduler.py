@@ -79,6 +79,7 @@ class Scheduler:
         own = self.writer
         if writer is not None:
             self.writer = writer
+            self._stored_elsewhere += own.stored  # still stored while another writer is busy
         source = iter(specs)
         try:
             while self._fill(source) or self.executor.in_flight():
@@ -88,7 +89,7 @@ class Scheduler:
         finally:
             self.writer.flush()
             if writer is not None:
-                self._stored_elsewhere += writer.stored
+                self._stored_elsewhere += writer.stored - own.stored
                 self.writer = own
             self._sync_stats()
             self._tick()

@@ -146,3 +146,17 @@ def test_names_the_run_lacks_are_refused_before_any_episode(
     with pytest.raises(ConfigError, match=match):
         plan_run(_cfg(f"calibration={block}"), tmp_path / "run")
     assert not list((tmp_path / "run").glob("**/*.parquet"))
+
+
+def test_the_progress_count_runs_on_through_the_held_out_stage(tmp_path, monkeypatch) -> None:
+    """The held-out episodes are stored by a writer of their own: while they run, the run's
+    stored episodes stay counted, so done only grows, and ends at the whole total."""
+    from pipeline.execution.progress import Progress
+
+    seen: list[tuple[int, int]] = []
+    monkeypatch.setattr(Progress, "update", lambda self, done, ok, err: seen.append((done, ok)))
+    cfg = _cfg("env.tasks=[reach]", "calibration={episodes_per_task: 10}")
+    summary = execute(plan_run(cfg, tmp_path / "run"))
+    done = [d for d, _ in seen]
+    assert done == sorted(done) and done[-1] == summary.total == 3 * 2 + 10
+    assert all(ok <= d for d, ok in seen)  # never more successes than episodes shown
