@@ -6,7 +6,8 @@ same sidecar rows (diagnostics, forward rows, executed steps) at every inference
 Here: the methods beside IDR that lerobot's tools run through the policy (temporal ensembling on
 ACT, sample ensembling on Diffusion under DDIM with two observation steps), each with a control
 that the method acted, and E on a base of each sampling family not covered closed loop
-elsewhere (SmolVLA: shared noise; X-VLA: a seeded RNG). ACT (deterministic) and Diffusion
+elsewhere (SmolVLA: shared noise; X-VLA: a seeded RNG), and image guidance (cfg, two of the
+three passes) on the seeded base. ACT (deterministic) and Diffusion
 (shared noise) under E: ``tests/workers/envs/test_lerobot_env_parity.py``."""
 
 from __future__ import annotations
@@ -123,3 +124,20 @@ def test_E_on_each_sampling_family_is_the_harness_cell_in_lerobot_eval(tmp_path,
         ours = np.float32([getattr(s, key) for s in steps])
         np.testing.assert_array_equal(sidecar[key].to_numpy().astype(np.float32), ours, key)
     assert (sidecar["e_img"] > 0).all() and _acted(steps)  # refined: not a vacuous comparison
+
+
+def test_cfg_on_a_seeded_base_is_the_harness_cell_in_lerobot_eval(tmp_path) -> None:
+    """Image guidance reads the factual and the image-zeroed passes alone. On X-VLA (three
+    forwards under one seed) the plugin still draws each pass's noise as the whole tripled
+    batch would, as the harness does: the same action at every step, the same rows counted."""
+    from training.toy_checkpoints import build_local_tokenizer
+    from training.toy_xvla_checkpoint import build_xvla
+
+    tok = build_local_tokenizer(tmp_path / "tok", ["push the t"])
+    ckpt = build_xvla(tmp_path / "xvla", tok, image=96, state=2, action=2, cams=("image!",))
+    steps, sidecar = _both_sides(
+        tmp_path, ckpt, {"mode": "cfg", "tau": 1e9}, replan=4, env_own_processors=True
+    )
+    assert len(steps) == len(sidecar) == STEPS // 4
+    assert sidecar["pass_rows"].tolist() == [s.pass_rows for s in steps]
+    assert _acted(steps)  # guided: not the base's own chunk
