@@ -16,6 +16,8 @@ from __future__ import annotations
 import os
 import platform
 import re
+from collections.abc import Iterator
+from contextlib import contextmanager
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -182,6 +184,23 @@ def apply_numerics_env(env: dict[str, str]) -> None:
     at their first kernel, llvmpipe its vector width at its first context: call this before the
     process computes or renders anything (an actor's first act)."""
     os.environ.update(env)
+
+
+@contextmanager
+def numerics_env_for_now(env: dict[str, str]) -> Iterator[None]:
+    """``env`` set in this process inside the block, the earlier values back after it: a
+    record taken as another process will see it, leaving this one's environment (and that of
+    the processes it starts later) as it was."""
+    before = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    try:
+        yield
+    finally:
+        for k, v in before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 def cpu_flags() -> set[str]:

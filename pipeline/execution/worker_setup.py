@@ -29,12 +29,24 @@ def host_hardware(cfg: RunConfig) -> dict[str, object] | None:
     if cfg.executor.kind == "ray" and cfg.executor.address:
         return None
     device = cfg.backbone.params.get("device") if cfg.backbone.kind != "remote" else None
-    from workers.hardware import apply_numerics_env, hardware_record, renderer_in_child
+    from workers.hardware import (
+        apply_numerics_env,
+        hardware_record,
+        numerics_env_for_now,
+        renderer_in_child,
+    )
 
-    # the actors set the mode's pins first thing; the record is taken as they will see it (and
-    # an inline executor's actor is this process)
-    apply_numerics_env(numerics_env(cfg.executor.numerics_mode))
-    record = hardware_record(device)
+    # the actors set the mode's pins first thing; the record is taken as they will see it. An
+    # inline executor's actor is this process, so the pins stay; Ray's actors are processes of
+    # their own, and this one (a test session, a notebook) and what it starts later keep their
+    # environment
+    pins = numerics_env(cfg.executor.numerics_mode)
+    if cfg.executor.kind == "inline":
+        apply_numerics_env(pins)
+        record = hardware_record(device)
+    else:
+        with numerics_env_for_now(pins):
+            record = hardware_record(device)
     record["renderer"] = renderer_in_child()
     return record
 

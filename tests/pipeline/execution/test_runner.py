@@ -31,9 +31,12 @@ def test_inline_and_ray_give_identical_tables(tmp_path, ray_local) -> None:
     """The Ray actors run under the portable numerics pins where the CPU allows them (the
     cross-machine digest test asserts them only on the machines its reference lists): the
     rows say so, and the fake's tables are those of the inline run."""
-    from workers.hardware import PORTABLE_ISA, check_portable_cpu
+    import os
+
+    from workers.hardware import PORTABLE_ENV, PORTABLE_ISA, check_portable_cpu
 
     portable = check_portable_cpu() is None
+    environ = {k: os.environ.get(k) for k in PORTABLE_ENV}
     inline = load_config(CONF / "smoke.yaml", ["executor.kind=inline", "tracking.enabled=false"])
     ray_cfg = load_config(
         CONF / "smoke.yaml",
@@ -47,6 +50,9 @@ def test_inline_and_ray_give_identical_tables(tmp_path, ray_local) -> None:
     if portable:
         assert set(b.pop("hardware")) == {f"portable {PORTABLE_ISA}"}
         assert set(a.pop("hardware")) != {f"portable {PORTABLE_ISA}"}  # inline: the host's
+        # the actors set the pins in their own processes: this one, and what it starts later
+        # (another test's drivers), keep their environment
+        assert {k: os.environ.get(k) for k in PORTABLE_ENV} == environ
     pd.testing.assert_frame_equal(a, b)
     pd.testing.assert_frame_equal(_steps(tmp_path / "inline"), _steps(tmp_path / "ray"))
     assert len(s2.workers) == 2  # two actors ran
