@@ -98,10 +98,12 @@ class Progress:
         seconds = self.eta.seconds()
         return "eta: after the first episode" if seconds is None else f"eta {_clock(seconds)}"
 
-    def update(self, done: int, successes: int, errors: int) -> None:
-        info = (
-            f"success {successes}/{max(done - errors, 0)}  errors {errors}  {self._eta_text(done)}"
-        )
+    def update(self, done: int, successes: int, errors: int, skipped: int = 0) -> None:
+        """``done`` counts the episodes an earlier run stored (``skipped``, on resume); the
+        success rate is over the episodes this run finished, whose successes it counted."""
+        finished = max(done - skipped - errors, 0)
+        resumed = f"  ({skipped} stored before)" if skipped else ""
+        info = f"success {successes}/{finished}  errors {errors}{resumed}  {self._eta_text(done)}"
         if self._bar is not None:
             self._bar.update(self._task, completed=done, info=info)
             return

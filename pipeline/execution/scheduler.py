@@ -181,4 +181,4 @@ class Scheduler:
         if self.progress is not None:
             s = self.summary
             done = s.skipped + self.writer.stored + self._stored_elsewhere + self.writer.buffered
-            self.progress.update(done, s.successes, s.errors)
+            self.progress.update(done, s.successes, s.errors, s.skipped)

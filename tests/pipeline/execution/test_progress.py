@@ -48,3 +48,14 @@ def test_log_lines_say_when_there_is_no_eta_and_end_once(caplog) -> None:
     assert lines[0].endswith("eta: after the first episode")
     assert [line for line in lines if line.startswith("episodes 3/3")] == [lines[-1]]
     assert "nan" not in " ".join(lines)
+
+
+def test_a_resumed_run_rates_success_over_the_episodes_it_finished(caplog) -> None:
+    """Episodes an earlier run stored count towards done, not towards the success rate: their
+    successes were not counted here."""
+    caplog.set_level(logging.INFO, logger="idr_eval.progress")
+    p = Progress(10, {"t": 10}, slots=1)
+    p.eta.finished("t", 2.0)
+    p.update(10, 3, 1, skipped=6)
+    (line,) = [r.getMessage() for r in caplog.records]
+    assert "success 3/3  errors 1  (6 stored before)" in line

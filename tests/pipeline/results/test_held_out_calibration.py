@@ -154,7 +154,7 @@ def test_the_progress_count_runs_on_through_the_held_out_stage(tmp_path, monkeyp
     from pipeline.execution.progress import Progress
 
     seen: list[tuple[int, int]] = []
-    monkeypatch.setattr(Progress, "update", lambda self, done, ok, err: seen.append((done, ok)))
+    monkeypatch.setattr(Progress, "update", lambda self, done, ok, *_: seen.append((done, ok)))
     cfg = _cfg("env.tasks=[reach]", "calibration={episodes_per_task: 10}")
     summary = execute(plan_run(cfg, tmp_path / "run"))
     done = [d for d, _ in seen]
