@@ -86,7 +86,7 @@ def main() -> None:
             "native": run(t / "n", "native", args.episodes),
         }
         # a kept reference is compared over the columns it hashed, a new one records its own
-        columns = old["columns"] if keep else hashed_columns(t / "p1")
+        columns = old["columns"] if keep else hashed_columns()
         p1, p2, n = (episode_hashes(t / d, columns) for d in ("p1", "p2", "n"))
     same_native = sum(p1[k] == n.get(k) for k in p1)
     reference = old["hashes"] if keep else p1

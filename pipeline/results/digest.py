@@ -16,7 +16,7 @@ from typing import Any
 
 import pandas as pd
 
-from pipeline.results.store import RunStore
+from pipeline.results.store import EPISODE_SCHEMA, STEP_SCHEMA, RunStore
 
 #: columns that differ between two executions of the same plan by design, or name the machine
 EXCLUDED = frozenset(
@@ -55,14 +55,13 @@ def _row_hash(row: dict[str, Any]) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def hashed_columns(run_dir: str | Path) -> dict[str, list[str]]:
-    """The columns ``episode_hashes`` covers in ``run_dir`` by default: every column of each
-    table but the excluded ones. A reference records them, so that a column added to the
-    schema later does not change what its hashes compare."""
-    store = RunStore(Path(run_dir), read_only=True)
+def hashed_columns() -> dict[str, list[str]]:
+    """The columns ``episode_hashes`` covers by default: every column of the tables' schemas
+    (a run dir is always read under them) but the excluded ones. A reference records them, so
+    that a column added to the schema later does not change what its hashes compare."""
     return {
-        "episodes": [c for c in store.episodes().schema.names if c not in EXCLUDED],
-        "steps": [c for c in store.steps().schema.names if c not in EXCLUDED],
+        "episodes": [c for c in EPISODE_SCHEMA.names if c not in EXCLUDED],
+        "steps": [c for c in STEP_SCHEMA.names if c not in EXCLUDED],
     }
 
 
@@ -75,7 +74,7 @@ def episode_hashes(
     store = RunStore(Path(run_dir), read_only=True)
     episodes = store.episodes().to_pandas()
     steps = store.steps().to_pandas()
-    keep = columns or hashed_columns(run_dir)
+    keep = columns or hashed_columns()
     keep_e, keep_s = list(keep["episodes"]), list(keep["steps"])
     for name, table, cols in (("episodes", episodes, keep_e), ("steps", steps, keep_s)):
         missing = [c for c in cols if c not in table.columns]

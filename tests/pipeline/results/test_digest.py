@@ -56,7 +56,7 @@ def test_hashes_ignore_timing_and_hardware_and_name_the_first_changed_episode(tm
     assert first_difference({}, a).endswith("missing here")
 
     # a reference's recorded columns: a change outside them leaves its hashes, one inside not
-    columns = hashed_columns(tmp_path / "a")
+    columns = hashed_columns()
     assert "action_final" in columns["steps"] and "run_id" not in columns["episodes"]
     older = {**columns, "steps": [n for n in columns["steps"] if n != "action_final"]}
     assert episode_hashes(tmp_path / "c", older) == episode_hashes(tmp_path / "a", older)
