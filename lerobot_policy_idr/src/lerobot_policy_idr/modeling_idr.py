@@ -35,7 +35,7 @@ from idr_core.methods import combine, method_of, passes, sample_seeds
 from idr_core.refiner import clip_into, refine
 from idr_core.sampling import crn_mode, noise_shape
 from idr_core.sidecar import SidecarWriter
-from idr_core.three_pass import repeat3, split3
+from idr_core.three_pass import split3
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.policies.factory import get_policy_class
 from lerobot.policies.pretrained import PreTrainedPolicy
@@ -217,10 +217,8 @@ class IDRPolicy(PreTrainedPolicy):
             read = {key: _rows_of(v, 0, b, key, count=k) for key, v in batch.items()}
             if noise is None:
                 out = self._predict(read)
-            else:
-                out = self._predict(
-                    read, noise=repeat3(noise) if k == 3 else torch.cat([noise] * k)
-                )
+            else:  # one draw, shared by the thirds read
+                out = self._predict(read, noise=torch.cat([noise] * k))
         if weights_version(self.base) != version:
             raise IDRConfigError(
                 f"the base policy (type {self.base.config.type!r}) changed its own weights during "
