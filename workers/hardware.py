@@ -107,16 +107,7 @@ def hardware_record(device: str | None = None, render_backend: str | None = None
         **_torch_build(),
         "torch_threads": torch.get_num_threads(),
         # the switches that pin torch / MKL / oneDNN to an instruction set, where set
-        "isa_pins": {
-            k: os.environ[k]
-            for k in (
-                "ATEN_CPU_CAPABILITY",
-                "MKL_CBWR",
-                "ONEDNN_MAX_CPU_ISA",
-                "LP_NATIVE_VECTOR_WIDTH",
-            )
-            if k in os.environ
-        },
+        "isa_pins": {k: os.environ[k] for k in PINS if k in os.environ},
     }
     # the installed version, read without importing MuJoCo (a process imports it only once its
     # rendering backend is chosen: workers.rendering)
