@@ -27,6 +27,8 @@ STEPS = 50
 #: ALOHA renders 480x640 and its ACT reads that image: 20 steps (4 inferences) an episode keep
 #: the comparison bit for bit at two fifths of the cost
 ALOHA_STEPS = 20
+#: MetaWorld renders 480 px frames (OSMesa) for both sides: 30 steps (8 inferences) an episode
+METAWORLD_STEPS = 30
 EPISODES = 2
 SEED = 5
 
@@ -159,8 +161,8 @@ def test_a_zoo_checkpoint_trained_at_96px_gives_lerobot_evals_metaworld_episodes
     pre-flight lets the size through because the policy resizes.
 
     MetaWorld's episode budget is its env's 500 steps, not the config's episode_length: both
-    sides are cut to STEPS here (ours by env.params.max_steps, lerobot-eval's rollout by the
-    budget it reads). Both sides' MuJoCo GL objects are freed under their own contexts
+    sides are cut to METAWORLD_STEPS here (ours by env.params.max_steps, lerobot-eval's rollout
+    by the budget it reads). Both sides' MuJoCo GL objects are freed under their own contexts
     (workers.rendering.release_gl_context): one left to the collector can delete the other
     side's framebuffer mid-episode (black frames from then on)."""
     from lerobot.envs.configs import MetaworldEnv
@@ -171,11 +173,10 @@ def test_a_zoo_checkpoint_trained_at_96px_gives_lerobot_evals_metaworld_episodes
     configure_rendering()
     ckpt = ROOT / "checkpoints" / "zoo" / "metaworld" / "tiny_vla"
     task = "button-press-v3"
-    ours, rows = _our_episodes(
-        ckpt, tmp_path, {"type": "metaworld", "task": task, "max_steps": STEPS}, replan=4
-    )
+    env = {"type": "metaworld", "task": task, "max_steps": METAWORLD_STEPS}
+    ours, rows = _our_episodes(ckpt, tmp_path, env, replan=4)
     theirs, info = lerobot_eval_env(
-        MetaworldEnv(task=task), ckpt, episodes=EPISODES, seed=SEED, max_steps=STEPS
+        MetaworldEnv(task=task), ckpt, episodes=EPISODES, seed=SEED, max_steps=METAWORLD_STEPS
     )
     _assert_same_episodes(theirs, info, ours, rows)
 
