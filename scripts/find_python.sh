@@ -33,10 +33,8 @@ pinned_venv() {
         || die "$venv is not Python $version: remove it and run again"
     log "installing the pinned wheels ($what; about a minute)"
     "$venv/bin/python" -m pip install -q --disable-pip-version-check -r "$lock"
-    if [ "${IDR_COMPILE_BYTECODE:-0}" = 1 ]; then  # as in setup.sh: else written on first import
-        local site
-        site=$("$venv/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
-        "$venv/bin/python" -m compileall -q -j 0 "$site" >/dev/null 2>&1 || true
-    fi
+    local site
+    site=$("$venv/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
+    "$venv/bin/python" -m compileall -q -j 0 -x '/tests/' "$site" >/dev/null 2>&1 || true
     echo "$want" > "$venv/.idr-setup-stamp"
 }
