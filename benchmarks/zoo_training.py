@@ -2,7 +2,7 @@
 ``python -m training.zoo train ... --eval-every N``) gathered into one results file and a figure.
 
     python benchmarks/zoo_training.py --run data/zoo/runs/metaworld/tiny_vla_seed1 [--run ...] \
-        [--final tiny_vla] [--out PATH] [--figure PATH] [--dry]
+        [--final tiny_vla] [--out PATH] [--figure PATH] [--dry] [--merge]
 
 Per member@seed: every evaluated step with its open-loop R_img (95% interval, episodes
 resampled), and where the closed-loop diagnose cell ran its success k/n with the Wilson 95%
@@ -12,7 +12,9 @@ record (its config, ``zoo_sessions.jsonl``) and this machine. ``--final MEMBER``
 checkpoint's figures on the same frames (``reliance_<benchmark>.json``, ``zoo_<benchmark>.json``)
 as a point of comparison. Writes ``benchmarks/results/zoo_training_<benchmark>.json`` and
 ``docs/img/zoo_training_<benchmark>.png``; ``--dry`` (a look at a training under way) writes to
-a new temporary folder unless ``--out`` / ``--figure`` name paths.
+a new temporary folder unless ``--out`` / ``--figure`` name paths. ``--merge`` keeps the
+member@seed runs and finals the file already holds (their run folders need not be on this
+machine) and replaces those given; each run names the machine its evaluator ran on.
 """
 
 from __future__ import annotations
@@ -190,17 +192,32 @@ def shipped_final(member: str, benchmark: str, results: Path = RESULTS) -> tuple
     }  # fmt: skip
 
 
-def collect(runs: list[Path], finals: list[str], benchmark: str, command: str) -> Entry:
-    """The results file's content."""
+def collect(
+    runs: list[Path], finals: list[str], benchmark: str, command: str, kept: Entry | None = None
+) -> Entry:
+    """The results file's content; ``kept``: a results file whose other runs and finals stay
+    (``--merge``), each run with the machine and command it was gathered with."""
     from workers.hardware import machine_record
 
+    here = machine_record()
+    new = {
+        key: {**entry, "machine": here, "command": command} for key, entry in map(read_run, runs)
+    }
+    old = {
+        key: {"machine": kept.get("machine"), "command": kept.get("command"), **entry}
+        for key, entry in (kept or {}).get("runs", {}).items()
+        if key not in new
+    }
     return {
         "benchmark": benchmark,
-        "machine": machine_record(),
+        "machine": here,
         "date": date.today().isoformat(),
         "command": command,
-        "runs": dict(read_run(r) for r in runs),
-        "finals": dict(shipped_final(m, benchmark) for m in finals),
+        "runs": {**old, **new},
+        "finals": {
+            **(kept or {}).get("finals", {}),
+            **dict(shipped_final(m, benchmark) for m in finals),
+        },
     }
 
 
@@ -266,6 +283,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--figure", type=Path, default=None)
     ap.add_argument("--dry", action="store_true", help="write to a temporary folder")
+    ap.add_argument(
+        "--merge", action="store_true", help="keep the runs the results file holds under other keys"
+    )
     args = ap.parse_args(argv)
     committed = RESULTS / f"zoo_training_{args.benchmark}.json"
     out = results_path(committed, args.out, "--dry" if args.dry else None)
@@ -279,7 +299,10 @@ def main(argv: list[str] | None = None) -> int:
          *(f"--final {m}" for m in args.final)]
         + ([] if args.benchmark == "metaworld" else [f"--benchmark {args.benchmark}"])
     )  # fmt: skip
-    data = collect(args.run, args.final, args.benchmark, command)
+    kept = json.loads(out.read_text()) if args.merge and out.exists() else None
+    data = collect(
+        args.run, args.final, args.benchmark, command + (" --merge" if kept else ""), kept
+    )
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(data, indent=2, allow_nan=False) + "\n")
     draw(data, figure)

@@ -195,7 +195,8 @@ def _training_run(r: Mapping[str, Any]) -> list[str]:
             f"episodes (`{s.get('frames')}`), the closed-loop diagnose cell every {closed} steps "
             f"with {s.get('closed_loop_episodes')} episodes per task"
         )
-    head += f"; closed loop at {r['closed_loop_steps']} of {len(r['steps'])} evaluated steps."
+    head += f"; closed loop at {r['closed_loop_steps']} of {len(r['steps'])} evaluated steps"
+    head += f" (evaluated on {m})." if (m := machine(r)) else "."
 
     def cell(step: Mapping[str, Any], part: str, text: str) -> str:
         return "error" if text == "–" and part in step["ran"] else text
@@ -241,8 +242,8 @@ def zoo_training_metaworld(d: Data) -> str:
                    "closed-loop R_img [95% CI]", "measured on"], rows),
         ]  # fmt: skip
     note = (
-        "the evaluator ran beside training on the machine named here; its CPU seconds are its own "
-        f"and its children's; command: `{d['command']}`"
+        "the evaluator ran beside training, on the machine each run names (else the one named "
+        f"here); its CPU seconds are its own and its children's; command: `{d['command']}`"
     )
     return block(*parts, source("zoo_training_metaworld", d, note))
 

@@ -163,3 +163,36 @@ def test_a_shipped_final_comes_from_its_committed_results() -> None:
         assert lo <= final[part][value] <= hi
     with pytest.raises(SystemExit, match="--final no_such_member"):
         zoo_training.shipped_final("no_such_member", "metaworld")
+
+
+def test_merge_keeps_the_runs_held_and_replaces_those_given(tmp_path: Path) -> None:
+    """A member trained on another machine joins the file: the runs it held stay with the
+    machine and command they were gathered with; a run given again is replaced."""
+    out, figure = tmp_path / "zoo_training_metaworld.json", tmp_path / "fig.png"
+    held = zoo_training.collect(
+        [_run(tmp_path / "a", "tiny_vla_seed1", [_ok(500, 0.1, 0.5)]),
+         _run(tmp_path / "a", "tiny_vla_seed2", [_ok(500, 0.2, 0.4)])],
+        [], "metaworld", "python benchmarks/zoo_training.py --run A",
+    )  # fmt: skip
+    for entry in held["runs"].values():  # a file written before runs named their machine
+        del entry["machine"], entry["command"]
+    held["machine"] = {"cpu_model": "Elsewhere CPU", "cpu_capability": "AVX512"}
+    out.write_text(json.dumps(held))
+    act = _run(tmp_path / "b", "act_seed0", [_ok(400, 0.3, 0.7)])
+    again = _run(tmp_path / "b", "tiny_vla_seed2", [_ok(500, 0.25, 0.45), _ok(1000, 0.3)])
+    args = ["--run", str(act), "--run", str(again), "--out", str(out), "--figure", str(figure)]
+    assert zoo_training.main([*args, "--merge"]) == 0
+    merged = json.loads(out.read_text())
+    assert sorted(merged["runs"]) == ["act@seed0", "tiny_vla@seed1", "tiny_vla@seed2"]
+    kept = merged["runs"]["tiny_vla@seed1"]
+    assert kept["machine"]["cpu_model"] == "Elsewhere CPU" and kept["command"].endswith("--run A")
+    assert [s["step"] for s in merged["runs"]["tiny_vla@seed2"]["steps"]] == [500, 1000]
+    assert merged["runs"]["act@seed0"]["machine"] == merged["machine"] != held["machine"]
+    assert merged["command"].endswith("--merge")
+    rendered = load_script(ROOT / "docs" / "hooks" / "results_tables.py").RENDERERS[
+        "zoo_training_metaworld"
+    ](merged)
+    assert "evaluated on Elsewhere CPU" in rendered and "**act, seed 0**" in rendered
+    # without --merge the file holds the runs given, only
+    assert zoo_training.main(args) == 0
+    assert sorted(json.loads(out.read_text())["runs"]) == ["act@seed0", "tiny_vla@seed2"]

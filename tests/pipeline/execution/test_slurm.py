@@ -290,7 +290,7 @@ def test_a_default_slice_runs_under_slurm(slurm, tmp_path) -> None:
     out = tmp_path / "runs" / "default"
     log = tmp_path / "job.out"
     job = slurm.sbatch(
-        "--nodes=2",
+        "--nodes=1",  # the grid test above runs on two nodes
         "--cpus-per-task=2",
         f"--output={log}",
         str(SBATCH),
@@ -298,7 +298,7 @@ def test_a_default_slice_runs_under_slurm(slurm, tmp_path) -> None:
         str(out),
         "env.tasks=[pick_color]",
         "episodes_per_task=1",
-        "executor.workers=1",  # one actor: the grid test above places one on each node
+        "executor.workers=1",
         cwd=ROOT,
     )
     info = slurm.wait_job(job, {"COMPLETED", "FAILED"}, 400)

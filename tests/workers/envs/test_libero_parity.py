@@ -21,7 +21,7 @@ from tests.support.lerobot_eval import lerobot_eval_libero, sim_state
 from training.toy_checkpoints import build_act
 
 SIZE = 64  # the checkpoint declares 64 px; our pre-flight renders at it, lerobot is told it
-STEPS = 40
+STEPS = 25  # five chunks of n_action_steps = 5, two episodes, both sides
 EPISODES = 2
 SEED = 7
 TASK = "libero_spatial/0"
