@@ -14,7 +14,8 @@ as a point of comparison. Writes ``benchmarks/results/zoo_training_<benchmark>.j
 ``docs/img/zoo_training_<benchmark>.png``; ``--dry`` (a look at a training under way) writes to
 a new temporary folder unless ``--out`` / ``--figure`` name paths. ``--merge`` keeps the
 member@seed runs and finals the file already holds (their run folders need not be on this
-machine) and replaces those given; each run names the machine its evaluator ran on.
+machine) and replaces those given; each run names the machine that gathered it (the ledger
+does not record one; the evaluator runs beside training, where the run folder is).
 """
 
 from __future__ import annotations

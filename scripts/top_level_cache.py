@@ -22,18 +22,19 @@ import importlib.metadata as md
 from pathlib import Path
 
 NAME = "top_level.txt"
+#: the standard library's inference (Python 3.10-3.13); None in a Python without it
+_INFER = getattr(md, "_top_level_inferred", None)
 
 
 def inferred(dist: md.Distribution) -> list[str]:
     """The top-level names the standard library infers for ``dist`` (sorted)."""
-    infer = getattr(md, "_top_level_inferred", None)
-    return sorted(infer(dist)) if infer is not None else []
+    return sorted(_INFER(dist)) if _INFER is not None else []
 
 
 def write_missing(dists: list[md.Distribution] | None = None) -> int:
     """Writes ``top_level.txt`` for each distribution (default: all installed) that lacks one
     and has a writable ``.dist-info`` folder with a RECORD; the number written."""
-    if getattr(md, "_top_level_inferred", None) is None:
+    if _INFER is None:
         return 0  # another Python's importlib.metadata: nothing known to be equal to write
     written = 0
     for dist in md.distributions() if dists is None else dists:

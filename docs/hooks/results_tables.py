@@ -196,7 +196,7 @@ def _training_run(r: Mapping[str, Any]) -> list[str]:
             f"with {s.get('closed_loop_episodes')} episodes per task"
         )
     head += f"; closed loop at {r['closed_loop_steps']} of {len(r['steps'])} evaluated steps"
-    head += f" (evaluated on {m})." if (m := machine(r)) else "."
+    head += f" (gathered on {m}, where its run folder was)." if (m := machine(r)) else "."
 
     def cell(step: Mapping[str, Any], part: str, text: str) -> str:
         return "error" if text == "–" and part in step["ran"] else text
@@ -242,8 +242,9 @@ def zoo_training_metaworld(d: Data) -> str:
                    "closed-loop R_img [95% CI]", "measured on"], rows),
         ]  # fmt: skip
     note = (
-        "the evaluator ran beside training, on the machine each run names (else the one named "
-        f"here); its CPU seconds are its own and its children's; command: `{d['command']}`"
+        "the evaluator ran beside training, on the machine that gathered its run (each run names "
+        f"it; else the one named here); its CPU seconds are its own and its children's; command: "
+        f"`{d['command']}`"
     )
     return block(*parts, source("zoo_training_metaworld", d, note))
 

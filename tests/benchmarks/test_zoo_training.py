@@ -192,7 +192,7 @@ def test_merge_keeps_the_runs_held_and_replaces_those_given(tmp_path: Path) -> N
     rendered = load_script(ROOT / "docs" / "hooks" / "results_tables.py").RENDERERS[
         "zoo_training_metaworld"
     ](merged)
-    assert "evaluated on Elsewhere CPU" in rendered and "**act, seed 0**" in rendered
+    assert "gathered on Elsewhere CPU" in rendered and "**act, seed 0**" in rendered
     # without --merge the file holds the runs given, only
     assert zoo_training.main(args) == 0
     assert sorted(json.loads(out.read_text())["runs"]) == ["act@seed0", "tiny_vla@seed2"]

@@ -4,9 +4,9 @@ listed as holding, over the columns the reference hashed (a column added to the 
 does not void it). The test runs the reference's diagnose cell on two of its tasks (its
 episodes' seeds depend on the task and episode index only, so they are the reference's own
 episodes): the tiny VLA's three forwards per inference, on a plain and a shifted camera; the
-whole slice is ``bench_portable.py --reference``'s. On a machine not listed as holding it cannot fail, so it skips before the
-run and says how to check that machine: ``python benchmarks/bench_portable.py --reference``
-(the docs render the list)."""
+whole slice is ``bench_portable.py --reference``'s. On a machine not listed as holding it
+cannot fail, so it skips before the run and says how to check that machine:
+``python benchmarks/bench_portable.py --reference`` (the docs render the list)."""
 
 from __future__ import annotations
 
