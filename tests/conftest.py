@@ -8,6 +8,12 @@ import pytest
 
 os.environ.setdefault("RAY_DEDUP_LOGS", "1")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")  # nothing may download at run time
+# One OpenMP thread per process, as Ray gives its actors: the two xdist workers already keep
+# both cores busy, and a torch process with two OpenMP threads then waits at every parallel op
+# for a core the other worker holds (measured on the 2-core AMD EPYC, the other core busy: a toy
+# pi0 forward 3.8 s with two threads, 0.035 s with one). Set before torch loads (libgomp reads it
+# then); the processes the tests start (lerobot-train, lerobot-eval, the CLI) inherit it.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 # MuJoCo reads its GL backend once, at its first import: choose it before any test module (or a
 # library one imports) can import mujoco, so which tests share a worker never decides it
